@@ -1,0 +1,1 @@
+"""sync4d.io: see the modules in this package."""

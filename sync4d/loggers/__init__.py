@@ -1,0 +1,1 @@
+"""sync4d.loggers: see the modules in this package."""

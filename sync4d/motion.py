@@ -1,0 +1,117 @@
+"""From the reference's bone motion to the target's driving motion (paper Sec. 3.3-3.4).
+
+Coverage ratio. The paper scales reference displacements by s_t / s_o, "the coverage ratio for target
+space and reference space". We define the coverage s of a shape as the RMS distance of its surface
+from its centroid, measured on area-weighted surface samples (or on its points when it has no faces):
+
+    s = sqrt(mean_i |p_i - mean(p)|^2)
+
+It is invariant to rotation and translation and exactly proportional to a uniform scale, so a scaled
+copy of the reference (target = k * reference) gets s_t / s_o = k and exactly k-scaled motion. Sampling
+the surface by area (rather than taking mesh vertices) keeps it independent of how finely either mesh is
+tessellated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sync4d.types import DrivingMotion, Reference
+
+
+def surface_samples(points: np.ndarray, faces: np.ndarray | None, *, count: int = 20000, seed: int = 0) -> np.ndarray:
+    """(count, 3) area-weighted samples of a triangle surface, or ``points`` themselves without faces."""
+    points = np.asarray(points, dtype=np.float64)
+    if faces is None or len(faces) == 0:
+        return points
+    tri = points[faces]
+    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if areas.sum() <= 0:
+        return points
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(faces), size=count, p=areas / areas.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    return np.einsum("nk,nki->ni", bary, tri[face])
+
+
+def coverage(points: np.ndarray, faces: np.ndarray | None = None) -> float:
+    """Coverage s of a shape: RMS distance of its (area-sampled) surface from its centroid [m]."""
+    samples = surface_samples(points, faces)
+    return float(np.sqrt(((samples - samples.mean(axis=0)) ** 2).sum(axis=1).mean()))
+
+
+def similarity_matrix(scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """(4, 4) x -> scale * R x + t."""
+    out = np.eye(4)
+    out[:3, :3] = scale * rotation
+    out[:3, 3] = translation
+    return out
+
+
+def conjugate(transforms: np.ndarray, similarity: np.ndarray) -> np.ndarray:
+    """S T S^-1 for every (..., 4, 4) rigid T: the same rigid motion seen in the target's space.
+
+    With S = [sR | t] the rotation part becomes R Q R^T and translations are scaled by s, so the result
+    stays rigid.
+    """
+    return similarity @ transforms @ np.linalg.inv(similarity)
+
+
+def driving_motion(
+    reference: Reference,
+    *,
+    target_points: np.ndarray,
+    target_faces: np.ndarray | None,
+    num_frames: int,
+    loop: bool = True,
+    rotation: np.ndarray | None = None,
+) -> DrivingMotion:
+    """Express the reference's part motion in the target's space.
+
+    Args:
+        reference: the reconstructed reference.
+        target_points, target_faces: the target's surface (or its Gaussian means and None) [m].
+        num_frames: output length T; the reference is looped (``loop``) or truncated/held.
+        rotation: (3, 3) rotation taking the reference's frame to the target's (from alignment); None
+            for identity (both shapes given in the same upright frame).
+
+    Returns:
+        A validated :class:`DrivingMotion` whose displacements are (s_t / s_o) R (b_{t+1} - b_t).
+    """
+    s_ref = coverage(reference.rest_vertices, reference.rest_faces)
+    s_tgt = coverage(target_points, target_faces)
+    ratio = s_tgt / s_ref
+    rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    ref_center = surface_samples(reference.rest_vertices, reference.rest_faces).mean(axis=0)
+    tgt_center = surface_samples(target_points, target_faces).mean(axis=0)
+    sim = similarity_matrix(ratio, rot, tgt_center - ratio * rot @ ref_center)
+
+    frame_index = frame_indices(reference.num_frames, num_frames, loop=loop)
+    bones = conjugate(reference.bone_transforms[frame_index], sim)
+    # The global transform moves the whole object; in target space its translation scales like the rest.
+    glob = conjugate(reference.global_transforms[frame_index], sim)
+    centers_ref = reference.bone_centers_at()[frame_index]  # (T, B, 3)
+    if loop and reference.num_frames < num_frames:
+        # Displacements across a loop seam would jump back to frame 0; use the motion's own steps instead.
+        steps = np.diff(reference.bone_centers_at(), axis=0)
+        wrap = reference.bone_centers_at()[0] - reference.bone_centers_at()[-1]
+        cyc = np.concatenate([steps, wrap[None]])
+        disp_ref = cyc[frame_index[:-1] % reference.num_frames]
+    else:
+        disp_ref = np.diff(centers_ref, axis=0)
+    displacements = ratio * np.einsum("ij,tbj->tbi", rot, disp_ref)
+    return DrivingMotion(
+        part_transforms=bones,
+        part_displacements=displacements,
+        global_transforms=glob,
+        coverage_ratio=float(ratio),
+        fps=reference.fps,
+    ).validate()
+
+
+def frame_indices(reference_frames: int, num_frames: int, *, loop: bool) -> np.ndarray:
+    """(num_frames,) which reference frame each output frame uses: looped, or held at the last frame."""
+    t = np.arange(num_frames)
+    return t % reference_frames if loop else np.minimum(t, reference_frames - 1)

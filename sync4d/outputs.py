@@ -1,0 +1,215 @@
+"""Everything a run writes as it goes: frames, per-frame metrics, checkpoints, and the final files.
+
+Each completed frame is written at once (``frames/%06d.ply``, after the global transform G_t), logged
+to TensorBoard, and checkpointed (``checkpoint.pt``: the simulator's state plus the frames so far), so a
+killed run can resume from its last complete frame. All files are written atomically.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from sync4d import metrics as M
+from sync4d.deform import deform_gaussians
+from sync4d.errors import ConfigError
+from sync4d.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
+from sync4d.io.ply import write_gaussians_ply
+from sync4d.types import DrivingMotion, PartMap, Reference, TargetGaussians, Trajectory
+
+log = logging.getLogger(__name__)
+CHECKPOINT = "checkpoint.pt"
+
+
+class FrameWriter:
+    """Receives frames from a simulator (``on_frame``) and writes the run's outputs."""
+
+    def __init__(self, run_dir: Path, target: TargetGaussians, motion: DrivingMotion, *, logger: Any = None) -> None:
+        self.run_dir = Path(run_dir)
+        self.target = target
+        self.motion = motion
+        self.logger = logger
+        self.frames_x: list[np.ndarray] = []
+        self.frames_F: list[np.ndarray | None] = []
+        self.frame_stats: list[dict[str, float]] = []
+        self.frame_seconds: list[float] = []
+        self._last = time.perf_counter()
+
+    # ----------------------------------------------------------------------------------------- frames
+    def on_frame(self, t: int, x: np.ndarray, F: np.ndarray | None, stats: dict[str, float],
+                 checkpoint: dict[str, Any] | None = None) -> None:
+        """Write frame ``t``: positions (N, 3) and deformation gradients (N, 3, 3) of every Gaussian."""
+        now = time.perf_counter()
+        seconds = stats.get("time/frame_s", now - self._last)
+        self._last = now
+        if t != len(self.frames_x):
+            raise RuntimeError(f"frames must arrive in order: got {t}, expected {len(self.frames_x)}")
+        self.frames_x.append(np.asarray(x, dtype=np.float64))
+        self.frames_F.append(None if F is None else np.asarray(F, dtype=np.float64))
+        self.frame_stats.append({k: float(v) for k, v in stats.items()})
+        self.frame_seconds.append(float(seconds))
+        moved = deform_gaussians(self.target, x, F, self.motion.global_transforms[t])
+        write_gaussians_ply(self.run_dir / "frames" / f"{t:06d}.ply", moved)
+        if self.logger is not None:
+            for key, value in stats.items():
+                self.logger.scalar(key if "/" in key else f"loss/{key}", value, t)
+        if checkpoint is not None:
+            self.save_checkpoint(t, checkpoint)
+
+    def save_checkpoint(self, t: int, state: dict[str, Any]) -> None:
+        """Atomically store the simulator's state after frame ``t`` and the frames so far."""
+        import torch
+
+        payload = {
+            "frame": t,
+            "sim": state,
+            "frames_x": np.stack(self.frames_x),
+            "frames_F": None if self.frames_F[0] is None else np.stack(self.frames_F),
+            "frame_stats": self.frame_stats,
+            "frame_seconds": self.frame_seconds,
+        }
+        buffer = io.BytesIO()
+        torch.save(payload, buffer)
+        atomic_write_bytes(self.run_dir / CHECKPOINT, buffer.getvalue())
+
+    def resume_state(self, resume: str | None) -> dict[str, Any] | None:
+        """Load ``<resume>/checkpoint.pt`` (if ``resume`` is set) and restore the frames it holds.
+
+        Returns:
+            The simulator's saved state (``sim``) with ``frame`` = the last complete frame, or None.
+        """
+        if not resume:
+            return None
+        import torch
+
+        path = Path(resume) / CHECKPOINT
+        if not path.is_file():
+            raise ConfigError(f"resume={resume}: no {CHECKPOINT} there; pass the folder of an interrupted run")
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+        self.frames_x = list(payload["frames_x"])
+        self.frames_F = [None] * len(self.frames_x) if payload["frames_F"] is None else list(payload["frames_F"])
+        self.frame_stats = list(payload["frame_stats"])
+        self.frame_seconds = list(payload["frame_seconds"])
+        for t, (x, F) in enumerate(zip(self.frames_x, self.frames_F)):
+            moved = deform_gaussians(self.target, x, F, self.motion.global_transforms[t])
+            write_gaussians_ply(self.run_dir / "frames" / f"{t:06d}.ply", moved)
+        log.info("resuming from %s after frame %d", path, payload["frame"])
+        return {**payload["sim"], "frame": int(payload["frame"])}
+
+    # ------------------------------------------------------------------------------------------ final
+    def finish(self, trajectory: Trajectory, *, reference: Reference, part_map: PartMap, cfg: DictConfig,
+               overrides: dict[str, str], wall_seconds: float) -> dict[str, Any]:
+        """Write ``trajectory.npz`` and ``metrics.json``, render videos, export, log hparams.
+
+        The trajectory is rebuilt from the frames this writer received (all of them, including those
+        restored on resume); the simulator's own ``trajectory`` supplies the frame interval and velocities.
+        """
+        full_F = None if self.frames_F[0] is None else np.stack(self.frames_F)
+        trajectory = Trajectory(
+            x=np.stack(self.frames_x), F=full_F, frame_dt=trajectory.frame_dt,
+            v=trajectory.v if trajectory.v is not None and len(trajectory.v) == len(self.frames_x) else None,
+            global_transforms=self.motion.global_transforms[: len(self.frames_x)],
+        ).validate()
+        atomic_save_npz(
+            self.run_dir / "trajectory.npz",
+            x=trajectory.x.astype(np.float32),
+            v=np.zeros(0) if trajectory.v is None else trajectory.v.astype(np.float32),
+            F=np.zeros(0) if trajectory.F is None else trajectory.F.astype(np.float32),
+            global_transforms=self.motion.global_transforms[: trajectory.num_frames],
+            part=part_map.tgt_part,
+            frame_dt=np.float64(trajectory.frame_dt),
+        )
+        result = compute_metrics(
+            trajectory, self.target, part_map, self.motion, reference,
+            self_transfer=bool(cfg.get("self_transfer", False)),
+            frame_seconds=self.frame_seconds,
+        )
+        result["wall_seconds"] = wall_seconds
+        result["status"] = "ok"
+        result["overrides"] = overrides
+        result["frame_stats"] = self.frame_stats
+        atomic_write_json(self.run_dir / "metrics.json", result)
+        if self.logger is not None:
+            for t, row in enumerate(result["per_frame"]):
+                for key, value in row.items():
+                    if value is not None and np.isfinite(value):
+                        self.logger.scalar(f"metric/{key}", value, t)
+            self.logger.hparams(overrides or {"config": cfg.get("name", "run")},
+                                {k: v for k, v in result.items() if isinstance(v, (int, float))})
+        from sync4d.render_outputs import render_run_outputs
+
+        render_run_outputs(self.run_dir, cfg, self.target, trajectory, self.motion, reference, logger=self.logger)
+        log.info("metrics: %s", {k: v for k, v in result.items() if k.endswith(("_pct", "_ratio", "deviation", "per_frame_s"))})
+        return result
+
+
+def compute_metrics(
+    trajectory: Trajectory,
+    target: TargetGaussians,
+    part_map: PartMap,
+    motion: DrivingMotion,
+    reference: Reference,
+    *,
+    self_transfer: bool,
+    frame_seconds: list[float],
+) -> dict[str, Any]:
+    """All metrics of a run, overall and per frame (see :mod:`sync4d.metrics`)."""
+    x = trajectory.x
+    T = len(x)
+    parts, B = part_map.tgt_part, part_map.num_parts
+    diagonal = M.bbox_diagonal(target.means)
+    accumulated = np.concatenate([np.zeros((1, B, 3)), np.cumsum(motion.part_displacements[: T - 1], axis=0)])
+
+    truth = None
+    if self_transfer:
+        # Ground truth: each Gaussian skinned with the weights of its nearest reference rest vertex.
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(reference.rest_vertices).query(x[0])
+        weights = reference.skinning[nearest]
+        truth = [M.skinned_positions(x[0], weights, motion.part_transforms[t] @ np.linalg.inv(motion.part_transforms[0]))
+                 for t in range(T)]
+
+    per_frame = []
+    for t in range(T):
+        row = {
+            "displacement_error_pct": None if t == 0 else M.displacement_error(
+                x[t - 1], x[t], parts, motion.part_displacements[t - 1], diagonal),
+            "drift_pct": M.drift(x[t], x[0], parts, accumulated[t], diagonal),
+            "rigidity_residual_pct": M.rigidity_residual(x[0], x[t], parts, B, diagonal),
+            "det_f_deviation": M.det_f_deviation(None if trajectory.F is None else trajectory.F[t]),
+            "pose_error_pct": None if truth is None else M.pose_error(x[t], truth[t], diagonal),
+            "seconds": frame_seconds[t] if t < len(frame_seconds) else None,
+        }
+        per_frame.append(row)
+
+    def mean(key: str) -> float | None:
+        values = [r[key] for r in per_frame if r[key] is not None]
+        return float(np.mean(values)) if values else None
+
+    ref_seq = np.stack([reference.posed_vertices(t % reference.num_frames) for t in range(T)])
+    return {
+        "pose_error_pct": mean("pose_error_pct"),
+        "pose_error_max_pct": None if truth is None else float(max(r["pose_error_pct"] for r in per_frame)),
+        "displacement_error_pct": mean("displacement_error_pct"),
+        "drift_pct": mean("drift_pct"),
+        "drift_final_pct": per_frame[-1]["drift_pct"],
+        "rigidity_residual_pct": mean("rigidity_residual_pct"),
+        "det_f_deviation": mean("det_f_deviation"),
+        "jitter_ratio": M.jitter_ratio(x, ref_seq, motion.coverage_ratio),
+        "seconds_per_frame": float(np.mean(frame_seconds[1:])) if len(frame_seconds) > 1 else float(np.mean(frame_seconds or [0.0])),
+        "peak_memory_mb": M.peak_memory_mb(),
+        "frames": T,
+        "coverage_ratio": motion.coverage_ratio,
+        "per_frame": per_frame,
+    }
+
+
+def config_dict(cfg: DictConfig) -> dict[str, Any]:
+    return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]

@@ -1,0 +1,256 @@
+"""``run(cfg)``: wires the stages through the registries. No algorithm lives here.
+
+reference -> recon -> target -> features/match -> driving motion -> sim + velocity -> metrics ->
+render/export. Every completed frame is written as it is produced (``frames/%06d.ply``) so an
+interrupted run loses nothing; reconstruction and matching are cached by :mod:`sync4d.cache`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import random
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from sync4d import cache
+from sync4d.errors import Sync4DError
+from sync4d.io.atomic import atomic_write_json
+from sync4d.io.ply import write_gaussians_ply
+from sync4d.registry import available, build
+from sync4d.types import PartMap, Reference, TargetGaussians
+
+log = logging.getLogger("sync4d")
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("torch", "warp-lang", "hydra-core", "omegaconf", "numpy", "trimesh", "scipy")
+
+
+@dataclass
+class RunContext:
+    """What the stages share during one run."""
+
+    cfg: DictConfig
+    run_dir: Path
+    cache_root: Path
+    logger: Any
+
+
+def seed_everything(seed: int) -> None:
+    """Seed python, numpy and torch (the one ``seed`` of the config)."""
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def environment_record(device: str) -> dict[str, Any]:
+    """Git SHA, package versions, python, platform and device, for ``env.json``."""
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10, check=False
+        ).stdout.strip() or None
+        dirty = bool(subprocess.run(
+            ["git", "status", "--porcelain"], cwd=ROOT, capture_output=True, text=True, timeout=10, check=False
+        ).stdout.strip())
+    except OSError:
+        sha, dirty = None, None
+    versions = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return {
+        "git_sha": sha,
+        "git_dirty": dirty,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "device": device,
+        "packages": versions,
+        "argv": sys.argv,
+    }
+
+
+def run_dir_of(cfg: DictConfig) -> Path:
+    """The run folder: Hydra's output dir when under Hydra, else ``cfg.run_dir``."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        return Path(HydraConfig.get().runtime.output_dir)
+    return Path(cfg.get("run_dir") or ROOT / "outputs" / cfg.name / time.strftime("%Y-%m-%d_%H-%M-%S"))
+
+
+def overrides_of(cfg: DictConfig) -> dict[str, str]:
+    """The command-line overrides of this run as a dict (for hparams and reports)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return {}
+    out = {}
+    for item in HydraConfig.get().overrides.task:
+        key, _, value = item.partition("=")
+        out[key.lstrip("+~")] = value
+    return out
+
+
+def _section(cfg: DictConfig, key: str) -> DictConfig:
+    return cfg[key]
+
+
+def stage_reference(ctx: RunContext) -> tuple[Reference, str]:
+    """Load the reference input and reconstruct it (cached). Returns the reference and its cache key."""
+    cfg = ctx.cfg
+    source = build("reference", cfg.reference, device=cfg.device, seed=cfg.seed)
+    recon_cfg = OmegaConf.to_container(cfg.recon, resolve=True)
+    key = cache.stage_key("recon", OmegaConf.to_container(cfg.reference, resolve=True), recon_cfg, cfg.seed)
+
+    def compute() -> Reference:
+        reconstructor = build("recon", cfg.recon, device=cfg.device)
+        started = time.perf_counter()
+        reference = reconstructor.reconstruct(source.load()).validate()
+        log.info("recon=%s: %d bones, %d frames, %d vertices in %.1f s", cfg.recon.type, reference.num_bones,
+                 reference.num_frames, len(reference.rest_vertices), time.perf_counter() - started)
+        return reference
+
+    reference = cache.cached(ctx.cache_root, "recon", key, Reference, compute, enabled=cfg.cache)
+    return reference.validate(), key
+
+
+def stage_target(ctx: RunContext) -> tuple[TargetGaussians, Any]:
+    """Load the target Gaussians; returns them and the source (which may offer a surface mesh)."""
+    source = build("target", ctx.cfg.target, device=ctx.cfg.device, seed=ctx.cfg.seed)
+    target = source.load().validate()
+    log.info("target=%s: %d Gaussians (SH degree %d)", ctx.cfg.target.type, target.num, target.sh_degree)
+    return target, source
+
+
+def target_surface(target: TargetGaussians, source: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """The target's surface mesh when its source has one, else its Gaussian centres (a point cloud)."""
+    surface = source.surface() if hasattr(source, "surface") else None
+    if surface is None:
+        return target.means.astype(np.float64), None
+    return surface
+
+
+def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: TargetGaussians,
+                source: Any) -> PartMap:
+    """Features and part matching (cached)."""
+    from sync4d.match import match_parts
+
+    cfg = ctx.cfg
+    points, faces = target_surface(target, source)
+    key = cache.stage_key(
+        "match", recon_key, OmegaConf.to_container(cfg.features, resolve=True),
+        OmegaConf.to_container(cfg.match, resolve=True), OmegaConf.to_container(cfg.target, resolve=True), cfg.seed,
+    )
+
+    def compute() -> PartMap:
+        extractor = build("features", cfg.features, device=cfg.device)
+        return match_parts(
+            reference, target, extractor,
+            outlier_sigma=cfg.match.outlier_sigma, align=cfg.match.align,
+            target_vertices=points, target_faces=faces,
+        )
+
+    part_map = cache.cached(ctx.cache_root, "match", key, PartMap, compute, enabled=cfg.cache).validate()
+    counts = np.bincount(part_map.tgt_part, minlength=part_map.num_parts)
+    log.info("match: target Gaussians per part %s, mean confidence %.2f", counts.tolist(), part_map.confidence.mean())
+    return part_map
+
+
+def write_frame(run_dir: Path, index: int, gaussians: TargetGaussians) -> Path:
+    """Write one output frame as ``frames/%06d.ply`` (atomically)."""
+    return write_gaussians_ply(run_dir / "frames" / f"{index:06d}.ply", gaussians)
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Run the whole pipeline for one configuration; returns the final metrics."""
+    from sync4d.plugins import load_all
+
+    load_all()
+    run_dir = run_dir_of(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    seed_everything(int(cfg.seed))
+    atomic_write_json(run_dir / "env.json", environment_record(str(cfg.device)))
+    logger = build("logger", cfg.logger, run_dir=run_dir)
+    ctx = RunContext(cfg=cfg, run_dir=run_dir, cache_root=ROOT / "outputs" / "cache", logger=logger)
+    started = time.perf_counter()
+    try:
+        return _run_stages(ctx, started)
+    finally:
+        logger.close()
+
+
+def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
+    from sync4d import report_figures
+    from sync4d.motion import driving_motion
+
+    cfg = ctx.cfg
+    reference, recon_key = stage_reference(ctx)
+    target, source = stage_target(ctx)
+    write_frame(ctx.run_dir, 0, target)
+    report_figures.save_reference_parts(reference, ctx.run_dir / "reference_parts.png", logger=ctx.logger)
+
+    if not available("features"):
+        log.warning("no feature extractor is registered yet: the run ends after loading the target")
+        return {}
+    part_map = stage_match(ctx, reference, recon_key, target, source)
+    report_figures.save_match_figure(reference, target, part_map, ctx.run_dir / "match.png", logger=ctx.logger)
+
+    points, faces = target_surface(target, source)
+    motion = driving_motion(reference, target_points=points, target_faces=faces, num_frames=int(cfg.frames),
+                            loop=bool(cfg.loop_reference))
+    log.info("driving motion: %d frames, coverage ratio s_t/s_o = %.4f", motion.num_frames, motion.coverage_ratio)
+
+    from sync4d.outputs import FrameWriter
+
+    writer = FrameWriter(ctx.run_dir, target, motion, logger=ctx.logger)
+    simulator = build("sim", cfg.sim, device=cfg.device)
+    trajectory = simulator.run(
+        target, part_map, motion,
+        velocity_cfg=cfg.velocity, num_frames=int(cfg.frames), on_frame=writer.on_frame,
+        resume=writer.resume_state(cfg.get("resume")),
+    )
+    return writer.finish(trajectory, reference=reference, part_map=part_map, cfg=cfg,
+                         overrides=overrides_of(cfg), wall_seconds=time.perf_counter() - started)
+
+
+def run_guarded(cfg: DictConfig) -> dict[str, Any] | None:
+    """Run, turning user errors into one line (exit code 2) — or, in a multirun, a recorded failure.
+
+    In a multirun one failing job (bad config, diverged simulation) must not stop the sweep: the job's
+    folder gets ``metrics.json`` with ``status: failed`` and the reason, and the sweep goes on.
+    """
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    try:
+        return run(cfg)
+    except Sync4DError as err:
+        message = f"{type(err).__name__}: {err}"
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        if multirun:
+            log.error("job failed: %s", message)
+            run_dir = run_dir_of(cfg)
+            atomic_write_json(run_dir / "metrics.json", {"status": "failed", "error": message,
+                                                        "overrides": overrides_of(cfg)})
+            return None
+        print(f"sync4d: {message}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def load_json(path: Path) -> Any:
+    return json.loads(Path(path).read_text())

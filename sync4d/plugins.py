@@ -1,0 +1,103 @@
+"""Plugin discovery: built-ins, then packages under ``plugins/``, then entry points ``sync4d.plugins``.
+
+Built-in components live in the sub-packages named in :data:`BUILTIN_PACKAGES`; every module in them is
+imported so that its ``@register`` decorators run (no central list to keep in sync). A third-party
+plugin that fails to import stops the run with its name and the original error.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import importlib.util
+import logging
+import pkgutil
+import sys
+from pathlib import Path
+
+from sync4d.errors import PluginImportError
+
+log = logging.getLogger(__name__)
+
+BUILTIN_PACKAGES: tuple[str, ...] = (
+    "sync4d.scenes",
+    "sync4d.recon",
+    "sync4d.features",
+    "sync4d.sim",
+    "sync4d.velocity",
+    "sync4d.render",
+    "sync4d.loggers",
+)
+ENTRY_POINT_GROUP = "sync4d.plugins"
+PLUGINS_DIR = Path(__file__).resolve().parent.parent / "plugins"
+
+
+def _import_package_tree(package_name: str) -> None:
+    package = importlib.import_module(package_name)
+    for info in pkgutil.walk_packages(package.__path__, prefix=package_name + "."):
+        if info.name.rsplit(".", 1)[-1].startswith("_"):
+            continue  # private helpers (e.g. _kernels) are imported by their users
+        importlib.import_module(info.name)
+
+
+def load_builtins() -> None:
+    """Import every built-in component module (errors here are bugs and propagate)."""
+    for name in BUILTIN_PACKAGES:
+        _import_package_tree(name)
+
+
+def load_plugin_dir(plugins_dir: Path = PLUGINS_DIR) -> list[str]:
+    """Import every package (folder with ``__init__.py``) under ``plugins_dir``.
+
+    Returns:
+        The names of the imported plugin packages.
+
+    Raises:
+        PluginImportError: a plugin failed to import; names it and the original error.
+    """
+    loaded: list[str] = []
+    if not plugins_dir.is_dir():
+        return loaded
+    for folder in sorted(p for p in plugins_dir.iterdir() if (p / "__init__.py").is_file()):
+        module_name = f"sync4d_plugin_{folder.name}"
+        if module_name in sys.modules:
+            loaded.append(folder.name)
+            continue
+        spec = importlib.util.spec_from_file_location(
+            module_name, folder / "__init__.py", submodule_search_locations=[str(folder)]
+        )
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[module_name] = module
+        try:
+            spec.loader.exec_module(module)
+        except Exception as err:  # noqa: BLE001 - any failure is reported with the plugin's name
+            del sys.modules[module_name]
+            raise PluginImportError(
+                f"plugin '{folder.name}' ({folder}) failed to import: {type(err).__name__}: {err}"
+            ) from err
+        loaded.append(folder.name)
+    return loaded
+
+
+def load_entry_points() -> list[str]:
+    """Load installed plugins advertised under the entry-point group ``sync4d.plugins``."""
+    loaded: list[str] = []
+    for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            entry.load()
+        except Exception as err:  # noqa: BLE001
+            raise PluginImportError(
+                f"plugin entry point '{entry.name}' ({entry.value}) failed to import: {type(err).__name__}: {err}"
+            ) from err
+        loaded.append(entry.name)
+    return loaded
+
+
+def load_all() -> None:
+    """Discover everything in order: built-ins, ``plugins/`` packages, entry points."""
+    load_builtins()
+    local = load_plugin_dir()
+    external = load_entry_points()
+    if local or external:
+        log.debug("plugins loaded: %s", ", ".join(local + external))

@@ -1,0 +1,140 @@
+"""Component registries selected by Hydra config groups.
+
+A component is a class with a nested ``Config`` dataclass, registered under a group and a short name::
+
+    @register("sim", "mpm_warp")
+    class MPMWarp:
+        @dataclass
+        class Config:
+            E: float = 1e4
+        def __init__(self, cfg: Config, *, device: str): ...
+
+``conf/sim/mpm_warp.yaml`` holds ``type: mpm_warp`` plus values; :func:`build` merges those values into
+the typed ``Config`` so an unknown key or a wrong type fails at start-up naming the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
+
+from sync4d.errors import ConfigError, RegistryError
+
+GROUPS: tuple[str, ...] = ("reference", "recon", "features", "target", "sim", "velocity", "render", "logger")
+
+_REGISTRY: dict[str, dict[str, type]] = {group: {} for group in GROUPS}
+# Optional built-ins that could not be imported (e.g. a CUDA-only backend): name -> reason.
+_FAILED_IMPORTS: dict[str, str] = {}
+
+T = TypeVar("T", bound=type)
+
+
+def register(group: str, name: str) -> Callable[[T], T]:
+    """Class decorator that registers a component under ``group``/``name``.
+
+    Raises:
+        RegistryError: the group is unknown, the name is taken, or the class has no dataclass ``Config``.
+    """
+    if group not in _REGISTRY:
+        raise RegistryError(f"unknown registry group '{group}'; groups are: {', '.join(GROUPS)}")
+
+    def decorator(cls: T) -> T:
+        config = getattr(cls, "Config", None)
+        if config is None or not dataclasses.is_dataclass(config):
+            raise RegistryError(f"{group}={name}: {cls.__qualname__} needs a nested dataclass `Config`")
+        existing = _REGISTRY[group].get(name)
+        if existing is not None and existing is not cls:
+            raise RegistryError(
+                f"{group}={name} is registered twice: by {existing.__module__}.{existing.__qualname__} "
+                f"and by {cls.__module__}.{cls.__qualname__}; rename one of them"
+            )
+        _REGISTRY[group][name] = cls
+        cls.registry_name = name  # type: ignore[attr-defined]
+        return cls
+
+    return decorator
+
+
+def unregister(group: str, name: str) -> None:
+    """Remove a registration (for tests that register throw-away components)."""
+    _REGISTRY[group].pop(name, None)
+
+
+def record_failed_import(name: str, reason: str) -> None:
+    """Remember an optional built-in that could not be imported, to list it in 'unknown name' errors."""
+    _FAILED_IMPORTS[name] = reason
+
+
+def available(group: str) -> list[str]:
+    """Sorted names registered in ``group``."""
+    _ensure_plugins_loaded()
+    if group not in _REGISTRY:
+        raise RegistryError(f"unknown registry group '{group}'; groups are: {', '.join(GROUPS)}")
+    return sorted(_REGISTRY[group])
+
+
+def lookup(group: str, name: str) -> type:
+    """The class registered as ``group``/``name``; an unknown name lists what is available."""
+    names = available(group)
+    if name not in _REGISTRY[group]:
+        failed = [f"{k} ({v})" for k, v in sorted(_FAILED_IMPORTS.items())]
+        hint = f"; failed to import: {', '.join(failed)}" if failed else ""
+        raise RegistryError(f"unknown {group} '{name}'; available: {', '.join(names) or '(none)'}{hint}")
+    return _REGISTRY[group][name]
+
+
+def make_config(group: str, cfg: Mapping[str, Any] | DictConfig) -> tuple[type, Any]:
+    """Merge a YAML/dict config (with a ``type`` key) into the component's typed ``Config``.
+
+    Returns:
+        (component class, typed Config instance).
+
+    Raises:
+        ConfigError: missing ``type``, an unknown key, or a value of the wrong type; names the key.
+    """
+    if isinstance(cfg, DictConfig):
+        values = OmegaConf.to_container(cfg, resolve=True)
+    else:
+        values = dict(cfg)
+    assert isinstance(values, dict)
+    name = values.pop("type", None)
+    if name is None:
+        raise ConfigError(f"{group}: config has no 'type' key; set {group}=<one of {', '.join(available(group))}>")
+    cls = lookup(group, str(name))
+    schema = OmegaConf.structured(cls.Config)
+    try:
+        merged = OmegaConf.merge(schema, values)
+    except ConfigKeyError as err:
+        known = ", ".join(f.name for f in dataclasses.fields(cls.Config))
+        raise ConfigError(f"{group}.{err.key}: unknown key for {group}={name}; known keys: {known}") from None
+    except ValidationError as err:
+        raise ConfigError(f"{group}.{err.key}: {err.msg.splitlines()[0]} (for {group}={name})") from None
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"{group}={name}: {str(err).splitlines()[0]}") from None
+    typed = OmegaConf.to_object(merged)
+    check = getattr(typed, "validate", None)
+    if callable(check):
+        check()
+    return cls, typed
+
+
+def build(group: str, cfg: Mapping[str, Any] | DictConfig, **deps: Any) -> Any:
+    """Build the component selected by ``cfg.type`` with its typed config and keyword dependencies."""
+    cls, typed = make_config(group, cfg)
+    return cls(typed, **deps)
+
+
+_plugins_loaded = False
+
+
+def _ensure_plugins_loaded() -> None:
+    global _plugins_loaded
+    if not _plugins_loaded:
+        _plugins_loaded = True
+        from sync4d import plugins
+
+        plugins.load_all()

@@ -1,0 +1,1 @@
+"""sync4d.scenes: see the modules in this package."""

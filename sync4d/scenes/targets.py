@@ -1,0 +1,130 @@
+"""Target sources: the laptop's own Gaussians (self-transfer), a mesh file, a 3DGS .ply file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sync4d.errors import ConfigError, DataMissingError
+from sync4d.io.mesh import load_mesh, mesh_to_gaussians
+from sync4d.io.ply import read_gaussians_ply
+from sync4d.registry import register
+from sync4d.scenes.laptop import laptop_mesh
+from sync4d.types import TargetGaussians
+
+
+def resolve_data_path(path: str) -> Path:
+    """Resolve a data path relative to the current folder or the project root (Hydra keeps cwd)."""
+    candidate = Path(path).expanduser()
+    if candidate.exists() or candidate.is_absolute():
+        return candidate
+    root = Path(__file__).resolve().parents[2]
+    return root / candidate
+
+
+def fit_to_size(vertices: np.ndarray, size: float | None, up_axis: str) -> np.ndarray:
+    """Re-orient a mesh to Y-up, centre its footprint at the origin with its bottom at y = 0, and scale
+    its bounding-box diagonal to ``size`` [m] (None keeps the file's units)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    if up_axis == "z":
+        v = v[:, [0, 2, 1]] * np.array([1.0, 1.0, -1.0])
+    elif up_axis != "y":
+        raise ConfigError(f"target.up_axis={up_axis}: use 'y' or 'z'")
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    v = v - np.array([(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2])
+    if size is not None:
+        v = v * (size / np.linalg.norm(hi - lo))
+    return v
+
+
+@register("target", "laptop")
+class LaptopTarget:
+    """The default laptop itself as Gaussians, for self-transfer (the answer is known exactly)."""
+
+    @dataclass
+    class Config:
+        width: float = 0.34            # [m] (match reference=laptop for a self-transfer)
+        depth: float = 0.24            # [m]
+        base_thickness: float = 0.02   # [m]
+        lid_thickness: float = 0.012   # [m]
+        rest_angle_deg: float = 110.0  # [deg]
+        subdivisions: int = 3
+        num_surface: int = 3000
+        num_interior: int = 1500
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg, self.seed = cfg, seed
+        c = cfg
+        self.vertices, self.faces, self.part = laptop_mesh(
+            c.width, c.depth, c.base_thickness, c.lid_thickness, c.rest_angle_deg, c.subdivisions
+        )
+
+    def surface(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices, self.faces
+
+    def load(self) -> TargetGaussians:
+        colors = np.where(self.part[:, None] == 0, [[0.55, 0.57, 0.62]], [[0.25, 0.27, 0.32]])
+        return mesh_to_gaussians(
+            self.vertices, self.faces, num_surface=self.cfg.num_surface, num_interior=self.cfg.num_interior,
+            vertex_colors=colors, seed=self.seed, name="laptop",
+        )
+
+
+@register("target", "mesh")
+class MeshTarget:
+    """Any triangle mesh file (.obj/.ply/.stl/.off/.glb) sampled into Gaussians."""
+
+    @dataclass
+    class Config:
+        path: str = "???"              # mesh file
+        size: float | None = 0.4       # bounding-box diagonal after loading [m]; null keeps file units
+        up_axis: str = "y"             # the file's up axis: y or z
+        num_surface: int = 3000
+        num_interior: int = 1500
+        color: list[float] = (0.75, 0.7, 0.65)  # type: ignore[assignment] - OmegaConf turns it into a list
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg, self.seed = cfg, seed
+        path = resolve_data_path(cfg.path)
+        if not path.is_file():
+            raise DataMissingError(f"target.path={cfg.path}: mesh file not found (looked at {path})")
+        vertices, self.faces, self.colors = load_mesh(path)
+        self.vertices = fit_to_size(vertices, cfg.size, cfg.up_axis)
+        self.name = path.stem
+
+    def surface(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.vertices, self.faces
+
+    def load(self) -> TargetGaussians:
+        return mesh_to_gaussians(
+            self.vertices, self.faces, num_surface=self.cfg.num_surface, num_interior=self.cfg.num_interior,
+            vertex_colors=self.colors, default_color=tuple(self.cfg.color), seed=self.seed, name=self.name,
+        )
+
+
+@register("target", "ply")
+class PlyTarget:
+    """A trained 3D Gaussian Splatting ``.ply`` (Inria layout), used as is."""
+
+    @dataclass
+    class Config:
+        path: str = "???"        # .ply file
+        max_gaussians: int | None = None  # keep a random subset of this size (None keeps all)
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg, self.seed = cfg, seed
+
+    def surface(self) -> None:
+        return None
+
+    def load(self) -> TargetGaussians:
+        path = resolve_data_path(self.cfg.path)
+        if not path.is_file():
+            raise DataMissingError(f"target.path={self.cfg.path}: .ply file not found (looked at {path})")
+        gaussians = read_gaussians_ply(path)
+        if self.cfg.max_gaussians is not None and gaussians.num > self.cfg.max_gaussians:
+            keep = np.sort(np.random.default_rng(self.seed).choice(gaussians.num, self.cfg.max_gaussians, replace=False))
+            gaussians = gaussians.subset(keep)
+        return gaussians

@@ -1,0 +1,1 @@
+"""sync4d.velocity: see the modules in this package."""
