@@ -27,7 +27,7 @@ from sync4d import cache
 from sync4d.errors import Sync4DError
 from sync4d.io.atomic import atomic_write_json
 from sync4d.io.ply import write_gaussians_ply
-from sync4d.registry import available, build
+from sync4d.registry import available, build, effective_config
 from sync4d.types import PartMap, Reference, TargetGaussians
 
 log = logging.getLogger("sync4d")
@@ -104,19 +104,21 @@ def overrides_of(cfg: DictConfig) -> dict[str, str]:
     return out
 
 
-def _section(cfg: DictConfig, key: str) -> DictConfig:
-    return cfg[key]
+def group_cfg(cfg: DictConfig, group: str) -> dict[str, Any]:
+    """A component group's config with the ``shrink`` values (``debug=smoke``) its component knows."""
+    shrink = cfg.get("shrink") or {}
+    return effective_config(group, cfg[group], shrink.get(group))
 
 
 def stage_reference(ctx: RunContext) -> tuple[Reference, str]:
     """Load the reference input and reconstruct it (cached). Returns the reference and its cache key."""
     cfg = ctx.cfg
-    source = build("reference", cfg.reference, device=cfg.device, seed=cfg.seed)
-    recon_cfg = OmegaConf.to_container(cfg.recon, resolve=True)
-    key = cache.stage_key("recon", OmegaConf.to_container(cfg.reference, resolve=True), recon_cfg, cfg.seed)
+    reference_cfg, recon_cfg = group_cfg(cfg, "reference"), group_cfg(cfg, "recon")
+    source = build("reference", reference_cfg, device=cfg.device, seed=cfg.seed)
+    key = cache.stage_key("recon", reference_cfg, recon_cfg, cfg.seed)
 
     def compute() -> Reference:
-        reconstructor = build("recon", cfg.recon, device=cfg.device)
+        reconstructor = build("recon", recon_cfg, device=cfg.device)
         started = time.perf_counter()
         reference = reconstructor.reconstruct(source.load()).validate()
         log.info("recon=%s: %d bones, %d frames, %d vertices in %.1f s", cfg.recon.type, reference.num_bones,
@@ -129,7 +131,7 @@ def stage_reference(ctx: RunContext) -> tuple[Reference, str]:
 
 def stage_target(ctx: RunContext) -> tuple[TargetGaussians, Any]:
     """Load the target Gaussians; returns them and the source (which may offer a surface mesh)."""
-    source = build("target", ctx.cfg.target, device=ctx.cfg.device, seed=ctx.cfg.seed)
+    source = build("target", group_cfg(ctx.cfg, "target"), device=ctx.cfg.device, seed=ctx.cfg.seed)
     target = source.load().validate()
     log.info("target=%s: %d Gaussians (SH degree %d)", ctx.cfg.target.type, target.num, target.sh_degree)
     return target, source
@@ -150,13 +152,14 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
 
     cfg = ctx.cfg
     points, faces = target_surface(target, source)
+    features_cfg = group_cfg(cfg, "features")
     key = cache.stage_key(
-        "match", recon_key, OmegaConf.to_container(cfg.features, resolve=True),
-        OmegaConf.to_container(cfg.match, resolve=True), OmegaConf.to_container(cfg.target, resolve=True), cfg.seed,
+        "match", recon_key, features_cfg, OmegaConf.to_container(cfg.match, resolve=True),
+        group_cfg(cfg, "target"), cfg.seed,
     )
 
     def compute() -> PartMap:
-        extractor = build("features", cfg.features, device=cfg.device)
+        extractor = build("features", features_cfg, device=cfg.device)
         return match_parts(
             reference, target, extractor,
             outlier_sigma=cfg.match.outlier_sigma, align=cfg.match.align,
@@ -183,7 +186,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     run_dir.mkdir(parents=True, exist_ok=True)
     seed_everything(int(cfg.seed))
     atomic_write_json(run_dir / "env.json", environment_record(str(cfg.device)))
-    logger = build("logger", cfg.logger, run_dir=run_dir)
+    logger = build("logger", group_cfg(cfg, "logger"), run_dir=run_dir)
     ctx = RunContext(cfg=cfg, run_dir=run_dir, cache_root=ROOT / "outputs" / "cache", logger=logger)
     started = time.perf_counter()
     try:
@@ -216,10 +219,10 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
     from sync4d.outputs import FrameWriter
 
     writer = FrameWriter(ctx.run_dir, target, motion, logger=ctx.logger)
-    simulator = build("sim", cfg.sim, device=cfg.device)
+    simulator = build("sim", group_cfg(cfg, "sim"), device=cfg.device)
     trajectory = simulator.run(
         target, part_map, motion,
-        velocity_cfg=cfg.velocity, num_frames=int(cfg.frames), on_frame=writer.on_frame,
+        velocity_cfg=group_cfg(cfg, "velocity"), num_frames=int(cfg.frames), on_frame=writer.on_frame,
         resume=writer.resume_state(cfg.get("resume")),
     )
     return writer.finish(trajectory, reference=reference, part_map=part_map, cfg=cfg,

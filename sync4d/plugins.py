@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata
-import importlib.util
 import logging
 import pkgutil
 import sys
@@ -58,21 +57,15 @@ def load_plugin_dir(plugins_dir: Path = PLUGINS_DIR) -> list[str]:
     loaded: list[str] = []
     if not plugins_dir.is_dir():
         return loaded
+    # Plugins are imported by their folder name with plugins_dir on sys.path, the same name pytest uses
+    # when it collects a plugin's own tests, so a plugin is never imported (and registered) twice.
+    if str(plugins_dir) not in sys.path:
+        sys.path.insert(0, str(plugins_dir))
     for folder in sorted(p for p in plugins_dir.iterdir() if (p / "__init__.py").is_file()):
-        module_name = f"sync4d_plugin_{folder.name}"
-        if module_name in sys.modules:
-            loaded.append(folder.name)
-            continue
-        spec = importlib.util.spec_from_file_location(
-            module_name, folder / "__init__.py", submodule_search_locations=[str(folder)]
-        )
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[module_name] = module
         try:
-            spec.loader.exec_module(module)
+            importlib.import_module(folder.name)
         except Exception as err:  # noqa: BLE001 - any failure is reported with the plugin's name
-            del sys.modules[module_name]
+            sys.modules.pop(folder.name, None)
             raise PluginImportError(
                 f"plugin '{folder.name}' ({folder}) failed to import: {type(err).__name__}: {err}"
             ) from err

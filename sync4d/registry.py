@@ -47,7 +47,8 @@ def register(group: str, name: str) -> Callable[[T], T]:
         if config is None or not dataclasses.is_dataclass(config):
             raise RegistryError(f"{group}={name}: {cls.__qualname__} needs a nested dataclass `Config`")
         existing = _REGISTRY[group].get(name)
-        if existing is not None and existing is not cls:
+        same = existing is not None and (existing.__module__, existing.__qualname__) == (cls.__module__, cls.__qualname__)
+        if existing is not None and not same:
             raise RegistryError(
                 f"{group}={name} is registered twice: by {existing.__module__}.{existing.__qualname__} "
                 f"and by {cls.__module__}.{cls.__qualname__}; rename one of them"
@@ -87,8 +88,13 @@ def lookup(group: str, name: str) -> type:
     return _REGISTRY[group][name]
 
 
-def make_config(group: str, cfg: Mapping[str, Any] | DictConfig) -> tuple[type, Any]:
+def make_config(
+    group: str, cfg: Mapping[str, Any] | DictConfig, *, shrink: Mapping[str, Any] | None = None
+) -> tuple[type, Any]:
     """Merge a YAML/dict config (with a ``type`` key) into the component's typed ``Config``.
+
+    ``shrink`` holds values applied only where the selected component has that field (the
+    ``debug=smoke`` config uses it to make every component tiny without knowing which one is selected).
 
     Returns:
         (component class, typed Config instance).
@@ -105,6 +111,9 @@ def make_config(group: str, cfg: Mapping[str, Any] | DictConfig) -> tuple[type, 
     if name is None:
         raise ConfigError(f"{group}: config has no 'type' key; set {group}=<one of {', '.join(available(group))}>")
     cls = lookup(group, str(name))
+    if shrink:
+        known = {f.name for f in dataclasses.fields(cls.Config)}
+        values.update({k: v for k, v in dict(shrink).items() if k in known})
     schema = OmegaConf.structured(cls.Config)
     try:
         merged = OmegaConf.merge(schema, values)
@@ -122,9 +131,21 @@ def make_config(group: str, cfg: Mapping[str, Any] | DictConfig) -> tuple[type, 
     return cls, typed
 
 
-def build(group: str, cfg: Mapping[str, Any] | DictConfig, **deps: Any) -> Any:
+def effective_config(group: str, cfg: Mapping[str, Any] | DictConfig, shrink: Mapping[str, Any] | None) -> dict:
+    """The group's config as a plain dict with the ``shrink`` values its component knows applied."""
+    values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    assert isinstance(values, dict)
+    if shrink and "type" in values:
+        known = {f.name for f in dataclasses.fields(lookup(group, str(values["type"])).Config)}
+        values.update({k: v for k, v in dict(shrink).items() if k in known})
+    return values
+
+
+def build(
+    group: str, cfg: Mapping[str, Any] | DictConfig, *, shrink: Mapping[str, Any] | None = None, **deps: Any
+) -> Any:
     """Build the component selected by ``cfg.type`` with its typed config and keyword dependencies."""
-    cls, typed = make_config(group, cfg)
+    cls, typed = make_config(group, cfg, shrink=shrink)
     return cls(typed, **deps)
 
 
