@@ -1,0 +1,772 @@
+"""Differentiable MLS-MPM in NVIDIA Warp (``sim=mpm_warp``): model, substep, checkpointed rollout.
+
+Shape (after Newton): an immutable :class:`MPMModel` (grid, particle masses and volumes, material,
+gravity, boundary) and :func:`step` ``(model, state_in, state_out, dt)``, which never writes its input.
+:meth:`MPMWarp.rollout` runs ``substeps`` substeps as ONE ``torch.autograd.Function``:
+
+* forward: ping-pong between two preallocated states (no per-substep allocation); when gradients are
+  wanted it stores every ``checkpoint_every``-th particle state (x, v, C, F: 96 bytes per particle).
+* backward: per segment, the stored state is advanced again to recover the segment's particle states;
+  then for each substep in reverse the grid is rebuilt (P2G + grid update) and Warp's generated adjoint
+  kernels of G2P, grid update and P2G are launched, exactly what ``wp.Tape.backward`` would launch for
+  that substep, but without replaying G2P's forward and with one reused grid (never a copy per substep).
+
+Memory of a forward+backward rollout is therefore O(P (substeps / k + k)) + one grid with its adjoint.
+
+Guards: material and dt validation, the CFL bound (auto sub-stepping or :class:`SimulationUnstable`),
+and a NaN/inf/off-grid check at the end of every rollout (one per frame), raised as
+:class:`SimulationDiverged` naming the frame, the substep, the largest speed and what to change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import warp as wp
+
+from sync4d.device import torch_device, warp_device
+from sync4d.errors import ConfigError, InputError, SimulationDiverged, SimulationUnstable
+from sync4d.registry import register
+from sync4d.sim import _kernels as K
+from sync4d.sim import physics
+from sync4d.sim.control import make_control_points
+from sync4d.types import validate_material
+
+log = logging.getLogger(__name__)
+
+_STATUS_OK = 2147483647
+
+
+# ----------------------------------------------------------------------------------------------------
+# Model and state
+# ----------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MPMModel:
+    """Everything a substep needs that does not change during a rollout.
+
+    Attributes:
+        grid: the background grid (origin [m], cell size dx [m], nodes per axis, wall thickness).
+        rest_points: (P, 3) particle positions given to :meth:`MPMWarp.prepare` [m].
+        mass: (P,) particle masses m_p = rho V_p^0 [kg].
+        volume: (P,) initial particle volumes V_p^0 [m^3].
+        E: Young's modulus [Pa].
+        nu: Poisson's ratio.
+        density: [kg/m^3].
+        mu: shear modulus [Pa].
+        lam: first Lame parameter [Pa].
+        gravity: (3,) [m/s^2].
+        sticky: walls stop every velocity component (True) or only the outward one (False, slip).
+        fixed_box: (2, 3) world box [m] whose grid nodes are held still, or None.
+        device: Warp device name.
+    """
+
+    grid: physics.GridSpec
+    rest_points: np.ndarray
+    mass: np.ndarray
+    volume: np.ndarray
+    E: float
+    nu: float
+    density: float
+    mu: float
+    lam: float
+    gravity: np.ndarray
+    sticky: bool
+    fixed_box: np.ndarray | None
+    device: str
+
+    @property
+    def num_particles(self) -> int:
+        return int(self.mass.shape[0])
+
+    @property
+    def wave_speed(self) -> float:
+        """p-wave speed sqrt((lam + 2 mu) / rho) [m/s]."""
+        return math.sqrt((self.lam + 2.0 * self.mu) / self.density)
+
+    def with_grid(self, grid: physics.GridSpec) -> MPMModel:
+        """The same particles and material on another grid."""
+        return dataclasses.replace(self, grid=grid)
+
+
+@dataclass
+class WarpState:
+    """Particle state as Warp arrays, (P,) each: x [m], v [m/s] (vec3); C [1/s], F (mat33)."""
+
+    x: wp.array
+    v: wp.array
+    C: wp.array
+    F: wp.array
+
+    @staticmethod
+    def empty(n: int, device: str) -> WarpState:
+        return WarpState(
+            wp.empty(n, dtype=wp.vec3, device=device),
+            wp.empty(n, dtype=wp.vec3, device=device),
+            wp.empty(n, dtype=wp.mat33, device=device),
+            wp.empty(n, dtype=wp.mat33, device=device),
+        )
+
+    def zero_(self) -> None:
+        for a in self.arrays():
+            a.zero_()
+
+    def arrays(self) -> tuple[wp.array, wp.array, wp.array, wp.array]:
+        return self.x, self.v, self.C, self.F
+
+    def assign(self, other: WarpState) -> None:
+        for dst, src in zip(self.arrays(), other.arrays()):
+            wp.copy(dst, src)
+
+
+class _Workspace:
+    """Preallocated scratch of one (particle count, grid shape, device): reused by every rollout.
+
+    Not thread-safe: one simulator object runs one rollout (forward or backward) at a time.
+    """
+
+    def __init__(self, n: int, dims: tuple[int, int, int], device: str) -> None:
+        self.n, self.dims, self.device = n, dims, device
+        self.grid = wp.zeros(dims, dtype=wp.vec4, device=device)
+        self.grid_v = wp.zeros(dims, dtype=wp.vec3, device=device)
+        self.status = wp.full(1, _STATUS_OK, dtype=wp.int32, device=device)
+        self.ping = WarpState.empty(n, device)
+        self.pong = WarpState.empty(n, device)
+        # backward-only buffers, allocated on first use
+        self.adj_grid: wp.array | None = None
+        self.adj_grid_v: wp.array | None = None
+        self.adj_a: WarpState | None = None
+        self.adj_b: WarpState | None = None
+        self.segment: list[WarpState] = []
+
+    def ensure_backward(self, k: int) -> None:
+        if self.adj_grid is None:
+            self.adj_grid = wp.zeros(self.dims, dtype=wp.vec4, device=self.device)
+            self.adj_grid_v = wp.zeros(self.dims, dtype=wp.vec3, device=self.device)
+            self.adj_a = WarpState.empty(self.n, self.device)
+            self.adj_b = WarpState.empty(self.n, self.device)
+        while len(self.segment) < k:
+            self.segment.append(WarpState.empty(self.n, self.device))
+
+
+@dataclass
+class _Launch:
+    """Per-rollout constants of the three kernels (model in sorted particle order, workspace)."""
+
+    model: MPMModel
+    ws: _Workspace
+    mass: wp.array
+    volume: wp.array
+    dt: float
+    mass_eps: float
+
+    def p2g_args(self, s: WarpState, substep: int) -> tuple[list[Any], list[Any]]:
+        g = self.model.grid
+        inputs = [
+            s.x, s.v, s.C, s.F, self.mass, self.volume,
+            float(self.model.mu), float(self.model.lam),
+            wp.vec3(*g.origin), float(g.dx), float(1.0 / g.dx), float(self.dt),
+            int(g.dims[0]), int(g.dims[1]), int(g.dims[2]), int(substep),
+        ]  # fmt: skip
+        return inputs, [self.ws.grid, self.ws.status]
+
+    def grid_args(self) -> tuple[list[Any], list[Any]]:
+        m, g = self.model, self.model.grid
+        box = m.fixed_box if m.fixed_box is not None else np.zeros((2, 3))
+        inputs = [
+            self.ws.grid, wp.vec3(*m.gravity), float(self.dt), float(self.mass_eps), int(g.wall),
+            int(m.sticky), wp.vec3(*g.origin), float(g.dx), wp.vec3(*box[0]), wp.vec3(*box[1]),
+            int(m.fixed_box is not None),
+        ]  # fmt: skip
+        return inputs, [self.ws.grid_v]
+
+    def g2p_args(self, s: WarpState, out: WarpState, substep: int) -> tuple[list[Any], list[Any]]:
+        g = self.model.grid
+        inputs = [s.x, s.F, self.ws.grid_v, wp.vec3(*g.origin), float(1.0 / g.dx), float(self.dt), int(substep)]
+        return inputs, [out.x, out.v, out.C, out.F, self.ws.status]
+
+
+def step(launch: _Launch, state_in: WarpState, state_out: WarpState, substep: int, *, timers: dict | None = None) -> None:
+    """One MLS-MPM substep ``state_in -> state_out`` (``state_in`` is only read).
+
+    Args:
+        launch: model, workspace, dt [s] of this rollout.
+        state_in: particle state at the start of the substep.
+        state_out: receives the state at the end of the substep (must not alias ``state_in``).
+        substep: global substep index (recorded if a particle leaves the grid or turns non-finite).
+        timers: when given, accumulates wall time [s] per kernel under 'p2g', 'grid', 'g2p' (synchronises
+            after each launch, so only for profiling).
+    """
+    ws, dev, n = launch.ws, launch.ws.device, launch.model.num_particles
+    ws.grid.zero_()
+    if timers is not None:
+        import time
+
+        wp.synchronize_device(dev)
+        t0 = time.perf_counter()
+    i, o = launch.p2g_args(state_in, substep)
+    wp.launch(K.p2g, dim=n, inputs=i, outputs=o, device=dev)
+    if timers is not None:
+        wp.synchronize_device(dev)
+        t1 = time.perf_counter()
+    i, o = launch.grid_args()
+    wp.launch(K.grid_update, dim=ws.dims, inputs=i, outputs=o, device=dev)
+    if timers is not None:
+        wp.synchronize_device(dev)
+        t2 = time.perf_counter()
+    i, o = launch.g2p_args(state_in, state_out, substep)
+    wp.launch(K.g2p, dim=n, inputs=i, outputs=o, device=dev)
+    if timers is not None:
+        wp.synchronize_device(dev)
+        t3 = time.perf_counter()
+        timers["p2g"] = timers.get("p2g", 0.0) + (t1 - t0)
+        timers["grid"] = timers.get("grid", 0.0) + (t2 - t1)
+        timers["g2p"] = timers.get("g2p", 0.0) + (t3 - t2)
+
+
+def _adjoint_of(a: Any) -> Any:
+    """The adjoint argument Warp expects for a non-differentiated kernel argument (as wp.Tape does)."""
+    if isinstance(a, wp.array):
+        return None
+    if wp.types.is_value(a) and not isinstance(a, (int, float)):
+        return type(a)()
+    return None
+
+
+def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: WarpState, substep: int, scratch: WarpState) -> None:
+    """Reverse one substep: given dL/d(state_out) in ``adj_out``, write dL/d(state_in) into ``adj_in``.
+
+    Rebuilds the substep's grid from ``s`` (P2G + grid update), then launches the generated adjoints of
+    G2P, grid update and P2G in reverse order. The grid mass is differentiated like every other input.
+    """
+    ws, dev, n = launch.ws, launch.ws.device, launch.model.num_particles
+    assert ws.adj_grid is not None and ws.adj_grid_v is not None
+    # forward part: the grid this substep saw
+    ws.grid.zero_()
+    p2g_in, p2g_out = launch.p2g_args(s, substep)
+    wp.launch(K.p2g, dim=n, inputs=p2g_in, outputs=p2g_out, device=dev)
+    grid_in, grid_out = launch.grid_args()
+    wp.launch(K.grid_update, dim=ws.dims, inputs=grid_in, outputs=grid_out, device=dev)
+
+    ws.adj_grid.zero_()
+    ws.adj_grid_v.zero_()
+    adj_in.zero_()
+    # G2P adjoint: outputs' primal arrays are not read by the adjoint (stores are not replayed).
+    g2p_in, g2p_out = launch.g2p_args(s, scratch, substep)
+    adj_g2p_in = [adj_in.x, adj_in.F, ws.adj_grid_v] + [_adjoint_of(a) for a in g2p_in[3:]]
+    adj_g2p_out = [adj_out.x, adj_out.v, adj_out.C, adj_out.F, None]
+    wp.launch(K.g2p, dim=n, inputs=g2p_in, outputs=g2p_out, adj_inputs=adj_g2p_in, adj_outputs=adj_g2p_out, adjoint=True, device=dev)
+    # grid update adjoint: dL/d(grid_v) -> dL/d(m v, m) per node
+    adj_grid_in = [ws.adj_grid] + [_adjoint_of(a) for a in grid_in[1:]]
+    wp.launch(
+        K.grid_update, dim=ws.dims, inputs=grid_in, outputs=grid_out,
+        adj_inputs=adj_grid_in, adj_outputs=[ws.adj_grid_v], adjoint=True, device=dev,
+    )  # fmt: skip
+    # P2G adjoint: dL/d(grid) -> dL/d(x, v, C, F), accumulated onto G2P's contributions to x and F
+    adj_p2g_in = [adj_in.x, adj_in.v, adj_in.C, adj_in.F, None, None] + [_adjoint_of(a) for a in p2g_in[6:]]
+    wp.launch(
+        K.p2g, dim=n, inputs=p2g_in, outputs=p2g_out,
+        adj_inputs=adj_p2g_in, adj_outputs=[ws.adj_grid, None], adjoint=True, device=dev,
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------------
+# torch bridge
+# ----------------------------------------------------------------------------------------------------
+
+
+def _to_warp(t: torch.Tensor, dtype: Any) -> wp.array:
+    return wp.from_torch(t.detach().to(torch.float32).contiguous(), dtype=dtype)
+
+
+def _load(dst: WarpState, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor) -> None:
+    wp.copy(dst.x, _to_warp(x, wp.vec3))
+    wp.copy(dst.v, _to_warp(v, wp.vec3))
+    wp.copy(dst.C, _to_warp(C, wp.mat33))
+    wp.copy(dst.F, _to_warp(F, wp.mat33))
+
+
+def _clone_state(s: WarpState) -> WarpState:
+    return WarpState(wp.clone(s.x), wp.clone(s.v), wp.clone(s.C), wp.clone(s.F))
+
+
+def _state_to_torch(s: WarpState) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    n = s.x.shape[0]
+    x = wp.to_torch(s.x).clone()
+    v = wp.to_torch(s.v).clone()
+    C = wp.to_torch(s.C).clone().reshape(n, 3, 3)
+    F = wp.to_torch(s.F).clone().reshape(n, 3, 3)
+    return x, v, F, C
+
+
+@dataclass
+class _RolloutPlan:
+    """What one rollout call runs; kept on the autograd context for its backward."""
+
+    launch: _Launch
+    substeps: int
+    checkpoint_every: int
+    frame_index: int
+    first_substep: int = 0
+    checkpoints: list[WarpState] = field(default_factory=list)
+
+    def forward(self, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *, store: bool, timers: dict | None = None) -> WarpState:
+        ws = self.launch.ws
+        ws.status.fill_(_STATUS_OK)
+        _load(ws.ping, x, v, F, C)
+        cur, nxt = ws.ping, ws.pong
+        k = self.checkpoint_every
+        for s in range(self.substeps):
+            if s % k == 0:
+                if s > 0 and int(ws.status.numpy()[0]) != _STATUS_OK:
+                    break  # diverged: stop early, the caller raises SimulationDiverged
+                if store:
+                    self.checkpoints.append(_clone_state(cur))
+            step(self.launch, cur, nxt, self.first_substep + s, timers=timers)
+            cur, nxt = nxt, cur
+        return cur
+
+    def backward(self, grads: list[torch.Tensor | None], like: torch.Tensor) -> list[torch.Tensor]:
+        ws, n = self.launch.ws, self.launch.model.num_particles
+        k = self.checkpoint_every
+        ws.ensure_backward(k)
+        assert ws.adj_a is not None and ws.adj_b is not None
+        adj_next, adj_cur = ws.adj_a, ws.adj_b
+        zeros = {
+            "x": torch.zeros(n, 3), "v": torch.zeros(n, 3), "F": torch.zeros(n, 3, 3), "C": torch.zeros(n, 3, 3),
+        }  # fmt: skip
+        gx, gv, gF, gC = (g if g is not None else zeros[name] for g, name in zip(grads, ("x", "v", "F", "C")))
+        _load(adj_next, gx, gv, gF, gC)
+        scratch = ws.ping  # receives G2P primal outputs the adjoint launch never reads
+        for seg_id in reversed(range(len(self.checkpoints))):
+            s0 = seg_id * k
+            s1 = min(s0 + k, self.substeps)
+            # particle states s0 .. s1-1 of this segment
+            states = [self.checkpoints[seg_id]]
+            for j in range(1, s1 - s0):
+                out = ws.segment[j]
+                step(self.launch, states[-1], out, self.first_substep + s0 + j - 1)
+                states.append(out)
+            for j in reversed(range(s1 - s0)):
+                _step_adjoint(self.launch, states[j], adj_next, adj_cur, self.first_substep + s0 + j, scratch)
+                adj_next, adj_cur = adj_cur, adj_next
+        gx, gv, gF, gC = _state_to_torch(adj_next)
+        out = [g.to(like.device) for g in (gx, gv, gF, gC)]
+        if not all(bool(torch.isfinite(g).all()) for g in out):
+            raise SimulationDiverged(
+                f"frame {self.frame_index}: the rollout's gradient is NaN/inf although its forward pass was "
+                "finite; lower dt (sim.cfl_safety) or the learning rate of the velocities"
+            )
+        return out
+
+
+class _RolloutFunction(torch.autograd.Function):
+    """(x, v, F, C) -> (x, v, F, C) after ``plan.substeps`` substeps; differentiable in all four inputs."""
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, plan: _RolloutPlan, sim: MPMWarp) -> tuple[torch.Tensor, ...]:  # type: ignore[override]
+        store = any(ctx.needs_input_grad[:4])
+        final = plan.forward(x, v, F, C, store=store)
+        sim._check_status(plan, final)
+        xo, vo, Fo, Co = (t.to(x.device) for t in _state_to_torch(final))
+        ctx.plan = plan
+        ctx.device = x.device
+        return xo, vo, Fo, Co
+
+    @staticmethod
+    def backward(ctx: Any, gx: torch.Tensor, gv: torch.Tensor, gF: torch.Tensor, gC: torch.Tensor):  # type: ignore[override]
+        plan: _RolloutPlan = ctx.plan
+        grads = plan.backward([gx, gv, gF, gC], like=gx if gx is not None else torch.empty(0, device=ctx.device))
+        ctx.plan = None  # free the checkpoints
+        return grads[0], grads[1], grads[2], grads[3], None, None
+
+
+# ----------------------------------------------------------------------------------------------------
+# The registered component
+# ----------------------------------------------------------------------------------------------------
+
+
+@register("sim", "mpm_warp")
+class MPMWarp:
+    """Differentiable MLS-MPM simulator of the target (paper Sec. 3.1, appendix A.1) on Warp."""
+
+    @dataclass
+    class Config:
+        """Simulator settings.
+
+        Attributes:
+            E: Young's modulus [Pa], > 0 (paper: 1e3..1e5).
+            nu: Poisson's ratio in [0, 0.5) (paper: 0.1..0.5; 0.5 is refused, lambda would be infinite).
+            density: [kg/m^3], > 0.
+            n_grid: grid nodes along the object's longest padded extent; shorter axes are cropped.
+            grid_padding: free space around the object on each side, as a fraction of its longest extent.
+            wall_cells: thickness of the boundary walls at the grid faces [nodes].
+            boundary: 'slip' (walls stop the outward velocity) or 'sticky' (walls stop all of it).
+            fixed_box: [xlo, ylo, zlo, xhi, yhi, zhi] world box [m] whose grid nodes are held still, or null.
+            frame_time: simulated time of one output frame, N dt [s] (free, it need not be 1/fps).
+            substeps: substeps N per frame (the minimum when auto_substep raises it for stability).
+            auto_substep: split substeps that break the CFL bound (logged) instead of raising.
+            cfl_safety: CFL number aimed for, dt <= cfl_safety dx / (c + |v|max) (stable to ~0.47 measured).
+            control_grid: cells per axis of the control-point lattice (paper: 41), or null to simulate
+                every Gaussian.
+            gravity: (3,) acceleration [m/s^2]; off for motion transfer.
+            checkpoint_every: store every k-th substep state for the backward pass (memory ~ N/k + k states).
+            sort_particles: order particles by grid cell inside each rollout (cache locality; no effect on
+                results beyond float rounding).
+            refit_grid: when particles come near the walls, re-centre and grow the grid (same dx) before
+                a rollout instead of letting the walls act on them.
+        """
+
+        E: float = 1e4
+        nu: float = 0.3
+        density: float = 1000.0
+        n_grid: int = 32
+        grid_padding: float = 0.25
+        wall_cells: int = 3
+        boundary: str = "slip"
+        fixed_box: list[float] | None = None
+        frame_time: float = 0.04
+        substeps: int = 20
+        auto_substep: bool = True
+        cfl_safety: float = 0.3
+        control_grid: int | None = None
+        gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+        checkpoint_every: int = 10
+        sort_particles: bool = True
+        refit_grid: bool = True
+        # Motion transfer (sync4d.transfer): how each frame pair is initialised and supervised.
+        init: str = "rigid"  # centroid (paper: one velocity per part) | rigid (the bone's rigid velocity field)
+        loss_points: str = "anchors"  # centroid (paper: part mass centroids) | anchors (centroid + 6 half-space centroids)
+        target_mode: str = "absolute"  # relative (paper: the reference's step from the current state) | absolute (pose at t+1)
+
+        def validate(self) -> None:
+            """Raise :class:`ConfigError` naming the offending ``sim.*`` key."""
+            validate_material(self.E, self.nu, self.density, where="sim")
+            if self.n_grid < 2 * self.wall_cells + 4:
+                raise ConfigError(f"sim.n_grid={self.n_grid}: needs >= {2 * self.wall_cells + 4} (2 walls of sim.wall_cells + 4)")
+            if self.wall_cells < 1:
+                raise ConfigError(f"sim.wall_cells={self.wall_cells}: must be >= 1 to keep particles on the grid")
+            if not (self.grid_padding >= 0 and math.isfinite(self.grid_padding)):
+                raise ConfigError(f"sim.grid_padding={self.grid_padding}: must be >= 0 (fraction of the object size)")
+            if self.boundary not in ("slip", "sticky"):
+                raise ConfigError(f"sim.boundary={self.boundary!r}: must be 'slip' or 'sticky'")
+            if self.fixed_box is not None:
+                box = np.asarray(self.fixed_box, dtype=float)
+                if box.shape != (6,) or not np.all(box[:3] <= box[3:]):
+                    raise ConfigError(f"sim.fixed_box={self.fixed_box}: expected [xlo, ylo, zlo, xhi, yhi, zhi] with lo <= hi")
+            if not (self.frame_time > 0 and math.isfinite(self.frame_time)):
+                raise ConfigError(f"sim.frame_time={self.frame_time}: must be > 0 s")
+            if self.substeps < 1:
+                raise ConfigError(f"sim.substeps={self.substeps}: must be >= 1")
+            if not (0.0 < self.cfl_safety <= 1.0):
+                raise ConfigError(f"sim.cfl_safety={self.cfl_safety}: must be in (0, 1]; 0.3 is safe (stable to ~0.47)")
+            if self.control_grid is not None and self.control_grid < 1:
+                raise ConfigError(f"sim.control_grid={self.control_grid}: must be >= 1, or null to simulate every Gaussian")
+            if len(self.gravity) != 3:
+                raise ConfigError(f"sim.gravity={self.gravity}: expected 3 values [m/s^2]")
+            for key, value, allowed in (("init", self.init, ("centroid", "rigid")),
+                                        ("loss_points", self.loss_points, ("centroid", "anchors")),
+                                        ("target_mode", self.target_mode, ("relative", "absolute"))):
+                if value not in allowed:
+                    raise ConfigError(f"sim.{key}={value!r}: must be one of {', '.join(allowed)}")
+            if self.checkpoint_every < 1:
+                raise ConfigError(f"sim.checkpoint_every={self.checkpoint_every}: must be >= 1")
+
+    def __init__(self, cfg: Config, *, device: str) -> None:
+        cfg.validate()
+        self.cfg = cfg
+        self.device = device
+        self.wp_device = warp_device(device)
+        self.torch_device = torch_device(device)
+        self._ws: _Workspace | None = None
+
+    # -- building ---------------------------------------------------------------------------------
+
+    def prepare(
+        self,
+        points: np.ndarray,
+        *,
+        volume: float | np.ndarray | None = None,
+        weights: np.ndarray | None = None,
+    ) -> MPMModel:
+        """Build the model of a particle set: fitted grid, masses and volumes, material.
+
+        Args:
+            points: (P, 3) particle rest positions [m].
+            volume: the object's total volume [m^3] shared among particles, or (P,) per-particle volumes
+                [m^3], or None to estimate the total from the points' voxel occupancy (cells of side
+                max(dx, (8 bbox volume / P)^(1/3)), i.e. ~8 points per cell for a filled box).
+            weights: (P,) shares of the total volume (e.g. Gaussians per control point); uniform if None.
+
+        Returns:
+            The immutable model.
+        """
+        cfg = self.cfg
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+            raise InputError(f"sim.prepare: points must have shape (P, 3) with P > 0, got {pts.shape}")
+        if not np.isfinite(pts).all():
+            raise InputError("sim.prepare: points contain NaN/inf")
+        grid = physics.fit_grid(pts, n_grid=cfg.n_grid, padding=cfg.grid_padding, wall=cfg.wall_cells)
+        n = len(pts)
+        if volume is None:
+            box = np.prod(np.maximum(pts.max(0) - pts.min(0), grid.dx))
+            cell = max(grid.dx, (8.0 * box / n) ** (1.0 / 3.0))
+            vols = physics.particle_volumes(n, total_volume=physics.voxel_volume(pts, cell), weights=weights)
+        elif np.ndim(volume) == 0:
+            vols = physics.particle_volumes(n, total_volume=float(volume), weights=weights)  # type: ignore[arg-type]
+        else:
+            vols = np.asarray(volume, dtype=np.float64)
+            if vols.shape != (n,) or not np.all(vols > 0) or not np.isfinite(vols).all():
+                raise InputError(f"sim.prepare: per-particle volumes must be ({n},) and > 0, got {vols.shape}")
+        mu, lam = physics.lame_parameters(cfg.E, cfg.nu)
+        box = None if cfg.fixed_box is None else np.asarray(cfg.fixed_box, dtype=np.float64).reshape(2, 3)
+        return MPMModel(
+            grid=grid, rest_points=pts, mass=cfg.density * vols, volume=vols, E=cfg.E, nu=cfg.nu,
+            density=cfg.density, mu=mu, lam=lam, gravity=np.asarray(cfg.gravity, dtype=np.float64),
+            sticky=cfg.boundary == "sticky", fixed_box=box, device=self.wp_device,
+        )  # fmt: skip
+
+    def prepare_gaussians(self, means: np.ndarray, *, volume: float | None = None) -> tuple[MPMModel, np.ndarray]:
+        """Model of a Gaussian object, through control points when ``control_grid`` is set.
+
+        Args:
+            means: (N, 3) Gaussian centres [m].
+            volume: the object's volume [m^3], or None to estimate it from the Gaussians' occupancy.
+
+        Returns:
+            model: simulates the control points (or every Gaussian when ``control_grid`` is null).
+            gaussian_to_point: (N,) index of each Gaussian's simulated particle
+                (use :func:`sync4d.sim.control.carry_gaussians`).
+        """
+        means = np.asarray(means, dtype=np.float64)
+        if self.cfg.control_grid is None:
+            return self.prepare(means, volume=volume), np.arange(len(means), dtype=np.int64)
+        points, g2p, counts = make_control_points(means, self.cfg.control_grid)
+        if volume is None:
+            probe = physics.fit_grid(means, n_grid=self.cfg.n_grid, padding=self.cfg.grid_padding, wall=self.cfg.wall_cells)
+            box = np.prod(np.maximum(means.max(0) - means.min(0), probe.dx))
+            volume = physics.voxel_volume(means, max(probe.dx, (8.0 * box / len(means)) ** (1.0 / 3.0)))
+        model = self.prepare(points, volume=volume, weights=counts.astype(np.float64))
+        log.info("sim: %d Gaussians -> %d control points (control_grid=%d)", len(means), len(points), self.cfg.control_grid)
+        return model, g2p
+
+    def initial_state(self, model: MPMModel) -> dict[str, torch.Tensor]:
+        """Rest state as float32 torch tensors: x (P,3) [m], v (P,3) zeros [m/s], F (P,3,3) identity, C zeros."""
+        n = model.num_particles
+        dev = self.torch_device
+        return {
+            "x": torch.as_tensor(model.rest_points, dtype=torch.float32, device=dev).clone(),
+            "v": torch.zeros(n, 3, dtype=torch.float32, device=dev),
+            "F": torch.eye(3, dtype=torch.float32, device=dev).repeat(n, 1, 1),
+            "C": torch.zeros(n, 3, 3, dtype=torch.float32, device=dev),
+        }
+
+    # -- stability ---------------------------------------------------------------------------------
+
+    def max_stable_dt(self, model: MPMModel, v_max: float = 0.0) -> float:
+        """CFL bound cfl_safety dx / (c + v_max) [s] for this model."""
+        return physics.cfl_dt(model.grid.dx, model.E, model.nu, model.density, v_max=v_max, safety=self.cfg.cfl_safety)
+
+    def substeps_for(self, model: MPMModel, v_max: float = 0.0) -> tuple[int, float]:
+        """Substeps N and dt [s] for one frame of ``frame_time`` that respect the CFL bound.
+
+        Args:
+            model: the prepared model (its dx and material set the bound).
+            v_max: the largest particle speed expected in the frame [m/s].
+
+        Raises:
+            SimulationUnstable: frame_time / substeps breaks the bound and auto_substep is off.
+        """
+        cfg = self.cfg
+        dt_max = self.max_stable_dt(model, v_max)
+        if cfg.auto_substep:
+            n, dt = physics.substeps_for(cfg.frame_time, dt_max, min_substeps=cfg.substeps)
+            if n > cfg.substeps:
+                log.info("sim: %d substeps of dt=%.3g s per frame (CFL bound %.3g s; sim.substeps=%d)", n, dt, dt_max, cfg.substeps)
+            return n, dt
+        dt = cfg.frame_time / cfg.substeps
+        if dt > dt_max:
+            raise self._unstable(model, dt, dt_max, v_max, cfg.substeps)
+        return cfg.substeps, dt
+
+    def _unstable(self, model: MPMModel, dt: float, dt_max: float, v_max: float, substeps: int) -> SimulationUnstable:
+        need = int(math.ceil(substeps * dt / dt_max))
+        return SimulationUnstable(
+            f"sim: dt={dt:.3g} s breaks the CFL bound dt <= {self.cfg.cfl_safety} dx / (c + |v|max) = {dt_max:.3g} s "
+            f"(dx={model.grid.dx:.3g} m, p-wave speed c={model.wave_speed:.3g} m/s, |v|max={v_max:.3g} m/s); "
+            f"use dt <= {dt_max:.3g} s (>= {need} substeps for this frame) or set sim.auto_substep=true"
+        )
+
+    # -- rollout -----------------------------------------------------------------------------------
+
+    def rollout(
+        self,
+        model: MPMModel,
+        x: torch.Tensor,
+        v: torch.Tensor,
+        F: torch.Tensor,
+        C: torch.Tensor,
+        *,
+        substeps: int,
+        dt: float,
+        frame_index: int = 0,
+        check_cfl: bool = True,
+        timers: dict | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Advance the particles ``substeps`` substeps of ``dt``; differentiable in x, v, F and C.
+
+        Args:
+            model: from :meth:`prepare`.
+            x, v: (P, 3) float32 positions [m] and velocities [m/s].
+            F, C: (P, 3, 3) float32 deformation gradients and APIC affine matrices [1/s].
+            substeps: number of substeps N >= 1.
+            dt: substep [s] > 0.
+            frame_index: the output frame this rollout produces (for error messages).
+            check_cfl: apply the CFL guard (auto sub-stepping or SimulationUnstable); False only for tests.
+            timers: accumulate per-kernel wall time [s] (forward only, no gradients; profiling).
+
+        Returns:
+            (x, v, F, C) after N substeps, torch float32 on the input's device, carrying autograd history.
+
+        Raises:
+            SimulationUnstable: dt over the CFL bound with auto_substep off.
+            SimulationDiverged: NaN/inf or a particle off the grid during the rollout.
+        """
+        n = model.num_particles
+        for name, t, shape in (("x", x, (n, 3)), ("v", v, (n, 3)), ("F", F, (n, 3, 3)), ("C", C, (n, 3, 3))):
+            if tuple(t.shape) != shape:
+                raise InputError(f"sim.rollout: {name} must have shape {shape}, got {tuple(t.shape)}")
+        if not (dt > 0 and math.isfinite(dt)):
+            raise ConfigError(f"sim.rollout: dt={dt} must be > 0 s")
+        if int(substeps) < 1:
+            raise ConfigError(f"sim.rollout: substeps={substeps} must be >= 1")
+        substeps = int(substeps)
+        with torch.no_grad():
+            bad = not bool(torch.isfinite(x).all() and torch.isfinite(v).all() and torch.isfinite(F).all() and torch.isfinite(C).all())
+            if bad:
+                raise SimulationDiverged(f"frame {frame_index}: the rollout's input state holds NaN/inf; check the initial velocities")
+            v_max = float(v.norm(dim=1).max()) if n else 0.0
+        if check_cfl:
+            dt_max = self.max_stable_dt(model, v_max)
+            if dt > dt_max * (1.0 + 1e-6):
+                if not self.cfg.auto_substep:
+                    raise self._unstable(model, dt, dt_max, v_max, substeps)
+                split = int(math.ceil(dt / dt_max))
+                log.info(
+                    "sim: frame %d: dt=%.3g s over the CFL bound %.3g s; running %d x %d substeps of %.3g s",
+                    frame_index, dt, dt_max, substeps, split, dt / split,
+                )  # fmt: skip
+                substeps, dt = substeps * split, dt / split
+        xn = x.detach().double().cpu().numpy()
+        # how far a particle can travel in this rollout at its current speed under gravity, plus 2 cells
+        horizon = substeps * dt
+        reach = v_max * horizon + 0.5 * float(np.linalg.norm(model.gravity)) * horizon**2 + 2.0 * model.grid.dx
+        lo, hi = xn.min(0) - reach, xn.max(0) + reach
+        if not (model.grid.contains(lo[None]) and model.grid.contains(hi[None])):
+            if not self.cfg.refit_grid:
+                log.warning("sim: frame %d: particles may reach the grid walls (sim.refit_grid=false)", frame_index)
+            else:
+                longest = max(float((xn.max(0) - xn.min(0)).max()), model.grid.dx)
+                # capped: a particle that would fly further than the object's size is a blow-up to report
+                padding = min(max(self.cfg.grid_padding, reach / longest), max(self.cfg.grid_padding, 1.0))
+                grid = physics.fit_grid(
+                    xn, n_grid=self.cfg.n_grid, padding=padding, wall=self.cfg.wall_cells, dx=model.grid.dx,
+                    anchor=model.grid.origin,
+                )
+                log.debug("sim: frame %d: grid re-fitted to %s nodes", frame_index, grid.dims)
+                model = model.with_grid(grid)
+
+        perm = None
+        mass, volume = model.mass, model.volume
+        if self.cfg.sort_particles and n > 1:
+            g = model.grid
+            cell = np.floor((xn - g.origin) / g.dx).astype(np.int64)
+            cell = np.clip(cell, 0, np.asarray(g.dims) - 1)
+            key = (cell[:, 0] * g.dims[1] + cell[:, 1]) * g.dims[2] + cell[:, 2]
+            order = np.argsort(key, kind="stable")
+            perm = torch.as_tensor(order, device=x.device)
+            x, v, F, C = x[perm], v[perm], F[perm], C[perm]
+            mass, volume = mass[order], volume[order]
+
+        launch = _Launch(
+            model=model, ws=self._workspace(n, model.grid.dims),
+            mass=wp.array(mass.astype(np.float32), dtype=float, device=self.wp_device),
+            volume=wp.array(volume.astype(np.float32), dtype=float, device=self.wp_device),
+            dt=float(dt), mass_eps=float(1e-9 * mass.min()),
+        )  # fmt: skip
+        plan = _RolloutPlan(launch=launch, substeps=substeps, checkpoint_every=self.cfg.checkpoint_every, frame_index=frame_index)
+        if timers is not None:
+            with torch.no_grad():
+                final = plan.forward(x, v, F, C, store=False, timers=timers)
+                self._check_status(plan, final)
+                out = tuple(t.to(x.device) for t in _state_to_torch(final))
+        else:
+            out = _RolloutFunction.apply(x, v, F, C, plan, self)
+        if perm is not None:
+            inv = torch.empty_like(perm)
+            inv[perm] = torch.arange(n, device=perm.device)
+            out = tuple(t[inv] for t in out)
+        return out  # type: ignore[return-value]
+
+    def grid_totals(
+        self, model: MPMModel, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *, dt: float
+    ) -> tuple[float, np.ndarray]:
+        """Total mass [kg] and momentum [kg m/s] on the grid after one P2G of this state (diagnostics).
+
+        MLS-MPM's P2G conserves both exactly (partition of unity, zero first moment of the weights), so
+        these equal sum m_p and sum m_p v_p up to float rounding.
+        """
+        n = model.num_particles
+        launch = _Launch(
+            model=model, ws=self._workspace(n, model.grid.dims),
+            mass=wp.array(model.mass.astype(np.float32), dtype=float, device=self.wp_device),
+            volume=wp.array(model.volume.astype(np.float32), dtype=float, device=self.wp_device),
+            dt=float(dt), mass_eps=float(1e-9 * model.mass.min()),
+        )  # fmt: skip
+        ws = launch.ws
+        _load(ws.ping, x, v, F, C)
+        ws.grid.zero_()
+        i, o = launch.p2g_args(ws.ping, 0)
+        wp.launch(K.p2g, dim=n, inputs=i, outputs=o, device=self.wp_device)
+        g = ws.grid.numpy().astype(np.float64).reshape(-1, 4).sum(0)
+        return float(g[3]), g[:3]
+
+    def _workspace(self, n: int, dims: tuple[int, int, int]) -> _Workspace:
+        ws = self._ws
+        if ws is None or ws.n != n or ws.dims != tuple(dims):
+            ws = _Workspace(n, tuple(dims), self.wp_device)  # type: ignore[arg-type]
+            self._ws = ws
+        return ws
+
+    def _check_status(self, plan: _RolloutPlan, final: WarpState) -> None:
+        """Raise SimulationDiverged if any substep recorded a NaN/inf or an off-grid particle."""
+        first = int(plan.launch.ws.status.numpy()[0])
+        if first == _STATUS_OK:
+            return
+        v = final.v.numpy()
+        speed = np.linalg.norm(v, axis=1)
+        finite = np.isfinite(speed)
+        vmax = float(speed[finite].max()) if finite.any() else float("nan")
+        m = plan.launch.model
+        raise SimulationDiverged(
+            f"frame {plan.frame_index}, substep {first - plan.first_substep} of {plan.substeps}: particles left the grid "
+            f"or turned NaN/inf (largest finite speed {vmax:.3g} m/s, {int((~finite).sum())} non-finite; "
+            f"dt={plan.launch.dt:.3g} s, CFL bound {self.max_stable_dt(m, 0.0):.3g} s at rest); lower dt or sim.cfl_safety, "
+            f"lower the initial velocities, or raise sim.grid_padding"
+        )
+
+    # -- the transfer loop (issue 5) ---------------------------------------------------------------
+
+    def run(self, target: Any, part_map: Any, motion: Any, **kwargs: Any) -> Any:
+        """Motion transfer loop; implemented in :mod:`sync4d.transfer`."""
+        from sync4d.transfer import run_mpm_transfer
+
+        return run_mpm_transfer(self, target, part_map, motion, **kwargs)
