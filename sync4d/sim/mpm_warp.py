@@ -144,6 +144,7 @@ class _Workspace:
         self.adj_grid_v: wp.array | None = None
         self.adj_a: WarpState | None = None
         self.adj_b: WarpState | None = None
+
         self.segment: list[WarpState] = []
 
     def ensure_backward(self, k: int) -> None:
@@ -231,23 +232,18 @@ def step(launch: _Launch, state_in: WarpState, state_out: WarpState, substep: in
         timers["g2p"] = timers.get("g2p", 0.0) + (t3 - t2)
 
 
-def _adjoint_of(a: Any) -> Any:
-    """The adjoint argument Warp expects for a non-differentiated kernel argument (as wp.Tape does)."""
-    if isinstance(a, wp.array):
-        return None
-    if wp.types.is_value(a) and not isinstance(a, (int, float)):
-        return type(a)()
-    return None
-
-
-def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: WarpState, substep: int, scratch: WarpState) -> None:
+def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: WarpState, substep: int) -> None:
     """Reverse one substep: given dL/d(state_out) in ``adj_out``, write dL/d(state_in) into ``adj_in``.
 
-    Rebuilds the substep's grid from ``s`` (P2G + grid update), then launches the generated adjoints of
-    G2P, grid update and P2G in reverse order. The grid mass is differentiated like every other input.
+    Rebuilds the substep's grid from ``s`` (P2G + grid update), then runs the adjoints in reverse order:
+    G2P, grid update, and P2G fused with the fixed-corotated stress, all by hand-written kernels (checked
+    against finite differences and against Warp's generated adjoints in the tests; the generated ones
+    were 3-6x slower). The grid mass is differentiated like every other input. No buffer needs zeroing
+    except the scattered node-velocity adjoint.
     """
     ws, dev, n = launch.ws, launch.ws.device, launch.model.num_particles
     assert ws.adj_grid is not None and ws.adj_grid_v is not None
+    g = launch.model.grid
     # forward part: the grid this substep saw
     ws.grid.zero_()
     p2g_in, p2g_out = launch.p2g_args(s, substep)
@@ -255,25 +251,18 @@ def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: War
     grid_in, grid_out = launch.grid_args()
     wp.launch(K.grid_update, dim=ws.dims, inputs=grid_in, outputs=grid_out, device=dev)
 
-    ws.adj_grid.zero_()
+    origin, inv_dx, dt = wp.vec3(*g.origin), float(1.0 / g.dx), float(launch.dt)
     ws.adj_grid_v.zero_()
-    adj_in.zero_()
-    # G2P adjoint: outputs' primal arrays are not read by the adjoint (stores are not replayed).
-    g2p_in, g2p_out = launch.g2p_args(s, scratch, substep)
-    adj_g2p_in = [adj_in.x, adj_in.F, ws.adj_grid_v] + [_adjoint_of(a) for a in g2p_in[3:]]
-    adj_g2p_out = [adj_out.x, adj_out.v, adj_out.C, adj_out.F, None]
-    wp.launch(K.g2p, dim=n, inputs=g2p_in, outputs=g2p_out, adj_inputs=adj_g2p_in, adj_outputs=adj_g2p_out, adjoint=True, device=dev)
-    # grid update adjoint: dL/d(grid_v) -> dL/d(m v, m) per node
-    adj_grid_in = [ws.adj_grid] + [_adjoint_of(a) for a in grid_in[1:]]
     wp.launch(
-        K.grid_update, dim=ws.dims, inputs=grid_in, outputs=grid_out,
-        adj_inputs=adj_grid_in, adj_outputs=[ws.adj_grid_v], adjoint=True, device=dev,
+        K.g2p_adjoint, dim=n,
+        inputs=[s.x, s.F, ws.grid_v, origin, inv_dx, dt, adj_out.x, adj_out.v, adj_out.C, adj_out.F],
+        outputs=[ws.adj_grid_v, adj_in.x, adj_in.F], device=dev,
     )  # fmt: skip
-    # P2G adjoint: dL/d(grid) -> dL/d(x, v, C, F), accumulated onto G2P's contributions to x and F
-    adj_p2g_in = [adj_in.x, adj_in.v, adj_in.C, adj_in.F, None, None] + [_adjoint_of(a) for a in p2g_in[6:]]
+    wp.launch(K.grid_update_adjoint, dim=ws.dims, inputs=grid_in + [ws.adj_grid_v], outputs=[ws.adj_grid], device=dev)
     wp.launch(
-        K.p2g, dim=n, inputs=p2g_in, outputs=p2g_out,
-        adj_inputs=adj_p2g_in, adj_outputs=[ws.adj_grid, None], adjoint=True, device=dev,
+        K.p2g_adjoint, dim=n,
+        inputs=p2g_in[:15] + [ws.adj_grid],
+        outputs=[adj_in.x, adj_in.v, adj_in.C, adj_in.F], device=dev,
     )  # fmt: skip
 
 
@@ -317,7 +306,9 @@ class _RolloutPlan:
     first_substep: int = 0
     checkpoints: list[WarpState] = field(default_factory=list)
 
-    def forward(self, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *, store: bool, timers: dict | None = None) -> WarpState:
+    def forward(
+        self, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *, store: bool, timers: dict | None = None
+    ) -> WarpState:
         ws = self.launch.ws
         ws.status.fill_(_STATUS_OK)
         _load(ws.ping, x, v, F, C)
@@ -344,7 +335,6 @@ class _RolloutPlan:
         }  # fmt: skip
         gx, gv, gF, gC = (g if g is not None else zeros[name] for g, name in zip(grads, ("x", "v", "F", "C")))
         _load(adj_next, gx, gv, gF, gC)
-        scratch = ws.ping  # receives G2P primal outputs the adjoint launch never reads
         for seg_id in reversed(range(len(self.checkpoints))):
             s0 = seg_id * k
             s1 = min(s0 + k, self.substeps)
@@ -355,7 +345,7 @@ class _RolloutPlan:
                 step(self.launch, states[-1], out, self.first_substep + s0 + j - 1)
                 states.append(out)
             for j in reversed(range(s1 - s0)):
-                _step_adjoint(self.launch, states[j], adj_next, adj_cur, self.first_substep + s0 + j, scratch)
+                _step_adjoint(self.launch, states[j], adj_next, adj_cur, self.first_substep + s0 + j)
                 adj_next, adj_cur = adj_cur, adj_next
         gx, gv, gF, gC = _state_to_torch(adj_next)
         out = [g.to(like.device) for g in (gx, gv, gF, gC)]
@@ -371,7 +361,9 @@ class _RolloutFunction(torch.autograd.Function):
     """(x, v, F, C) -> (x, v, F, C) after ``plan.substeps`` substeps; differentiable in all four inputs."""
 
     @staticmethod
-    def forward(ctx: Any, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, plan: _RolloutPlan, sim: MPMWarp) -> tuple[torch.Tensor, ...]:  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx: Any, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, plan: _RolloutPlan, sim: MPMWarp
+    ) -> tuple[torch.Tensor, ...]:
         store = any(ctx.needs_input_grad[:4])
         final = plan.forward(x, v, F, C, store=store)
         sim._check_status(plan, final)
@@ -417,7 +409,10 @@ class MPMWarp:
             control_grid: cells per axis of the control-point lattice (paper: 41), or null to simulate
                 every Gaussian.
             gravity: (3,) acceleration [m/s^2]; off for motion transfer.
-            checkpoint_every: store every k-th substep state for the backward pass (memory ~ N/k + k states).
+            checkpoint_every: store every k-th substep state for the backward pass, which recomputes the
+                other (k-1)/k substeps once (memory ~ N/k + k states of 96 bytes per particle); null picks
+                the smallest k whose states fit ``checkpoint_budget_mb`` (k = 1: no recomputation).
+            checkpoint_budget_mb: memory for stored states of one rollout when checkpoint_every is null [MB].
             sort_particles: order particles by grid cell inside each rollout (cache locality; no effect on
                 results beyond float rounding).
             refit_grid: when particles come near the walls, re-centre and grow the grid (same dx) before
@@ -438,7 +433,8 @@ class MPMWarp:
         cfl_safety: float = 0.3
         control_grid: int | None = None
         gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
-        checkpoint_every: int = 10
+        checkpoint_every: int | None = None
+        checkpoint_budget_mb: float = 256.0
         sort_particles: bool = True
         refit_grid: bool = True
         # Motion transfer (sync4d.transfer): how each frame pair is initialised and supervised.
@@ -476,8 +472,10 @@ class MPMWarp:
                                         ("target_mode", self.target_mode, ("relative", "absolute"))):
                 if value not in allowed:
                     raise ConfigError(f"sim.{key}={value!r}: must be one of {', '.join(allowed)}")
-            if self.checkpoint_every < 1:
-                raise ConfigError(f"sim.checkpoint_every={self.checkpoint_every}: must be >= 1")
+            if self.checkpoint_every is not None and self.checkpoint_every < 1:
+                raise ConfigError(f"sim.checkpoint_every={self.checkpoint_every}: must be >= 1, or null (from the budget)")
+            if not self.checkpoint_budget_mb > 0:
+                raise ConfigError(f"sim.checkpoint_budget_mb={self.checkpoint_budget_mb}: must be > 0 MB")
 
     def __init__(self, cfg: Config, *, device: str) -> None:
         cfg.validate()
@@ -650,9 +648,10 @@ class MPMWarp:
             raise ConfigError(f"sim.rollout: substeps={substeps} must be >= 1")
         substeps = int(substeps)
         with torch.no_grad():
-            bad = not bool(torch.isfinite(x).all() and torch.isfinite(v).all() and torch.isfinite(F).all() and torch.isfinite(C).all())
-            if bad:
-                raise SimulationDiverged(f"frame {frame_index}: the rollout's input state holds NaN/inf; check the initial velocities")
+            if not all(bool(torch.isfinite(t).all()) for t in (x, v, F, C)):
+                raise SimulationDiverged(
+                    f"frame {frame_index}: the rollout's input state holds NaN/inf; check the initial velocities"
+                )
             v_max = float(v.norm(dim=1).max()) if n else 0.0
         if check_cfl:
             dt_max = self.max_stable_dt(model, v_max)
@@ -702,7 +701,8 @@ class MPMWarp:
             volume=wp.array(volume.astype(np.float32), dtype=float, device=self.wp_device),
             dt=float(dt), mass_eps=float(1e-9 * mass.min()),
         )  # fmt: skip
-        plan = _RolloutPlan(launch=launch, substeps=substeps, checkpoint_every=self.cfg.checkpoint_every, frame_index=frame_index)
+        k = self.checkpoint_interval(n, substeps)
+        plan = _RolloutPlan(launch=launch, substeps=substeps, checkpoint_every=k, frame_index=frame_index)
         if timers is not None:
             with torch.no_grad():
                 final = plan.forward(x, v, F, C, store=False, timers=timers)
@@ -715,6 +715,24 @@ class MPMWarp:
             inv[perm] = torch.arange(n, device=perm.device)
             out = tuple(t[inv] for t in out)
         return out  # type: ignore[return-value]
+
+    def checkpoint_interval(self, n_particles: int, substeps: int) -> int:
+        """k: the backward pass stores every k-th substep state (``checkpoint_every`` or from the budget).
+
+        Stored: ceil(N / k) states plus k - 1 recomputed ones, 96 bytes per particle each (x, v, C, F).
+        """
+        if self.cfg.checkpoint_every is not None:
+            return int(self.cfg.checkpoint_every)
+        state_mb = 96.0 * n_particles / 2**20
+        for k in range(1, substeps + 1):
+            if (math.ceil(substeps / k) + k - 1) * state_mb <= self.cfg.checkpoint_budget_mb:
+                return k
+        k = max(1, int(math.ceil(math.sqrt(substeps))))  # minimises N/k + k when nothing fits
+        log.warning(
+            "sim: %d substeps of %d particles need %.0f MB of stored states (> sim.checkpoint_budget_mb=%g)",
+            substeps, n_particles, (math.ceil(substeps / k) + k - 1) * state_mb, self.cfg.checkpoint_budget_mb,
+        )  # fmt: skip
+        return k
 
     def grid_totals(
         self, model: MPMModel, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *, dt: float

@@ -1,0 +1,1 @@
+"""sync4d.sim: see the modules in this package."""
