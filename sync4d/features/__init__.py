@@ -1,0 +1,1 @@
+"""sync4d.features: see the modules in this package."""

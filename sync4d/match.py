@@ -1,0 +1,461 @@
+"""Part mapping with shape correspondence (paper Sec. 3.3).
+
+Steps, each a small pure function:
+
+1. reference labels ``y_ref = argmax_b W(x)`` (:meth:`Reference.part_labels`);
+2. the target surface (its mesh, or the Gaussian means) is aligned to the reference
+   (:func:`sync4d.align.align_shapes`) and both are put in the reference's normalised frame
+   (centroid at 0, unit RMS radius), where the features are computed;
+3. mean reference feature per part, ``f_b = mean_{y_ref = b} f_ref`` (:func:`part_mean_features`);
+4. each target vertex takes the part of highest cosine similarity (:func:`assign_by_similarity`);
+5. outliers are dropped: vertices farther from their part's centre than ``outlier_sigma`` robust
+   spreads (:func:`remove_outliers`);
+6. a box per part around its kept vertices (:func:`part_boxes`), and every Gaussian is given the part
+   whose box holds it; several boxes -> the nearest of their part centroids, no box -> the nearest part
+   centroid overall (:func:`assign_to_boxes`);
+7. confidence per Gaussian: the cosine margin (best minus second-best part) of the nearest kept target
+   vertex of its part, clipped to [0, 1]; 0 for orphans (:func:`gaussian_confidence`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from sync4d.align import AlignResult, Similarity, align_shapes, normalization
+from sync4d.errors import ConfigError, InputError
+from sync4d.interfaces import FeatureExtractor
+from sync4d.types import PartMap, Reference, TargetGaussians
+
+log = logging.getLogger(__name__)
+
+IN_ONE_BOX, IN_SEVERAL_BOXES, ORPHAN = 0, 1, 2
+BOX_FRAMES: tuple[str, ...] = ("aligned", "pca")
+TIE_BREAKS: tuple[str, ...] = ("centroid", "nearest_vertex")
+
+
+@dataclass(frozen=True)
+class MatchDiagnostics:
+    """Everything :func:`match_parts_detailed` computed on the way, for logs, pictures and tests.
+
+    Attributes:
+        alignment: the target -> reference alignment.
+        frame: similarity taking target coordinates into the common normalised frame (alignment, then
+            the reference's normalisation).
+        reference_points: (V, 3) reference vertices in the common frame.
+        target_points: (M, 3) target surface vertices in the common frame.
+        target_index: (M,) indices of the Gaussians used as surface vertices, or None if a mesh was given.
+        vertex_part: (M,) part of highest cosine similarity per target vertex (before outlier removal).
+        vertex_margin: (M,) cosine margin best minus second-best part per target vertex.
+        kept: (M,) bool, False for removed outliers.
+        similarity: (M, B) cosine similarities of the target vertices to the part means.
+        boxes: (B, 2, 3) per-part box corners (lo, hi) in the box frame (see ``box_rotations``).
+        box_rotations: (B, 3, 3) rotation of each box frame (identity for axis-aligned boxes).
+        box_valid: (B,) bool, the part kept at least one target vertex.
+        centroids: (B, 3) part centroids of the kept target vertices, common frame (NaN if invalid).
+        gaussian_status: (N,) 0 in one box, 1 in several (nearest centroid), 2 orphan (nearest centroid).
+    """
+
+    alignment: AlignResult
+    frame: Similarity
+    reference_points: np.ndarray
+    target_points: np.ndarray
+    target_index: np.ndarray | None
+    vertex_part: np.ndarray
+    vertex_margin: np.ndarray
+    kept: np.ndarray
+    similarity: np.ndarray
+    boxes: np.ndarray
+    box_rotations: np.ndarray
+    box_valid: np.ndarray
+    centroids: np.ndarray
+    gaussian_status: np.ndarray
+
+    @property
+    def vertex_part_final(self) -> np.ndarray:
+        """(M,) target vertex parts after outlier removal, -1 for outliers."""
+        return np.where(self.kept, self.vertex_part, -1)
+
+    def summary(self) -> dict[str, float]:
+        """Scalar numbers worth logging."""
+        n = max(len(self.gaussian_status), 1)
+        return {
+            "align_rotation_deg": self.alignment.transform.rotation_angle_deg,
+            "align_scale": self.alignment.transform.scale,
+            "align_residual": self.alignment.residual,
+            "outlier_fraction": float(1.0 - self.kept.mean()) if len(self.kept) else 0.0,
+            "mean_margin": float(self.vertex_margin.mean()) if len(self.vertex_margin) else 0.0,
+            "gaussians_in_several_boxes": float((self.gaussian_status == IN_SEVERAL_BOXES).sum() / n),
+            "gaussians_orphan": float((self.gaussian_status == ORPHAN).sum() / n),
+            "parts_matched": float(self.box_valid.sum()),
+        }
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """A part map with its diagnostics."""
+
+    part_map: PartMap
+    diagnostics: MatchDiagnostics
+
+
+def part_mean_features(features: np.ndarray, labels: np.ndarray, num_parts: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean feature of each part (paper eq. f_b = 1/N_b sum_{y_n = b} f_n).
+
+    Args:
+        features: (V, D) reference vertex features.
+        labels: (V,) int part per vertex in [0, num_parts).
+        num_parts: B.
+
+    Returns:
+        means (B, D) (zero rows for empty parts), present (B,) bool (the part owns >= 1 vertex).
+    """
+    labels = np.asarray(labels, dtype=np.int64)
+    sums = np.zeros((num_parts, features.shape[1]))
+    np.add.at(sums, labels, features)
+    counts = np.bincount(labels, minlength=num_parts).astype(np.float64)
+    present = counts > 0
+    sums[present] /= counts[present, None]
+    return sums, present
+
+
+def cosine_similarity(features: np.ndarray, means: np.ndarray) -> np.ndarray:
+    """(N, B) cosine similarity of every row of ``features`` (N, D) with every row of ``means`` (B, D)."""
+    a = features / np.maximum(np.linalg.norm(features, axis=1, keepdims=True), 1e-12)
+    b = means / np.maximum(np.linalg.norm(means, axis=1, keepdims=True), 1e-12)
+    return a @ b.T
+
+
+def assign_by_similarity(similarity: np.ndarray, present: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Part of highest similarity per row, and the margin to the second-best part.
+
+    Args:
+        similarity: (N, B) cosine similarities.
+        present: (B,) bool, parts that may be chosen (parts without reference vertices may not).
+
+    Returns:
+        labels (N,) int64, margin (N,) >= 0 (0 when only one part can be chosen).
+    """
+    sim = np.asarray(similarity, dtype=np.float64).copy()
+    if present is not None:
+        if not present.any():
+            raise InputError("match: the reference has no labelled part (every skinning column is empty)")
+        sim[:, ~present] = -np.inf
+    order = np.argsort(-sim, axis=1)
+    labels = order[:, 0]
+    best = np.take_along_axis(sim, order[:, :1], axis=1)[:, 0]
+    if sim.shape[1] > 1:
+        second = np.take_along_axis(sim, order[:, 1:2], axis=1)[:, 0]
+        margin = np.where(np.isfinite(second), best - second, 0.0)
+    else:
+        margin = np.zeros(len(sim))
+    return labels.astype(np.int64), margin
+
+
+def remove_outliers(points: np.ndarray, labels: np.ndarray, num_parts: int, sigma: float) -> np.ndarray:
+    """Keep mask dropping points far from their part's centre.
+
+    The centre is the coordinate-wise median of the part (a centroid that the outliers themselves
+    cannot drag), the distance d_i of each point to it is compared with a robust spread,
+    ``d_i > median(d) + sigma * 1.4826 * MAD(d)`` marks an outlier (the median absolute deviation
+    scaled to a standard deviation; a plain standard deviation would be inflated by the very points to
+    remove). For a straight limb of length L the farthest genuine point sits at ~1.9 spreads, so
+    sigma >= 2 keeps every genuine point of such parts.
+
+    Args:
+        points: (N, 3) positions.
+        labels: (N,) int part per point.
+        num_parts: B.
+        sigma: threshold in robust spreads; <= 0 or inf disables removal.
+
+    Returns:
+        (N,) bool, True for kept points.
+    """
+    keep = np.ones(len(points), dtype=bool)
+    if not np.isfinite(sigma) or sigma <= 0:
+        return keep
+    for b in range(num_parts):
+        idx = np.flatnonzero(labels == b)
+        if len(idx) < 4:
+            continue
+        centre = np.median(points[idx], axis=0)
+        d = np.linalg.norm(points[idx] - centre, axis=1)
+        med = np.median(d)
+        spread = 1.4826 * np.median(np.abs(d - med))
+        spread = max(spread, 1e-3 * max(med, 1e-12))
+        keep[idx[d > med + sigma * spread]] = False
+    return keep
+
+
+def part_boxes(
+    points: np.ndarray, labels: np.ndarray, keep: np.ndarray, num_parts: int, *, frame: str = "aligned", padding: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Bounding box of the kept points of each part.
+
+    Args:
+        points: (N, 3) target vertices in the common frame.
+        labels: (N,) int part per vertex.
+        keep: (N,) bool, vertices kept after outlier removal.
+        num_parts: B.
+        frame: ``"aligned"``: axis-aligned in the common (aligned) frame, as in the paper;
+            ``"pca"``: oriented along each part's principal axes (tighter around slanted limbs).
+        padding: boxes grow by this fraction of their size on every side (Gaussian centres sit slightly
+            off the sampled surface).
+
+    Returns:
+        boxes (B, 2, 3) lo/hi corners in each box's frame, rotations (B, 3, 3) (box coordinates are
+        ``R @ x``), valid (B,) bool, centroids (B, 3) of the kept points (NaN where invalid).
+    """
+    if frame not in BOX_FRAMES:
+        raise ConfigError(f"match.box_frame={frame!r}: use one of {', '.join(BOX_FRAMES)}")
+    boxes = np.zeros((num_parts, 2, 3))
+    rots = np.tile(np.eye(3), (num_parts, 1, 1))
+    valid = np.zeros(num_parts, dtype=bool)
+    centroids = np.full((num_parts, 3), np.nan)
+    for b in range(num_parts):
+        pts = points[(labels == b) & keep]
+        if len(pts) == 0:
+            continue
+        valid[b] = True
+        centroids[b] = pts.mean(axis=0)
+        if frame == "pca" and len(pts) >= 4:
+            centred = pts - centroids[b]
+            _, vecs = np.linalg.eigh(centred.T @ centred)
+            rots[b] = vecs.T
+        local = pts @ rots[b].T
+        lo, hi = local.min(axis=0), local.max(axis=0)
+        pad = padding * (hi - lo)
+        boxes[b] = np.stack([lo - pad, hi + pad])
+    return boxes, rots, valid, centroids
+
+
+def points_in_boxes(points: np.ndarray, boxes: np.ndarray, rotations: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(N, B) bool: point n lies inside (or on) box b; invalid boxes hold nothing."""
+    local = np.einsum("bij,nj->nbi", rotations, points)  # (N, B, 3)
+    inside = np.all((local >= boxes[None, :, 0]) & (local <= boxes[None, :, 1]), axis=2)
+    return inside & valid[None, :]
+
+
+def part_distances(
+    points: np.ndarray,
+    centroids: np.ndarray,
+    valid: np.ndarray,
+    *,
+    vertex_points: np.ndarray | None = None,
+    vertex_labels: np.ndarray | None = None,
+) -> np.ndarray:
+    """(N, B) distance of each point to each part: to its centroid, or (when the part's kept vertices
+    are given) to its nearest kept vertex; inf for invalid parts."""
+    dist = np.full((len(points), len(valid)), np.inf)
+    for b in np.flatnonzero(valid):
+        if vertex_points is None or vertex_labels is None:
+            dist[:, b] = np.linalg.norm(points - centroids[b], axis=1)
+        else:
+            dist[:, b] = cKDTree(vertex_points[vertex_labels == b]).query(points)[0]
+    return dist
+
+
+def assign_to_boxes(
+    points: np.ndarray,
+    boxes: np.ndarray,
+    rotations: np.ndarray,
+    valid: np.ndarray,
+    centroids: np.ndarray,
+    *,
+    distances: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Part per Gaussian: the box that holds it; ties and orphans go to the nearest part centroid.
+
+    Args:
+        points: (N, 3) Gaussian centres in the common frame.
+        boxes, rotations, valid, centroids: from :func:`part_boxes`.
+        distances: (N, B) point-to-part distances used for ties and orphans instead of the distances to
+            the centroids (see :func:`part_distances`).
+
+    Returns:
+        labels (N,) int64, status (N,) int8: 0 in one box, 1 in several boxes (nearest part among
+        them), 2 in none (nearest part among all valid parts).
+    """
+    if not valid.any():
+        raise InputError("match: no part kept any target vertex; lower match.outlier_sigma or check the features")
+    inside = points_in_boxes(points, boxes, rotations, valid)
+    dist = part_distances(points, centroids, valid) if distances is None else distances.copy()
+    dist[:, ~valid] = np.inf
+    count = inside.sum(axis=1)
+    among_boxes = np.where(inside, dist, np.inf)
+    labels = np.where(count >= 1, np.argmin(among_boxes, axis=1), np.argmin(dist, axis=1))
+    status = np.where(count == 1, IN_ONE_BOX, np.where(count > 1, IN_SEVERAL_BOXES, ORPHAN)).astype(np.int8)
+    return labels.astype(np.int64), status
+
+
+def gaussian_confidence(
+    points: np.ndarray,
+    labels: np.ndarray,
+    status: np.ndarray,
+    vertex_points: np.ndarray,
+    vertex_labels: np.ndarray,
+    vertex_margin: np.ndarray,
+    kept: np.ndarray,
+) -> np.ndarray:
+    """(N,) confidence in [0, 1]: the cosine margin of the nearest kept vertex of the Gaussian's part.
+
+    A Gaussian has no feature of its own; the margin (best minus second-best cosine similarity) of the
+    surface vertex nearest to it within its assigned part says how clearly that region belongs to the
+    part. Orphans (in no box) get 0.
+    """
+    conf = np.zeros(len(points))
+    for b in np.unique(labels):
+        sel = np.flatnonzero((labels == b) & (status != ORPHAN))
+        src = np.flatnonzero((vertex_labels == b) & kept)
+        if len(sel) == 0 or len(src) == 0:
+            continue
+        _, j = cKDTree(vertex_points[src]).query(points[sel])
+        conf[sel] = vertex_margin[src[j]]
+    return np.clip(conf, 0.0, 1.0)
+
+
+def target_surface(
+    target: TargetGaussians, *, max_vertices: int, min_opacity: float, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Surface points of a Gaussian target without a mesh: the means of its visible Gaussians.
+
+    Args:
+        target: the Gaussians.
+        max_vertices: random subsample size (feature extraction is O(V) to O(V^1.5)).
+        min_opacity: Gaussians fainter than this are not surface (floaters, interior fill).
+
+    Returns:
+        points (M, 3) [m], index (M,) into the Gaussians.
+    """
+    index = np.flatnonzero(target.opacities >= min_opacity)
+    if len(index) < 8:
+        index = np.arange(target.num)
+    if len(index) > max_vertices:
+        rng = np.random.default_rng(seed)
+        index = np.sort(rng.choice(index, size=max_vertices, replace=False))
+    return target.means[index].astype(np.float64), index
+
+
+def match_parts_detailed(
+    reference: Reference,
+    target: TargetGaussians,
+    extractor: FeatureExtractor,
+    *,
+    outlier_sigma: float = 2.5,
+    align: str = "pca_icp",
+    icp_iterations: int = 100,
+    target_vertices: np.ndarray | None = None,
+    target_faces: np.ndarray | None = None,
+    box_frame: str = "aligned",
+    box_padding: float = 0.02,
+    tie_break: str = "centroid",
+    max_target_vertices: int = 6000,
+    min_opacity: float = 0.1,
+    seed: int = 0,
+) -> MatchResult:
+    """The paper's part mapping (Sec. 3.3), with alignment first; see the module docstring.
+
+    Args:
+        reference: articulated reference (rest mesh and skinning).
+        target: the static Gaussians to label.
+        extractor: a built ``features`` component.
+        outlier_sigma: robust spreads beyond which a target vertex is an outlier (<= 0 disables).
+        align: ``none`` | ``pca`` | ``pca_icp`` (see :func:`sync4d.align.align_shapes`).
+        icp_iterations: ICP iterations.
+        target_vertices: (M, 3) target surface [m] in the Gaussians' frame, e.g. the mesh the Gaussians
+            came from; None uses the Gaussian means.
+        target_faces: (F, 3) faces of ``target_vertices``, or None.
+        box_frame: ``aligned`` (axis-aligned boxes in the common frame) or ``pca`` (oriented per part).
+        box_padding: box growth as a fraction of its size per side.
+        tie_break: how a Gaussian in several boxes (or in none) picks its part: ``centroid`` (the paper's
+            reading: nearest part centroid) or ``nearest_vertex`` (the part of the nearest kept target
+            vertex, which follows long limbs that a centroid misrepresents).
+        max_target_vertices: subsample of Gaussian means used as the surface when there is no mesh.
+        min_opacity: Gaussians below this opacity are not used as surface points.
+        seed: subsampling seed.
+
+    Returns:
+        MatchResult with the PartMap (tgt_part per Gaussian) and diagnostics.
+    """
+    num_parts = reference.num_bones
+    ref_labels = reference.part_labels()
+    if target_vertices is None:
+        if target_faces is not None:
+            raise InputError("match_parts: target_faces given without target_vertices")
+        tgt_vertices, index = target_surface(target, max_vertices=max_target_vertices, min_opacity=min_opacity, seed=seed)
+        tgt_faces = None
+    else:
+        tgt_vertices, index = np.asarray(target_vertices, dtype=np.float64), None
+        tgt_faces = None if target_faces is None else np.asarray(target_faces, dtype=np.int64)
+
+    alignment = align_shapes(tgt_vertices, reference.rest_vertices, method=align, icp_iterations=icp_iterations, seed=seed)
+    ref_norm = normalization(reference.rest_vertices)
+    frame = alignment.transform.then(ref_norm)
+    ref_pts = ref_norm.apply(reference.rest_vertices)
+    tgt_pts = frame.apply(tgt_vertices)
+
+    f_ref = np.asarray(extractor.extract(ref_pts, reference.rest_faces), dtype=np.float64)
+    f_tgt = np.asarray(extractor.extract(tgt_pts, tgt_faces), dtype=np.float64)
+    if f_ref.shape[1] != f_tgt.shape[1]:
+        raise InputError(f"match: reference features have {f_ref.shape[1]} dims, target {f_tgt.shape[1]}")
+    means, present = part_mean_features(f_ref, ref_labels, num_parts)
+    similarity = cosine_similarity(f_tgt, means)
+    vertex_part, margin = assign_by_similarity(similarity, present)
+    kept = remove_outliers(tgt_pts, vertex_part, num_parts, outlier_sigma)
+    boxes, rots, valid, centroids = part_boxes(tgt_pts, vertex_part, kept, num_parts, frame=box_frame, padding=box_padding)
+    g_pts = frame.apply(target.means)
+    if tie_break not in TIE_BREAKS:
+        raise ConfigError(f"match.tie_break={tie_break!r}: use one of {', '.join(TIE_BREAKS)}")
+    distances = part_distances(
+        g_pts, centroids, valid,
+        **({"vertex_points": tgt_pts[kept], "vertex_labels": vertex_part[kept]} if tie_break == "nearest_vertex" else {}),
+    )
+    tgt_part, status = assign_to_boxes(g_pts, boxes, rots, valid, centroids, distances=distances)
+    confidence = gaussian_confidence(g_pts, tgt_part, status, tgt_pts, vertex_part, margin, kept)
+
+    part_map = PartMap(ref_part=ref_labels, tgt_part=tgt_part, confidence=confidence, num_parts=num_parts).validate()
+    diagnostics = MatchDiagnostics(
+        alignment=alignment, frame=frame, reference_points=ref_pts, target_points=tgt_pts, target_index=index,
+        vertex_part=vertex_part, vertex_margin=margin, kept=kept, similarity=similarity, boxes=boxes,
+        box_rotations=rots, box_valid=valid, centroids=centroids, gaussian_status=status,
+    )
+    log.info(
+        "match: %s", ", ".join(f"{k}={v:.4g}" for k, v in diagnostics.summary().items())
+    )
+    return MatchResult(part_map, diagnostics)
+
+
+def match_parts(
+    reference: Reference,
+    target: TargetGaussians,
+    extractor: FeatureExtractor,
+    *,
+    outlier_sigma: float = 2.5,
+    align: str = "pca_icp",
+    target_vertices: np.ndarray | None = None,
+    target_faces: np.ndarray | None = None,
+    **options: object,
+) -> PartMap:
+    """Part map of the target's Gaussians (paper Sec. 3.3); see :func:`match_parts_detailed`.
+
+    Args:
+        reference: articulated reference.
+        target: Gaussians to label.
+        extractor: a built ``features`` component.
+        outlier_sigma: outlier threshold in robust spreads.
+        align: ``none`` | ``pca`` | ``pca_icp``.
+        target_vertices: optional (M, 3) target surface; default the Gaussian means.
+        target_faces: optional (F, 3) faces of ``target_vertices``.
+        **options: further keyword options of :func:`match_parts_detailed` (``icp_iterations``,
+            ``box_frame``, ``box_padding``, ``tie_break``, ``max_target_vertices``, ``min_opacity``, ``seed``).
+
+    Returns:
+        PartMap: ref_part (V,), tgt_part (N,), confidence (N,) in [0, 1].
+    """
+    return match_parts_detailed(
+        reference, target, extractor, outlier_sigma=outlier_sigma, align=align,
+        target_vertices=target_vertices, target_faces=target_faces, **options,  # type: ignore[arg-type]
+    ).part_map
