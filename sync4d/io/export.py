@@ -1,0 +1,271 @@
+"""Exports of an animated result: one animated USD and one ``.npz`` of the whole Gaussian sequence.
+
+No standard Gaussian-sequence format exists; viewers (SuperSplat, GaussianSplats3D) open one 3DGS
+``.ply`` per frame (written by :mod:`sync4d.io.ply`). Beside those, a run writes:
+
+* ``sequence.usd`` (:func:`export_usd`): a ``UsdGeom.Points`` prim ``/sync4d/gaussians`` whose
+  ``points`` (and ``widths``, ``extent``) are time-sampled once per frame (time code = frame index,
+  ``timeCodesPerSecond`` = fps), with ``primvars:displayColor`` / ``displayOpacity``; and, when given,
+  the reference mesh ``/sync4d/reference`` as a ``UsdGeom.Mesh`` (time-sampled if a vertex sequence is
+  given). Y is up (as in the project's scenes; ``up_axis`` changes it) and one unit is one metre. Opens in usdview, Blender (File > Import > USD),
+  Houdini, Omniverse.
+* ``sequence.npz`` (:func:`export_npz`): means (T, N, 3), covariances per frame (or quats/scales),
+  colours / SH, opacities, fps; read back with :func:`load_npz` or ``numpy.load``.
+
+Every file is written atomically (a temporary name in the same folder, then renamed).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sync4d.errors import InputError
+from sync4d.io.atomic import atomic_save_npz, atomic_write
+
+NPZ_FORMAT_VERSION = 1
+
+
+def widths_from_covariances(covariances: np.ndarray, *, sigmas: float = 2.0) -> np.ndarray:
+    """Point widths (diameters) for display: ``sigmas`` x the geometric-mean standard deviation.
+
+    Args:
+        covariances: (..., 3, 3) covariances [m^2].
+        sigmas: diameter in standard deviations (2 = one sigma each side).
+
+    Returns:
+        (...,) widths [m].
+    """
+    det = np.clip(np.linalg.det(np.asarray(covariances, dtype=np.float64)), 0.0, None)
+    return sigmas * det ** (1.0 / 6.0)
+
+
+def widths_from_scales(scales: np.ndarray, *, sigmas: float = 2.0) -> np.ndarray:
+    """(..., 3) per-axis standard deviations [m] -> (...,) widths ``sigmas * (s1 s2 s3)^(1/3)`` [m]."""
+    s = np.asarray(scales, dtype=np.float64)
+    return sigmas * np.exp(np.log(np.clip(s, 1e-12, None)).mean(axis=-1))
+
+
+def _check_sequence(frames_means: np.ndarray) -> tuple[int, int]:
+    if frames_means.ndim != 3 or frames_means.shape[2] != 3:
+        raise InputError(f"export: frames_means must be (T, N, 3), got {frames_means.shape}")
+    if frames_means.shape[0] == 0:
+        raise InputError("export: the sequence has no frames")
+    if not np.isfinite(frames_means).all():
+        raise InputError("export: frames_means contains NaN/inf; the simulation diverged or the input is bad")
+    return int(frames_means.shape[0]), int(frames_means.shape[1])
+
+
+def export_usd(
+    path: str | Path,
+    frames_means: np.ndarray,
+    colors: np.ndarray | None = None,
+    widths: np.ndarray | float | None = None,
+    fps: float = 24.0,
+    *,
+    opacities: np.ndarray | None = None,
+    mesh_vertices: np.ndarray | None = None,
+    mesh_faces: np.ndarray | None = None,
+    mesh_color: tuple[float, float, float] = (0.7, 0.7, 0.75),
+    up_axis: str = "Y",
+) -> Path:
+    """Write the Gaussian sequence (and optionally the reference mesh) as one animated USD stage.
+
+    Args:
+        path: output ``.usd`` (binary crate), ``.usdc`` or ``.usda`` (text).
+        frames_means: (T, N, 3) Gaussian centres per frame [m].
+        colors: (N, 3) RGB in [0, 1] (``displayColor``), or None.
+        widths: point diameters [m]: a scalar, (N,) fixed or (T, N) per frame (see
+            :func:`widths_from_scales`); None gives 1 cm.
+        fps: frames per second; frame t is stored at time code t.
+        opacities: (N,) in [0, 1] (``displayOpacity``), or None.
+        mesh_vertices: (V, 3) static or (T, V, 3) per-frame reference mesh vertices [m], or None.
+        mesh_faces: (F, 3) triangles of the reference mesh (required with ``mesh_vertices``).
+        mesh_color: display colour of the mesh.
+        up_axis: stage up axis, "Y" (the project's scenes) or "Z".
+
+    Returns:
+        The path written.
+    """
+    from pxr import Gf, Usd, UsdGeom, Vt
+
+    means = np.asarray(frames_means, dtype=np.float32)
+    num_frames, num = _check_sequence(means)
+    if colors is not None and np.shape(colors) != (num, 3):
+        raise InputError(f"export_usd: colors must be ({num}, 3), got {np.shape(colors)}")
+    if opacities is not None and np.shape(opacities) != (num,):
+        raise InputError(f"export_usd: opacities must be ({num},), got {np.shape(opacities)}")
+    w = np.full(num, 0.01, np.float32) if widths is None else np.asarray(widths, dtype=np.float32)
+    if w.ndim == 0:
+        w = np.full(num, float(w), np.float32)
+    if w.shape not in ((num,), (num_frames, num)):
+        raise InputError(f"export_usd: widths must be a scalar, ({num},) or ({num_frames}, {num}), got {w.shape}")
+    if mesh_vertices is not None and mesh_faces is None:
+        raise InputError("export_usd: mesh_vertices given without mesh_faces")
+
+    stage = Usd.Stage.CreateInMemory()
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(num_frames - 1)
+    stage.SetTimeCodesPerSecond(float(fps))
+    stage.SetFramesPerSecond(float(fps))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up_axis.upper() == "Z" else UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/sync4d")
+    stage.SetDefaultPrim(root.GetPrim())
+
+    points = UsdGeom.Points.Define(stage, "/sync4d/gaussians")
+    points_attr, extent_attr, widths_attr = points.GetPointsAttr(), points.GetExtentAttr(), points.GetWidthsAttr()
+    points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+    if w.ndim == 1:
+        widths_attr.Set(Vt.FloatArray.FromNumpy(w))
+    for t in range(num_frames):
+        code = Usd.TimeCode(t)
+        points_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(means[t])), code)
+        w_t = w[t] if w.ndim == 2 else w
+        if w.ndim == 2:
+            widths_attr.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(w_t)), code)
+        # Extent must bound the points including their widths for viewers to frame and cull correctly.
+        pad = 0.5 * float(w_t.max()) if num else 0.0
+        lo = means[t].min(axis=0) - pad if num else np.zeros(3)
+        hi = means[t].max(axis=0) + pad if num else np.zeros(3)
+        extent_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
+    if colors is not None:
+        color_pv = points.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex)
+        color_pv.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(np.clip(colors, 0, 1), dtype=np.float32)))
+    if opacities is not None:
+        opacity_pv = points.CreateDisplayOpacityPrimvar(UsdGeom.Tokens.vertex)
+        opacity_pv.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(np.clip(opacities, 0, 1), dtype=np.float32)))
+
+    if mesh_vertices is not None:
+        _define_mesh(stage, "/sync4d/reference", np.asarray(mesh_vertices, np.float32),
+                     np.asarray(mesh_faces), mesh_color)
+
+    def write(tmp: Path) -> None:
+        if not stage.GetRootLayer().Export(str(tmp)):
+            raise OSError(f"export_usd: USD could not write {tmp}")
+
+    return atomic_write(path, write)
+
+
+def _define_mesh(stage: Any, prim_path: str, verts: np.ndarray, faces: np.ndarray,
+                 color: tuple[float, float, float]) -> None:
+    from pxr import Gf, Usd, UsdGeom, Vt
+
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise InputError(f"export_usd: mesh_faces must be (F, 3), got {faces.shape}")
+    if verts.ndim not in (2, 3) or verts.shape[-1] != 3:
+        raise InputError(f"export_usd: mesh_vertices must be (V, 3) or (T, V, 3), got {verts.shape}")
+    num_v = verts.shape[-2]
+    if faces.size and (faces.min() < 0 or faces.max() >= num_v):
+        raise InputError(f"export_usd: mesh_faces index outside [0, {num_v})")
+    mesh = UsdGeom.Mesh.Define(stage, prim_path)
+    mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+    mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1), np.int32)))
+    mesh.GetSubdivisionSchemeAttr().Set(UsdGeom.Tokens.none)
+    mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
+    seq = verts if verts.ndim == 3 else verts[None]
+    for t, v in enumerate(seq):
+        # A static mesh gets a default value, a sequence one sample per frame of its own length.
+        code = Usd.TimeCode(t) if verts.ndim == 3 else Usd.TimeCode.Default()
+        mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v)), code)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        mesh.GetExtentAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), code)
+
+
+def read_usd_points(path: str | Path, prim_path: str = "/sync4d/gaussians") -> tuple[np.ndarray, float]:
+    """Read back the time-sampled points of an exported stage.
+
+    Returns:
+        (T, N, 3) positions [m] at time codes 0..T-1 and the stage's time codes per second.
+    """
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise InputError(f"read_usd_points: cannot open {path} as USD")
+    prim = stage.GetPrimAtPath(prim_path)
+    if not prim.IsValid():
+        raise InputError(f"read_usd_points: {path} has no prim {prim_path}")
+    attr = UsdGeom.Points(prim).GetPointsAttr()
+    times = attr.GetTimeSamples()
+    frames = np.stack([np.asarray(attr.Get(Usd.TimeCode(t)), dtype=np.float32) for t in times])
+    return frames, float(stage.GetTimeCodesPerSecond())
+
+
+def export_npz(
+    path: str | Path,
+    frames_means: np.ndarray,
+    *,
+    fps: float,
+    colors: np.ndarray | None = None,
+    sh: np.ndarray | None = None,
+    opacities: np.ndarray | None = None,
+    covariances: np.ndarray | None = None,
+    quats: np.ndarray | None = None,
+    scales: np.ndarray | None = None,
+    deformation: np.ndarray | None = None,
+    global_transforms: np.ndarray | None = None,
+    **extras: np.ndarray,
+) -> Path:
+    """Write the Gaussian sequence as a compressed ``.npz`` (atomically).
+
+    Args:
+        path: output file (``.npz``).
+        frames_means: (T, N, 3) centres per frame [m].
+        fps: frames per second [1/s].
+        colors: (N, 3) RGB in [0, 1].
+        sh: (N, K, 3) SH coefficients (3DGS order).
+        opacities: (N,) in [0, 1].
+        covariances: (N, 3, 3) fixed or (T, N, 3, 3) per-frame covariances [m^2].
+        quats: (N, 4) or (T, N, 4) wxyz rotations, with ``scales`` (N, 3) or (T, N, 3) [m].
+        deformation: (T, N, 3, 3) deformation gradients of the simulation.
+        global_transforms: (T, 4, 4) global transforms applied for output.
+        **extras: any further arrays (stored under their names).
+
+    Returns:
+        The path written.
+    """
+    means = np.asarray(frames_means)
+    num_frames, num = _check_sequence(means)
+    arrays: dict[str, Any] = {
+        "format_version": np.int64(NPZ_FORMAT_VERSION),
+        "means": means.astype(np.float32),
+        "fps": np.float64(fps),
+    }
+    checks = {
+        "colors": (colors, [(num, 3)]),
+        "sh": (sh, None),
+        "opacities": (opacities, [(num,)]),
+        "covariances": (covariances, [(num, 3, 3), (num_frames, num, 3, 3)]),
+        "quats": (quats, [(num, 4), (num_frames, num, 4)]),
+        "scales": (scales, [(num, 3), (num_frames, num, 3)]),
+        "deformation": (deformation, [(num_frames, num, 3, 3)]),
+        "global_transforms": (global_transforms, [(num_frames, 4, 4)]),
+    }
+    for name, (value, shapes) in checks.items():
+        if value is None:
+            continue
+        arr = np.asarray(value)
+        if name == "sh" and (arr.ndim != 3 or arr.shape[0] != num or arr.shape[2] != 3):
+            raise InputError(f"export_npz: sh must be ({num}, K, 3), got {arr.shape}")
+        if shapes is not None and arr.shape not in shapes:
+            raise InputError(f"export_npz: {name} must have shape {' or '.join(map(str, shapes))}, got {arr.shape}")
+        arrays[name] = arr.astype(np.float32)
+    for name, value in extras.items():
+        if name in arrays:
+            raise InputError(f"export_npz: extra array '{name}' clashes with a standard field")
+        arrays[name] = np.asarray(value)
+    return atomic_save_npz(path, **arrays)
+
+
+def load_npz(path: str | Path) -> dict[str, Any]:
+    """Read a sequence written by :func:`export_npz`: arrays by name, ``fps`` as a float."""
+    with np.load(str(path), allow_pickle=False) as data:
+        out: dict[str, Any] = {k: data[k] for k in data.files}
+    if "means" not in out or "fps" not in out:
+        raise InputError(f"load_npz: {path} is not a sync4d sequence (no 'means'/'fps')")
+    out["fps"] = float(out["fps"])
+    out["format_version"] = int(out.get("format_version", 0))
+    return out

@@ -1,0 +1,342 @@
+"""Videos of a run: render a sequence, write mp4 / GIF, compose side by side, log to TensorBoard.
+
+* mp4 goes through imageio + imageio-ffmpeg (its bundled ffmpeg, H.264, yuv420p so every player opens
+  it) with ``macro_block_size=1`` so imageio does not rescale frames to multiples of 16; H.264 in
+  yuv420p still needs even sizes, so an odd width or height is padded by one replicated pixel.
+* GIFs are written with Pillow (frame duration in ms, looping forever).
+* TensorBoard: ``add_video`` silently logs nothing without the 2020 ``moviepy``, so
+  :func:`log_gif_tensorboard` writes the animated GIF bytes into an image summary itself (TensorBoard's
+  image panel plays them) and also logs a static strip of frames with ``add_image``.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sync4d.errors import InputError
+from sync4d.io.atomic import atomic_write, atomic_write_bytes
+from sync4d.types import Camera
+
+def to_uint8(frames: Any) -> np.ndarray:
+    """Images to uint8.
+
+    Args:
+        frames: (..., H, W, 3) float in [0, 1] (numpy or torch) or uint8; (..., H, W) greyscale is
+            expanded to 3 channels.
+
+    Returns:
+        (..., H, W, 3) uint8.
+    """
+    if hasattr(frames, "detach"):
+        frames = frames.detach().cpu().numpy()
+    arr = np.asarray(frames)
+    if arr.dtype != np.uint8:
+        arr = np.clip(np.nan_to_num(arr.astype(np.float32)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if arr.ndim >= 2 and arr.shape[-1] not in (3, 4):
+        arr = np.repeat(arr[..., None], 3, axis=-1)
+    return arr[..., :3]
+
+
+def write_mp4(path: str | Path, frames: Any, fps: float, *, quality: float = 8.0) -> Path:
+    """Write an H.264 mp4 (atomically: a temporary name, then renamed).
+
+    Args:
+        path: output file.
+        frames: (T, H, W, 3) float in [0, 1] or uint8, or a sequence of (H, W, 3) frames.
+        fps: frame rate [1/s].
+        quality: imageio-ffmpeg quality, 0 (worst) .. 10 (best).
+
+    Returns:
+        The path written.
+    """
+    import imageio.v2 as iio
+
+    path = Path(path)
+    video = to_uint8(np.stack([to_uint8(f) for f in frames]) if not hasattr(frames, "shape") else frames)
+    if video.ndim != 4 or len(video) == 0:
+        raise InputError(f"write_mp4: expected (T, H, W, 3) frames, got shape {video.shape}")
+    pad_h, pad_w = video.shape[1] % 2, video.shape[2] % 2
+    if pad_h or pad_w:
+        video = np.pad(video, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+
+    def write(tmp: Path) -> None:
+        writer = iio.get_writer(
+            tmp, format="FFMPEG", mode="I", fps=float(fps), codec="libx264", quality=quality,
+            pixelformat="yuv420p", macro_block_size=1,
+        )
+        try:
+            for frame in video:
+                writer.append_data(frame)
+        finally:
+            writer.close()
+
+    return atomic_write(path, write)
+
+
+def encode_gif(frames: Any, fps: float) -> bytes:
+    """Animated GIF bytes of (T, H, W, 3) frames at ``fps`` [1/s], looping forever."""
+    from PIL import Image
+
+    video = to_uint8(frames)
+    if video.ndim != 4 or len(video) == 0:
+        raise InputError(f"encode_gif: expected (T, H, W, 3) frames, got shape {video.shape}")
+    images = [Image.fromarray(f) for f in video]
+    buf = io.BytesIO()
+    # GIF delays are in 1/100 s; Pillow takes milliseconds and rounds.
+    duration = max(int(round(1000.0 / max(fps, 1e-6))), 20)
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0,
+                   optimize=False, disposal=1)
+    return buf.getvalue()
+
+
+def write_gif(path: str | Path, frames: Any, fps: float) -> Path:
+    """Write an animated GIF atomically. Args as in :func:`encode_gif`; returns the path."""
+    return atomic_write_bytes(path, encode_gif(frames, fps))
+
+
+def read_video(path: str | Path) -> np.ndarray:
+    """(T, H, W, 3) uint8 frames of an mp4/GIF (for checks and for reference videos)."""
+    import imageio.v2 as iio
+
+    return np.stack([to_uint8(f) for f in iio.mimread(str(path), memtest=False)])
+
+
+def _resize_height(frame: np.ndarray, height: int) -> np.ndarray:
+    from PIL import Image
+
+    h, w = frame.shape[:2]
+    if h == height:
+        return frame
+    width = max(int(round(w * height / h)), 1)
+    return np.asarray(Image.fromarray(frame).resize((width, height), Image.BILINEAR))
+
+
+def _draw_label(frame: np.ndarray, text: str) -> np.ndarray:
+    from PIL import Image, ImageDraw
+
+    img = Image.fromarray(frame)
+    draw = ImageDraw.Draw(img)
+    x, y = 4, 3
+    box = draw.textbbox((x, y), text)
+    draw.rectangle((box[0] - 2, box[1] - 2, box[2] + 2, box[3] + 2), fill=(255, 255, 255))
+    draw.text((x, y), text, fill=(0, 0, 0))
+    return np.asarray(img)
+
+
+def compare(
+    reference: Any,
+    target: Any,
+    *,
+    loop_reference: bool = True,
+    gap: int = 4,
+    gap_color: Sequence[int] = (255, 255, 255),
+    labels: tuple[str, str] | None = None,
+) -> np.ndarray:
+    """Side-by-side frames: reference on the left, target on the right, frame-aligned.
+
+    Frame t of the output shows reference frame t (looped, or held at its last frame when
+    ``loop_reference`` is False, if the reference is shorter) beside target frame t. The reference is
+    resized to the target's height, keeping its aspect ratio.
+
+    Args:
+        reference: (T_r, H_r, W_r, 3) frames (float in [0, 1] or uint8).
+        target: (T, H, W, 3) frames.
+        loop_reference: loop a shorter reference (as the pipeline loops its motion) or hold its end.
+        gap: pixels between the two panels.
+        gap_color: RGB of the gap.
+        labels: optional captions (left, right) drawn in the top-left corner of each panel.
+
+    Returns:
+        (T, H, W_r' + gap + W, 3) uint8.
+    """
+    ref, tgt = to_uint8(reference), to_uint8(target)
+    if ref.ndim != 4 or tgt.ndim != 4 or len(ref) == 0 or len(tgt) == 0:
+        raise InputError(f"compare: expected (T, H, W, 3) frames, got {ref.shape} and {tgt.shape}")
+    height = tgt.shape[1]
+    out = []
+    for t in range(len(tgt)):
+        i = t % len(ref) if loop_reference else min(t, len(ref) - 1)
+        left = _resize_height(ref[i], height)
+        right = tgt[t]
+        if labels is not None:
+            left, right = _draw_label(left, labels[0]), _draw_label(right, labels[1])
+        sep = np.empty((height, gap, 3), dtype=np.uint8)
+        sep[:] = np.asarray(gap_color, dtype=np.uint8)
+        out.append(np.concatenate([left, sep, right], axis=1))
+    return np.stack(out)
+
+
+def frame_strip(frames: Any, *, max_frames: int = 8, columns: int | None = None) -> np.ndarray:
+    """A grid of up to ``max_frames`` evenly spaced frames, as one (H', W', 3) uint8 image."""
+    video = to_uint8(frames)
+    idx = np.unique(np.linspace(0, len(video) - 1, min(max_frames, len(video))).round().astype(int))
+    picks = video[idx]
+    cols = columns or len(picks)
+    rows = -(-len(picks) // cols)
+    h, w = picks.shape[1:3]
+    grid = np.full((rows * h, cols * w, 3), 255, dtype=np.uint8)
+    for k, frame in enumerate(picks):
+        r, c = divmod(k, cols)
+        grid[r * h : (r + 1) * h, c * w : (c + 1) * w] = frame
+    return grid
+
+
+def log_gif_tensorboard(
+    writer: Any,
+    tag: str,
+    frames: Any,
+    step: int,
+    *,
+    fps: float,
+    gif_path: str | Path | None = None,
+    max_frames: int = 8,
+) -> None:
+    """Log a clip to TensorBoard without moviepy: the animated GIF as an image summary, plus a strip.
+
+    Args:
+        writer: a ``torch.utils.tensorboard.SummaryWriter`` (anything with ``add_image``; the animated
+            GIF is logged only when it also has ``_get_file_writer``, as SummaryWriter does).
+        tag: summary tag; the GIF is logged under ``tag`` and the frame strip under ``tag + "/strip"``.
+        frames: (T, H, W, 3) frames.
+        step: global step.
+        fps: frame rate of the GIF [1/s].
+        gif_path: also write the GIF file here (e.g. the run folder), if given.
+        max_frames: frames in the strip.
+    """
+    video = to_uint8(frames)
+    gif = encode_gif(video, fps)
+    if gif_path is not None:
+        atomic_write_bytes(gif_path, gif)
+    file_writer = getattr(writer, "_get_file_writer", None)
+    if callable(file_writer):
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        image = Summary.Image(height=video.shape[1], width=video.shape[2], colorspace=3, encoded_image_string=gif)
+        file_writer().add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
+    writer.add_image(f"{tag}/strip", frame_strip(video, max_frames=max_frames), step, dataformats="HWC")
+
+
+def render_sequence(
+    renderer: Any,
+    means: Any,
+    covariances: Any,
+    colors: Any,
+    opacities: Any,
+    camera: Camera | Sequence[Camera],
+    *,
+    progress: bool = True,
+    desc: str = "render",
+) -> np.ndarray:
+    """Render a Gaussian sequence to uint8 frames, with a progress bar.
+
+    Args:
+        renderer: a built ``render`` component (``render(means, covs, colors, opacities, camera)``).
+        means: (T, N, 3) positions per frame [m].
+        covariances: (N, 3, 3) fixed or (T, N, 3, 3) per-frame covariances [m^2].
+        colors: (N, 3) RGB or (N, K, 3) SH coefficients.
+        opacities: (N,) in [0, 1].
+        camera: one camera for all frames, or one per frame (e.g. :func:`~sync4d.render.camera.orbit`).
+        progress: show a tqdm bar.
+        desc: label of the bar.
+
+    Returns:
+        (T, H, W, 3) uint8 frames.
+    """
+    from tqdm.auto import tqdm
+
+    means_a = np.asarray(means)
+    covs_a = np.asarray(covariances)
+    num = means_a.shape[0]
+    cams = [camera] * num if isinstance(camera, Camera) else list(camera)
+    if len(cams) != num:
+        raise InputError(f"render_sequence: {len(cams)} cameras for {num} frames")
+    frames = []
+    for t in tqdm(range(num), desc=desc, disable=not progress, leave=False):
+        covs_t = covs_a[t] if covs_a.ndim == 4 else covs_a
+        frames.append(to_uint8(renderer.render(means_a[t], covs_t, colors, opacities, cams[t])))
+    return np.stack(frames)
+
+
+def write_run_videos(
+    out_dir: str | Path,
+    renderer: Any,
+    means: Any,
+    covariances: Any,
+    colors: Any,
+    opacities: Any,
+    *,
+    fps: float,
+    reference_frames: Any | None = None,
+    camera: Camera | None = None,
+    writer: Any | None = None,
+    step: int = 0,
+    turntable_frames: int | None = None,
+    progress: bool = True,
+) -> dict[str, Path]:
+    """The videos of a run: ``render.mp4``, ``compare.mp4`` (+ GIFs in TensorBoard), optional turntable.
+
+    The camera is fixed for the whole clip and frames every frame's Gaussians (from the renderer's
+    ``view_direction``, ``up``, ``fov_deg``, ``width``, ``height``, ``margin`` settings) unless given.
+
+    Args:
+        out_dir: run folder; files are written into it.
+        renderer: a built ``render`` component.
+        means: (T, N, 3) Gaussian centres per frame [m].
+        covariances: (N, 3, 3) or (T, N, 3, 3) [m^2].
+        colors: (N, 3) RGB or (N, K, 3) SH.
+        opacities: (N,) in [0, 1].
+        fps: frame rate [1/s].
+        reference_frames: (T_r, H, W, 3) reference video (or the reference rendered) for ``compare.mp4``;
+            None skips it.
+        camera: fixed camera; None frames the object.
+        writer: a TensorBoard SummaryWriter; GIFs are logged as ``video/render`` and ``video/compare``.
+        step: TensorBoard step.
+        turntable_frames: frames of a turntable of the last frame (``turntable.mp4``); None uses the
+            renderer's ``turntable_frames`` setting, 0 skips it.
+        progress: show progress bars.
+
+    Returns:
+        Name -> path of every file written (``render``, ``compare``, ``turntable``, GIFs).
+    """
+    from sync4d.render.camera import frame_object, orbit
+
+    out = Path(out_dir)
+    cfg = getattr(renderer, "cfg", None)
+    view = {
+        "up": getattr(cfg, "up", (0.0, 1.0, 0.0)),
+        "fov_deg": getattr(cfg, "fov_deg", 40.0),
+        "width": getattr(cfg, "width", 256),
+        "height": getattr(cfg, "height", 256),
+        "margin": getattr(cfg, "margin", 1.15),
+    }
+    means_a = np.asarray(means)
+    if camera is None:
+        camera = frame_object(means_a.reshape(-1, 3), getattr(cfg, "view_direction", (0.9, 1.1, 1.6)), **view)
+    written: dict[str, Path] = {}
+    frames = render_sequence(renderer, means_a, covariances, colors, opacities, camera, progress=progress)
+    written["render"] = write_mp4(out / "render.mp4", frames, fps)
+    if writer is not None:
+        log_gif_tensorboard(writer, "video/render", frames, step, fps=fps, gif_path=out / "render.gif")
+        written["render_gif"] = out / "render.gif"
+    if reference_frames is not None:
+        side = compare(reference_frames, frames, labels=("reference", "target"))
+        written["compare"] = write_mp4(out / "compare.mp4", side, fps)
+        if writer is not None:
+            log_gif_tensorboard(writer, "video/compare", side, step, fps=fps, gif_path=out / "compare.gif")
+            written["compare_gif"] = out / "compare.gif"
+    turns = getattr(cfg, "turntable_frames", 0) if turntable_frames is None else turntable_frames
+    if turns:
+        covs = np.asarray(covariances)
+        last = means_a[-1]
+        cams = orbit(last, int(turns), **view)
+        spin = render_sequence(
+            renderer, np.repeat(last[None], int(turns), 0), covs[-1] if covs.ndim == 4 else covs, colors, opacities,
+            cams, progress=progress, desc="turntable",
+        )
+        written["turntable"] = write_mp4(out / "turntable.mp4", spin, fps)
+    return written

@@ -1,0 +1,131 @@
+"""Videos: mp4 and GIF files readable with the right frame count, side-by-side composition, TensorBoard."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sync4d.render.camera import frame_object
+from sync4d.render.splat_torch import SplatTorch
+from sync4d.render.video import (
+    compare,
+    frame_strip,
+    log_gif_tensorboard,
+    read_video,
+    render_sequence,
+    to_uint8,
+    write_gif,
+    write_mp4,
+)
+
+
+def ramp_frames(t: int, h: int, w: int) -> np.ndarray:
+    """Frames whose mean grey level encodes the frame index (survives lossy encoding)."""
+    frames = np.zeros((t, h, w, 3), dtype=np.uint8)
+    for i in range(t):
+        frames[i] = int(20 + 200 * i / max(t - 1, 1))
+    return frames
+
+
+@pytest.mark.parametrize("size", [(32, 48), (33, 47)])
+def test_mp4_is_readable_with_the_right_frames(tmp_path: Path, size: tuple[int, int]) -> None:
+    frames = ramp_frames(9, *size)
+    path = write_mp4(tmp_path / "render.mp4", frames, fps=12)
+    assert path.is_file() and not list(tmp_path.glob(".*tmp*"))  # atomic: no temporary file left
+    video = read_video(path)
+    assert video.shape[0] == 9
+    # Odd sizes are padded by one replicated pixel for H.264 (yuv420p needs even sizes).
+    assert video.shape[1:3] == (size[0] + size[0] % 2, size[1] + size[1] % 2)
+    means = video[:, : size[0], : size[1]].reshape(9, -1).mean(axis=1)
+    np.testing.assert_allclose(means, frames.reshape(9, -1).mean(axis=1), atol=3.0)
+    import imageio.v2 as iio
+
+    assert iio.get_reader(str(path)).get_meta_data()["fps"] == pytest.approx(12.0)
+
+
+def test_gif_round_trip_is_exact(tmp_path: Path) -> None:
+    frames = ramp_frames(5, 20, 30)
+    path = write_gif(tmp_path / "clip.gif", frames / 255.0, fps=10)
+    video = read_video(path)
+    assert video.shape == (5, 20, 30, 3)
+    np.testing.assert_array_equal(video, frames)
+
+
+def test_compare_aligns_frames_and_matches_heights() -> None:
+    ref = ramp_frames(3, 40, 30)  # shorter and taller: looped and resized to the target's height
+    tgt = np.full((7, 20, 25, 3), 255, dtype=np.uint8)
+    out = compare(ref, tgt, gap=2)
+    assert out.shape == (7, 20, 15 + 2 + 25, 3)
+    for t in range(7):
+        np.testing.assert_array_equal(out[t, :, :15], ref[t % 3, ::2, ::2])
+        np.testing.assert_array_equal(out[t, :, 17:], tgt[t])
+    held = compare(ref, tgt, loop_reference=False, gap=2)
+    np.testing.assert_array_equal(held[6, :, :15], ref[2, ::2, ::2])
+    labelled = compare(ref, tgt, labels=("reference", "target"))
+    assert labelled.shape[1] == 20 and (labelled[0, :8, :15] != out[0, :8, :15]).any()
+
+
+def test_tensorboard_gets_an_animated_gif_and_a_strip(tmp_path: Path) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from torch.utils.tensorboard import SummaryWriter
+
+    frames = ramp_frames(6, 16, 24)
+    writer = SummaryWriter(str(tmp_path / "tb"))
+    log_gif_tensorboard(writer, "video/render", frames, 3, fps=8, gif_path=tmp_path / "render.gif")
+    writer.close()
+    acc = EventAccumulator(str(tmp_path / "tb"))
+    acc.Reload()
+    assert set(acc.Tags()["images"]) == {"video/render", "video/render/strip"}
+    gif = acc.Images("video/render")[0]
+    assert gif.step == 3 and gif.encoded_image_string[:6] == b"GIF89a"
+    assert gif.encoded_image_string == (tmp_path / "render.gif").read_bytes()
+    strip = acc.Images("video/render/strip")[0]
+    assert (strip.width, strip.height) == (6 * 24, 16)
+    assert frame_strip(frames, max_frames=3).shape == (16, 3 * 24, 3)
+
+
+def test_render_sequence_moves_with_the_means() -> None:
+    n = 40
+    rng = np.random.default_rng(0)
+    base = rng.uniform(-0.2, 0.2, (n, 3))
+    seq = np.stack([base + [0.15 * t, 0.0, 0.0] for t in range(3)])
+    cam = frame_object(seq.reshape(-1, 3), (0.0, -1.0, 0.0), up=(0.0, 0.0, 1.0), width=48, height=32)
+    covs = np.repeat((0.03**2 * np.eye(3))[None], n, 0)
+    rnd = SplatTorch(SplatTorch.Config(background=[1, 1, 1]))
+    frames = render_sequence(rnd, seq, covs, np.zeros((n, 3)), np.full(n, 0.9), cam, progress=False)
+    assert frames.shape == (3, 32, 48, 3) and frames.dtype == np.uint8
+    dark = 255 - frames[..., 0].astype(float)
+    cols = np.arange(48)
+    cx = [(d.sum(0) * cols).sum() / d.sum() for d in dark]
+    assert cx[0] < cx[1] < cx[2]  # +x is to the right seen from -y with z up
+    assert to_uint8(np.array([[[0.5, 1.2, -1.0]]])).tolist() == [[[128, 255, 0]]]
+
+
+def test_write_run_videos_writes_render_compare_turntable_and_tensorboard(tmp_path: Path) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from torch.utils.tensorboard import SummaryWriter
+
+    from sync4d.render.video import write_run_videos
+
+    n, t = 60, 4
+    rng = np.random.default_rng(2)
+    seq = np.stack([rng.uniform(-0.3, 0.3, (n, 3)) * (1 + 0.1 * k) for k in range(t)])
+    covs = np.repeat((0.03**2 * np.eye(3))[None], n, 0)
+    rnd = SplatTorch(SplatTorch.Config(width=40, height=30))
+    writer = SummaryWriter(str(tmp_path / "tb"))
+    files = write_run_videos(tmp_path, rnd, seq, covs, rng.uniform(0, 1, (n, 3)), np.full(n, 0.8), fps=8,
+                             reference_frames=ramp_frames(2, 60, 60), writer=writer, turntable_frames=3,
+                             progress=False)
+    writer.close()
+    assert read_video(files["render"]).shape == (t, 30, 40, 3)
+    assert read_video(files["compare"]).shape == (t, 30, 30 + 4 + 40, 3)
+    assert read_video(files["turntable"]).shape[0] == 3
+    acc = EventAccumulator(str(tmp_path / "tb"))
+    acc.Reload()
+    assert {"video/render", "video/compare"} <= set(acc.Tags()["images"])
+    # The whole motion stays inside the fixed camera's view: nothing touches the image border.
+    frames = read_video(files["render"])
+    border = np.concatenate([frames[:, 0], frames[:, -1], frames[:, :, 0], frames[:, :, -1]], axis=1)
+    assert border.min() > 200
