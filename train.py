@@ -12,7 +12,7 @@ os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".warp_cache"))
 import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from sync4d.cli import check_group_choices  # noqa: E402
+from sync4d.cli import check_command_line  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path=str(ROOT / "conf"), config_name="config")
@@ -24,5 +24,5 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
-    check_group_choices(sys.argv[1:], ROOT / "conf")
+    check_command_line(sys.argv[1:], ROOT / "conf")
     main()

@@ -30,11 +30,19 @@ CHECKPOINT = "checkpoint.pt"
 class FrameWriter:
     """Receives frames from a simulator (``on_frame``) and writes the run's outputs."""
 
-    def __init__(self, run_dir: Path, target: TargetGaussians, motion: DrivingMotion, *, logger: Any = None) -> None:
+    def __init__(self, run_dir: Path, target: TargetGaussians, motion: DrivingMotion, *, logger: Any = None,
+                 run_config: dict[str, Any] | None = None) -> None:
+        """Args:
+        run_dir: the run folder (``frames/``, ``checkpoint.pt``, ``metrics.json`` go there).
+        target: the target Gaussians at rest; motion: the driving motion (for G_t).
+        logger: a ``logger`` component, or None.
+        run_config: the settings that determine the results (stored in checkpoints; a resume must match).
+        """
         self.run_dir = Path(run_dir)
         self.target = target
         self.motion = motion
         self.logger = logger
+        self.run_config = run_config
         self.frames_x: list[np.ndarray] = []
         self.frames_F: list[np.ndarray | None] = []
         self.frame_stats: list[dict[str, float]] = []
@@ -68,6 +76,7 @@ class FrameWriter:
 
         payload = {
             "frame": t,
+            "config": self.run_config,
             "sim": state,
             "frames_x": np.stack(self.frames_x),
             "frames_F": None if self.frames_F[0] is None else np.stack(self.frames_F),
@@ -81,25 +90,33 @@ class FrameWriter:
     def resume_state(self, resume: str | None) -> dict[str, Any] | None:
         """Load ``<resume>/checkpoint.pt`` (if ``resume`` is set) and restore the frames it holds.
 
+        The restored frames are written again into this run's folder (a resumed run never writes into
+        the interrupted run's folder) and re-logged.
+
         Returns:
             The simulator's saved state (``sim``) with ``frame`` = the last complete frame, or None.
+
+        Raises:
+            ConfigError: no readable checkpoint there, or it was made with different settings.
         """
         if not resume:
             return None
-        import torch
-
-        path = Path(resume) / CHECKPOINT
-        if not path.is_file():
-            raise ConfigError(f"resume={resume}: no {CHECKPOINT} there; pass the folder of an interrupted run")
-        payload = torch.load(path, map_location="cpu", weights_only=False)
+        payload = load_checkpoint(Path(resume).expanduser(), resume)
+        check_same_config(payload.get("config"), self.run_config, resume)
         self.frames_x = list(payload["frames_x"])
         self.frames_F = [None] * len(self.frames_x) if payload["frames_F"] is None else list(payload["frames_F"])
         self.frame_stats = list(payload["frame_stats"])
         self.frame_seconds = list(payload["frame_seconds"])
+        if len(self.frames_x) != int(payload["frame"]) + 1:
+            raise ConfigError(f"resume={resume}: {CHECKPOINT} holds {len(self.frames_x)} frames for frame "
+                              f"{payload['frame']}; it is damaged, start the run again")
         for t, (x, F) in enumerate(zip(self.frames_x, self.frames_F)):
             moved = deform_gaussians(self.target, x, F, self.motion.global_transforms[t])
             write_gaussians_ply(self.run_dir / "frames" / f"{t:06d}.ply", moved)
-        log.info("resuming from %s after frame %d", path, payload["frame"])
+            if self.logger is not None:
+                for key, value in self.frame_stats[t].items():
+                    self.logger.scalar(key if "/" in key else f"loss/{key}", value, t)
+        log.info("resuming from %s after frame %d", resume, payload["frame"])
         return {**payload["sim"], "frame": int(payload["frame"])}
 
     # ------------------------------------------------------------------------------------------ final
@@ -134,6 +151,8 @@ class FrameWriter:
         result["status"] = "ok"
         result["overrides"] = overrides
         result["frame_stats"] = self.frame_stats
+        dx = [row["sim/dx"] for row in self.frame_stats if "sim/dx" in row]
+        result["dx"] = dx[0] if dx else None
         atomic_write_json(self.run_dir / "metrics.json", result)
         if self.logger is not None:
             for t, row in enumerate(result["per_frame"]):
@@ -142,11 +161,53 @@ class FrameWriter:
                         self.logger.scalar(f"metric/{key}", value, t)
             self.logger.hparams(overrides or {"config": cfg.get("name", "run")},
                                 {k: v for k, v in result.items() if isinstance(v, (int, float))})
-        from sync4d.render_outputs import render_run_outputs
+        if cfg.get("render_video", True):
+            from sync4d.render_outputs import render_run_outputs
 
-        render_run_outputs(self.run_dir, cfg, self.target, trajectory, self.motion, reference, logger=self.logger)
+            render_run_outputs(self.run_dir, cfg, self.target, trajectory, self.motion, reference, logger=self.logger)
         log.info("metrics: %s", {k: v for k, v in result.items() if k.endswith(("_pct", "_ratio", "deviation", "per_frame_s"))})
         return result
+
+
+def load_checkpoint(folder: Path, resume: str) -> dict[str, Any]:
+    """Read ``<folder>/checkpoint.pt``; any failure is a :class:`ConfigError` naming ``resume``."""
+    import torch
+
+    path = folder / CHECKPOINT
+    if not folder.is_dir():
+        raise ConfigError(f"resume={resume}: no such folder; pass the folder of an interrupted run")
+    if not path.is_file():
+        done = " (that run finished: it has metrics.json)" if (folder / "metrics.json").is_file() else ""
+        raise ConfigError(f"resume={resume}: no {CHECKPOINT} there{done}; pass the folder of an interrupted run")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - torch/pickle raise many types for a bad file
+        raise ConfigError(f"resume={resume}: {CHECKPOINT} is unreadable ({type(err).__name__}: {err}); "
+                          "start the run again") from None
+    if not isinstance(payload, dict) or not {"frame", "sim", "frames_x"} <= set(payload):
+        raise ConfigError(f"resume={resume}: {CHECKPOINT} is not a sync4d run checkpoint")
+    return payload
+
+
+def _flatten(values: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(values, dict):
+        return {prefix: values}
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def check_same_config(saved: dict[str, Any] | None, current: dict[str, Any] | None, resume: str) -> None:
+    """Raise :class:`ConfigError` naming the first settings that differ between a checkpoint and this run."""
+    if saved is None or current is None:
+        return
+    old, new = _flatten(saved), _flatten(current)
+    differ = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
+    if differ:
+        shown = ", ".join(f"{k}={old.get(k)!r} (now {new.get(k)!r})" for k in differ[:3])
+        more = f" and {len(differ) - 3} more" if len(differ) > 3 else ""
+        raise ConfigError(f"resume={resume}: that run used {shown}{more}; resume with the same overrides")
 
 
 def compute_metrics(

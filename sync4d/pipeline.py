@@ -24,7 +24,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from sync4d import cache
-from sync4d.errors import Sync4DError
+from sync4d.errors import ConfigError, Sync4DError
 from sync4d.io.atomic import atomic_write_json
 from sync4d.io.ply import write_gaussians_ply
 from sync4d.registry import available, build, effective_config
@@ -177,12 +177,69 @@ def write_frame(run_dir: Path, index: int, gaussians: TargetGaussians) -> Path:
     return write_gaussians_ply(run_dir / "frames" / f"{index:06d}.ply", gaussians)
 
 
+class RunFolderInUse(ConfigError):
+    """The run folder already holds another run's outputs; nothing is written into it."""
+
+
+#: Top-level keys that do not change a run's results (excluded from the resume fingerprint).
+NOT_RESULTS = ("resume", "name", "cache", "render", "logger", "hydra")
+#: Files whose presence marks a folder as another run's.
+RUN_MARKERS = ("metrics.json", "checkpoint.pt")
+
+
+def check_run_config(cfg: DictConfig) -> None:
+    """Reject missing mandatory values (``???``) and malformed top-level values with one line each."""
+    missing = sorted(OmegaConf.missing_keys(cfg))
+    if missing:
+        key = missing[0]
+        raise ConfigError(f"{key}: a value is required (it is ??? in the config); set it, e.g. {key}=<value>"
+                          + (f" (also missing: {', '.join(missing[1:])})" if len(missing) > 1 else ""))
+    for key, minimum in (("frames", 1), ("seed", 0)):
+        value = cfg.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            raise ConfigError(f"{key}={value!r}: must be an integer >= {minimum}")
+    resume = cfg.get("resume")
+    if resume is not None and not isinstance(resume, str):
+        raise ConfigError(f"resume={resume!r}: must be the folder of an interrupted run")
+
+
+def claim_run_dir(run_dir: Path, resume: str | None) -> None:
+    """Refuse a run folder that holds another run's outputs, or that is the folder being resumed.
+
+    A run never overwrites another run's folder: a resumed run writes a new folder (Hydra's default
+    ``outputs/<name>/<timestamp>``), copying the frames it restores from the checkpoint.
+    """
+    if resume and Path(resume).expanduser().resolve() == run_dir.resolve():
+        raise RunFolderInUse(
+            f"resume={resume} is also this run's folder (hydra.run.dir); a resumed run writes a new folder: "
+            "drop hydra.run.dir or point it elsewhere"
+        )
+    taken = [name for name in RUN_MARKERS if (run_dir / name).exists()]
+    frames = run_dir / "frames"
+    if frames.is_dir() and any(frames.glob("*.ply")):
+        taken.append("frames/")
+    if taken:
+        raise RunFolderInUse(
+            f"hydra.run.dir={run_dir} already holds another run's {', '.join(taken)}; a run never overwrites "
+            f"another: choose a new folder, or continue that run with resume={run_dir} (into a new folder)"
+        )
+
+
+def run_config_record(cfg: DictConfig) -> dict[str, Any]:
+    """The resolved config minus keys that do not change results: what a resume must match."""
+    values = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(values, dict)
+    return {k: v for k, v in values.items() if k not in NOT_RESULTS}
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Run the whole pipeline for one configuration; returns the final metrics."""
     from sync4d.plugins import load_all
 
     load_all()
+    check_run_config(cfg)
     run_dir = run_dir_of(cfg)
+    claim_run_dir(run_dir, cfg.get("resume"))
     run_dir.mkdir(parents=True, exist_ok=True)
     seed_everything(int(cfg.seed))
     atomic_write_json(run_dir / "env.json", environment_record(str(cfg.device)))
@@ -218,7 +275,7 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
 
     from sync4d.outputs import FrameWriter
 
-    writer = FrameWriter(ctx.run_dir, target, motion, logger=ctx.logger)
+    writer = FrameWriter(ctx.run_dir, target, motion, logger=ctx.logger, run_config=run_config_record(cfg))
     simulator = build("sim", group_cfg(cfg, "sim"), device=cfg.device)
     trajectory = simulator.run(
         target, part_map, motion,
@@ -242,17 +299,22 @@ def run_guarded(cfg: DictConfig) -> dict[str, Any] | None:
     try:
         return run(cfg)
     except Sync4DError as err:
-        message = f"{type(err).__name__}: {err}"
+        message = one_line(f"{type(err).__name__}: {err}")
         if os.environ.get("HYDRA_FULL_ERROR") == "1":
             raise
         if multirun:
             log.error("job failed: %s", message)
-            run_dir = run_dir_of(cfg)
-            atomic_write_json(run_dir / "metrics.json", {"status": "failed", "error": message,
-                                                        "overrides": overrides_of(cfg)})
+            if not isinstance(err, RunFolderInUse):  # never write into another run's folder
+                atomic_write_json(run_dir_of(cfg) / "metrics.json", {"status": "failed", "error": message,
+                                                                    "overrides": overrides_of(cfg)})
             return None
         print(f"sync4d: {message}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def one_line(message: str) -> str:
+    """``message`` with its lines joined by ``"; "`` (an error must print as exactly one line)."""
+    return "; ".join(line.strip() for line in message.splitlines() if line.strip())
 
 
 def load_json(path: Path) -> Any:

@@ -170,10 +170,14 @@ def run_mpm_transfer(
     frames_x: list[np.ndarray] = []
     frames_F: list[np.ndarray] = []
 
-    def emit(t: int, xp: torch.Tensor, Fp: torch.Tensor, stats: dict[str, float]) -> None:
+    def gaussians_of(xp: torch.Tensor, Fp: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """The Gaussians' centres (N, 3) and deformation gradients (N, 3, 3) carried by the particles."""
         means_t, _ = carry_gaussians(means0, cov0, particles.gaussian_to_point, rest, xp.double().numpy(),
                                      Fp.double().numpy())
-        Fg = Fp.double().numpy()[particles.gaussian_to_point]
+        return means_t, Fp.double().numpy()[particles.gaussian_to_point]
+
+    def emit(t: int, xp: torch.Tensor, Fp: torch.Tensor, stats: dict[str, float]) -> None:
+        means_t, Fg = gaussians_of(xp, Fp)
         frames_x.append(means_t)
         frames_F.append(Fg)
         if on_frame is not None:
@@ -195,6 +199,11 @@ def run_mpm_transfer(
         torch.set_rng_state(resume["rng"]["torch"])
         np.random.set_state(resume["rng"]["numpy"])
         random.setstate(resume["rng"]["python"])
+        # The restored frame (already written by the caller) opens the returned trajectory, so a run
+        # resumed after its last frame still returns one.
+        restored_x, restored_F = gaussians_of(x, F)
+        frames_x.append(restored_x)
+        frames_F.append(restored_F)
         log.info("transfer: resumed after frame %d", start)
     else:
         emit(0, x, F, {"time/frame_s": 0.0})
@@ -260,12 +269,13 @@ def run_mpm_transfer(
             "loss/iterations": float(len(losses)),
             "time/frame_s": time.perf_counter() - started,
             "time/substeps": float(substeps),
+            "sim/dx": float(model.grid.dx),
         }
         log.info("frame %d/%d: loss %.3e -> %.3e in %d iterations, %d substeps, %.1f s", t + 1, num_frames - 1,
                  stats["loss/initial"], final, len(losses), substeps, stats["time/frame_s"])
         emit(t + 1, x, F, stats)
 
-    # After a resume this holds only the new frames; the pipeline's writer holds all of them.
+    # After a resume this holds the restored frame and the new ones; the pipeline's writer holds all of them.
     return Trajectory(x=np.stack(frames_x), F=np.stack(frames_F), frame_dt=1.0 / motion.fps)
 
 

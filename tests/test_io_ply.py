@@ -108,7 +108,7 @@ def test_errors_name_the_file_and_problem(tmp_path):
     for n, v in cols:
         data[n] = v
     nan_path.write_bytes(_header([n for n, _ in cols], 4) + data.tobytes())
-    with pytest.raises(InputError, match=r"nan\.ply: TargetGaussians\.means: contains 1 NaN"):
+    with pytest.raises(InputError, match=r"nan\.ply: property 'y' holds 1 NaN"):
         read_gaussians_ply(nan_path)
 
     empty = tmp_path / "empty.ply"

@@ -34,7 +34,8 @@ REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "
 def _parse_header(path: Path, raw: bytes) -> tuple[str, int, list[tuple[str, str]], int]:
     """Returns (format, vertex count, [(name, numpy dtype)], header length in bytes)."""
     if not raw.startswith(b"ply"):
-        raise InputError(f"{path}: not a PLY file (it does not start with 'ply')")
+        raise InputError(f"{path}: not a PLY file (it does not start with 'ply'); give a 3DGS .ply, "
+                         "or target=mesh for a triangle mesh")
     end = raw.find(b"end_header")
     if end < 0:
         raise InputError(f"{path}: PLY header has no 'end_header' (truncated or not a PLY file)")
@@ -42,28 +43,37 @@ def _parse_header(path: Path, raw: bytes) -> tuple[str, int, list[tuple[str, str
     header_len = newline + 1 if newline >= 0 else len(raw)
     lines = raw[:end].decode("ascii", errors="replace").splitlines()
     fmt, count, props, element = "", -1, [], None
-    for line in lines[1:]:
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
+    for number, line in enumerate(lines[1:], start=2):
+        try:
+            fmt, count, element = _header_line(path, line, fmt, count, element, props)
+        except (IndexError, ValueError):
+            raise InputError(f"{path}: malformed PLY header line {number}: {line.strip()!r}") from None
+    if count < 0:
+        raise InputError(f"{path}: PLY has no 'vertex' element")
+    return fmt, count, props, header_len
+
+
+def _header_line(path: Path, line: str, fmt: str, count: int, element: str | None,
+                 props: list[tuple[str, str]]) -> tuple[str, int, str | None]:
+    """Parse one header line into (format, vertex count, current element); appends vertex properties."""
+    words = line.split()
+    if words and words[0] not in ("comment", "obj_info"):
         if words[0] == "format":
             fmt = words[1]
         elif words[0] == "element":
             element = words[1]
             if element == "vertex":
                 count = int(words[2])
-            elif count >= 0 and int(words[2]) > 0:
-                # Elements after the vertices are not read; elements before would shift the data.
-                pass
+                if count < 0:
+                    raise ValueError(count)
+            # Elements after the vertices are not read; elements before would shift the data.
         elif words[0] == "property" and element == "vertex":
             if words[1] == "list":
                 raise InputError(f"{path}: list property '{words[-1]}' in the vertex element is not supported")
             if words[1] not in _PLY_TYPES:
                 raise InputError(f"{path}: unknown PLY property type '{words[1]}'")
             props.append((words[2], _PLY_TYPES[words[1]]))
-    if count < 0:
-        raise InputError(f"{path}: PLY has no 'vertex' element")
-    return fmt, count, props, header_len
+    return fmt, count, element
 
 
 def read_gaussians_ply(path: str | os.PathLike[str], *, name: str | None = None) -> TargetGaussians:
@@ -83,7 +93,7 @@ def read_gaussians_ply(path: str | os.PathLike[str], *, name: str | None = None)
     if missing:
         raise InputError(f"{path}: missing 3DGS property(ies) {', '.join(missing)}; is this a Gaussian splat .ply?")
     if count == 0:
-        raise InputError(f"{path}: contains zero Gaussians")
+        raise InputError(f"{path}: contains zero Gaussians ('element vertex 0'); export the trained splat again")
     if fmt == "binary_little_endian":
         dtype = np.dtype([(n, "<" + t) for n, t in props])
     elif fmt == "binary_big_endian":
@@ -97,7 +107,7 @@ def read_gaussians_ply(path: str | os.PathLike[str], *, name: str | None = None)
         if len(raw) - header_len < need:
             raise InputError(
                 f"{path}: truncated: header declares {count} Gaussians ({need} bytes), file holds "
-                f"{len(raw) - header_len} bytes of data"
+                f"{len(raw) - header_len} bytes of data; the file was cut short, copy or export it again"
             )
         data = np.frombuffer(raw, dtype=dtype, count=count, offset=header_len)
         columns = {n: np.asarray(data[n], dtype=np.float32) for n in names}
@@ -105,8 +115,12 @@ def read_gaussians_ply(path: str | os.PathLike[str], *, name: str | None = None)
         text = raw[header_len:].decode("ascii", errors="replace").split()
         if len(text) < count * len(names):
             raise InputError(f"{path}: truncated ASCII PLY: fewer values than {count} x {len(names)}")
-        table = np.array(text[: count * len(names)], dtype=np.float64).reshape(count, len(names))
+        try:
+            table = np.array(text[: count * len(names)], dtype=np.float64).reshape(count, len(names))
+        except ValueError as err:
+            raise InputError(f"{path}: ASCII PLY holds a value that is not a number ({err})") from None
         columns = {n: table[:, i].astype(np.float32) for i, n in enumerate(names)}
+    check_finite_columns(path, columns)
 
     rest_names = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n.split("_")[-1]))
     n_rest = len(rest_names)
@@ -133,6 +147,18 @@ def read_gaussians_ply(path: str | os.PathLike[str], *, name: str | None = None)
         return gaussians.validate()
     except InputError as err:
         raise InputError(f"{path}: {err}") from None
+
+
+def check_finite_columns(path: Path, columns: dict[str, np.ndarray]) -> None:
+    """Raise :class:`InputError` naming the first property holding NaN or inf, how many, and the first row."""
+    for name, values in columns.items():
+        bad = ~np.isfinite(values)
+        if bad.any():
+            kinds = "/".join(k for k, m in (("NaN", np.isnan(values)), ("inf", np.isinf(values))) if m.any())
+            raise InputError(
+                f"{path}: property '{name}' holds {int(bad.sum())} {kinds} value(s) (first at Gaussian "
+                f"{int(np.flatnonzero(bad)[0])}); remove those Gaussians or export the splat again"
+            )
 
 
 def normalize_quats(quats: np.ndarray, source: object = "quats") -> np.ndarray:
