@@ -27,7 +27,7 @@ from sync4d.errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
 
-ALIGN_METHODS: tuple[str, ...] = ("none", "pca", "pca_icp")
+ALIGN_METHODS: tuple[str, ...] = ("none", "pca", "pca_icp", "upright_icp")
 
 
 @dataclass(frozen=True)
@@ -298,8 +298,10 @@ def align_shapes(
         source: (N, 3) points of the shape to move [m].
         target: (M, 3) points of the fixed shape [m].
         method: ``"none"`` (identity), ``"pca"`` (normalise + best of the principal-axis candidates,
-            see :func:`candidate_rotations`) or ``"pca_icp"`` (then similarity ICP on the best
-            ``refine_top`` candidates).
+            see :func:`candidate_rotations`), ``"pca_icp"`` (then similarity ICP on the best
+            ``refine_top`` candidates) or ``"upright_icp"`` (normalise, then similarity ICP from the
+            identity rotation: for shapes given in the same upright pose, as the paper assumes, where
+            a near-symmetric shape could otherwise be matched upside down).
         icp_iterations: maximum ICP iterations per refined candidate (point-to-point ICP converges
             slowly along weakly constrained rotations: ~100 are needed on a human body).
         refine_top: how many of the best-scoring axis candidates ICP refines (more is more robust).
@@ -339,6 +341,9 @@ def align_shapes(
     scores = np.array([chamfer_distance(c.apply(ns_score), nt_score, tree_b=tree_score) for c in candidates])
     order = np.argsort(scores, kind="stable")
     best, best_res = candidates[int(order[0])], float(scores[order[0]])
+    if method == "upright_icp":
+        best = icp(ns, nt, Similarity(np.eye(3), 1.0, np.zeros(3)), iterations=icp_iterations)
+        best_res = chamfer_distance(best.apply(ns), nt, tree_b=tree_t)
     if method == "pca_icp":
         best_res = np.inf
         for k in order[: max(1, refine_top)]:

@@ -67,6 +67,7 @@ def driving_motion(
     num_frames: int,
     loop: bool = True,
     rotation: np.ndarray | None = None,
+    part_centroids: np.ndarray | None = None,
 ) -> DrivingMotion:
     """Express the reference's part motion in the target's space.
 
@@ -76,6 +77,10 @@ def driving_motion(
         num_frames: output length T; the reference is looped (``loop``) or truncated/held.
         rotation: (3, 3) rotation taking the reference's frame to the target's (from alignment); None
             for identity (both shapes given in the same upright frame).
+        part_centroids: (B, 3) rest centroids of the target's parts [m]. When given, each part turns about
+            its own centroid (by its bone's rotation) and its centroid moves by the scaled bone-centre
+            displacement, so the part's motion is anchored on the target's own geometry (see
+            :func:`recentre_on_parts`); None keeps the bone transforms as mapped into target space.
 
     Returns:
         A validated :class:`DrivingMotion` whose displacements are (s_t / s_o) R (b_{t+1} - b_t).
@@ -90,6 +95,9 @@ def driving_motion(
 
     frame_index = frame_indices(reference.num_frames, num_frames, loop=loop)
     bones = conjugate(reference.bone_transforms[frame_index], sim)
+    if part_centroids is not None:
+        mapped_centers = reference.bone_centers @ (ratio * rot).T + sim[:3, 3]
+        bones = recentre_on_parts(bones, mapped_centers, np.asarray(part_centroids, dtype=np.float64))
     # The global transform moves the whole object; in target space its translation scales like the rest.
     glob = conjugate(reference.global_transforms[frame_index], sim)
     centers_ref = reference.bone_centers_at()[frame_index]  # (T, B, 3)
@@ -109,6 +117,29 @@ def driving_motion(
         coverage_ratio=float(ratio),
         fps=reference.fps,
     ).validate()
+
+
+def recentre_on_parts(transforms: np.ndarray, bone_centers: np.ndarray, part_centroids: np.ndarray) -> np.ndarray:
+    """Move each part's rotation pivot from its bone centre to the target part's own centroid.
+
+    A bone transform T = [R | t] moves the bone centre c to T c. The returned A = [R | g - R g + (T c - c)]
+    turns the part by the same R about its centroid g and translates g by the bone centre's displacement
+    T c - c: the paper's centroid target is met exactly, and the bone's rotation is kept. Where the
+    target part's centroid coincides with the mapped bone centre (a self-transfer), A = T. Parts with
+    no Gaussians (NaN centroid) keep T.
+
+    Args:
+        transforms: (T, B, 4, 4) part transforms in target space.
+        bone_centers: (B, 3) rest bone centres mapped into target space [m].
+        part_centroids: (B, 3) rest centroids of the target's parts [m].
+    """
+    out = transforms.copy()
+    rot = transforms[..., :3, :3]
+    moved = np.einsum("tbij,bj->tbi", rot, bone_centers) + transforms[..., :3, 3]
+    shift = moved - bone_centers
+    g = np.where(np.isfinite(part_centroids), part_centroids, bone_centers)
+    out[..., :3, 3] = g - np.einsum("tbij,bj->tbi", rot, g) + shift
+    return out
 
 
 def frame_indices(reference_frames: int, num_frames: int, *, loop: bool) -> np.ndarray:

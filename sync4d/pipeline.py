@@ -172,6 +172,22 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
     return part_map
 
 
+def reference_to_target_rotation(cfg: DictConfig, reference: Reference, target_points: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation taking the reference's frame to the target's, from the same alignment matching uses.
+
+    The reference's motion must turn with the target when the alignment turns it (e.g. ``pca_icp`` on
+    a target lying on its side); the alignment is cheap next to the simulation, so it is recomputed
+    rather than cached with the part map.
+    """
+    from sync4d.align import align_shapes
+
+    if cfg.match.align == "none":
+        return np.eye(3)
+    alignment = align_shapes(target_points, reference.rest_vertices, method=cfg.match.align,
+                             icp_iterations=int(cfg.match.icp_iterations), seed=int(cfg.seed))
+    return alignment.transform.rotation.T
+
+
 def write_frame(run_dir: Path, index: int, gaussians: TargetGaussians) -> Path:
     """Write one output frame as ``frames/%06d.ply`` (atomically)."""
     return write_gaussians_ply(run_dir / "frames" / f"{index:06d}.ply", gaussians)
@@ -269,8 +285,13 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
     report_figures.save_match_figure(reference, target, part_map, ctx.run_dir / "match.png", logger=ctx.logger)
 
     points, faces = target_surface(target, source)
+    from sync4d.metrics import part_centroids
+
+    anchor = part_centroids(target.means.astype(np.float64), part_map.tgt_part, part_map.num_parts) \
+        if cfg.get("pivot", "part_centroid") == "part_centroid" else None
     motion = driving_motion(reference, target_points=points, target_faces=faces, num_frames=int(cfg.frames),
-                            loop=bool(cfg.loop_reference))
+                            loop=bool(cfg.loop_reference), part_centroids=anchor,
+                            rotation=reference_to_target_rotation(cfg, reference, points))
     log.info("driving motion: %d frames, coverage ratio s_t/s_o = %.4f", motion.num_frames, motion.coverage_ratio)
 
     from sync4d.outputs import FrameWriter

@@ -112,8 +112,7 @@ def make_config(
         raise ConfigError(f"{group}: config has no 'type' key; set {group}=<one of {', '.join(available(group))}>")
     cls = lookup(group, str(name))
     if shrink:
-        known = {f.name for f in dataclasses.fields(cls.Config)}
-        values.update({k: v for k, v in dict(shrink).items() if k in known})
+        values.update(applicable_shrink(cls, values, shrink))
     schema = OmegaConf.structured(cls.Config)
     try:
         merged = OmegaConf.merge(schema, values)
@@ -136,9 +135,33 @@ def effective_config(group: str, cfg: Mapping[str, Any] | DictConfig, shrink: Ma
     values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
     assert isinstance(values, dict)
     if shrink and "type" in values:
-        known = {f.name for f in dataclasses.fields(lookup(group, str(values["type"])).Config)}
-        values.update({k: v for k, v in dict(shrink).items() if k in known})
+        values.update(applicable_shrink(lookup(group, str(values["type"])), values, shrink))
     return values
+
+
+def applicable_shrink(cls: type, values: Mapping[str, Any], shrink: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``shrink`` values the component's Config has a field for, of a compatible kind.
+
+    A scalar never replaces a list (e.g. ``iterations: 30`` against a per-level ``[250, 150]``): such a
+    value is skipped rather than turned into a type error.
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls.Config)}
+    out = {}
+    for key, value in dict(shrink).items():
+        if key not in fields:
+            continue
+        current = values.get(key, getattr(cls.Config(), key, None) if _has_defaults(cls.Config) else None)
+        if isinstance(current, (list, tuple)) != isinstance(value, (list, tuple)):
+            continue
+        out[key] = value
+    return out
+
+
+def _has_defaults(config: type) -> bool:
+    return all(
+        f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING  # type: ignore[misc]
+        for f in dataclasses.fields(config)
+    )
 
 
 def build(

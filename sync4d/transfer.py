@@ -78,14 +78,17 @@ def make_particles(target: TargetGaussians, part_map: PartMap, control_grid: int
     return Particles(sums / counts_split[:, None], part, g2p_split.astype(np.int64), counts_split.astype(np.int64))
 
 
-def anchor_weights(x: np.ndarray, part: np.ndarray, num_parts: int, mode: str) -> list[np.ndarray]:
+def anchor_weights(x: np.ndarray, part: np.ndarray, num_parts: int, mode: str) -> list[np.ndarray | None]:
     """Per part, a (K, P_b) matrix of affine weights (rows sum to 1) defining K anchors of its particles.
 
+    ``particles``: None per part, meaning every particle is its own anchor (identity weights).
     ``centroid``: K = 1, the part's centroid. ``anchors``: K = 7, the centroid and the centroids of the
     particles on either side of each principal axis. Any affine combination of a body's points moves
     with the body, so the anchors follow rotation as well as translation.
     """
-    out = []
+    if mode == "particles":
+        return [None] * num_parts
+    out: list[np.ndarray | None] = []
     for b in range(num_parts):
         idx = np.flatnonzero(part == b)
         n = len(idx)
@@ -102,6 +105,11 @@ def anchor_weights(x: np.ndarray, part: np.ndarray, num_parts: int, mode: str) -
     return out
 
 
+def anchor_points(weights: np.ndarray | None, points: np.ndarray) -> np.ndarray:
+    """(K, 3) anchors of a part's (P_b, 3) points: ``weights @ points``, or the points themselves."""
+    return points if weights is None else weights @ points
+
+
 def apply_rigid(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(K, 3) points moved by a (4, 4) transform."""
     return points @ transform[:3, :3].T + transform[:3, 3]
@@ -110,16 +118,17 @@ def apply_rigid(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
 class PartLoss:
     """L1 between each part's anchors at the end of a rollout and their targets (paper Eq. L_x)."""
 
-    def __init__(self, part: np.ndarray, weights: list[np.ndarray], targets: list[np.ndarray]) -> None:
+    def __init__(self, part: np.ndarray, weights: list[np.ndarray | None], targets: list[np.ndarray]) -> None:
         self.index = [torch.as_tensor(np.flatnonzero(part == b)) for b in range(len(weights))]
-        self.weights = [torch.as_tensor(w, dtype=torch.float32) for w in weights]
+        self.weights = [None if w is None else torch.as_tensor(w, dtype=torch.float32) for w in weights]
         self.targets = [torch.as_tensor(t, dtype=torch.float32) for t in targets]
 
     def __call__(self, x_end: torch.Tensor) -> torch.Tensor:
         total = x_end.new_zeros(())
         for idx, w, target in zip(self.index, self.weights, self.targets):
             if len(idx):
-                total = total + (w @ x_end[idx] - target).abs().sum() / len(w)
+                anchors = x_end[idx] if w is None else w @ x_end[idx]
+                total = total + (anchors - target).abs().sum() / len(anchors)
         return total
 
 
@@ -216,10 +225,10 @@ def run_mpm_transfer(
         if options.target_mode == "absolute":
             weights = rest_anchor_w
             pose = P_next @ np.linalg.inv(motion.part_transforms[0])
-            targets = [apply_rigid(pose[b], weights[b] @ rest[particles.part == b]) for b in range(B)]
+            targets = [apply_rigid(pose[b], anchor_points(weights[b], rest[particles.part == b])) for b in range(B)]
         else:
             weights = anchor_weights(x_np, particles.part, B, options.loss_points)
-            targets = [apply_rigid(relative[b], weights[b] @ x_np[particles.part == b]) for b in range(B)]
+            targets = [apply_rigid(relative[b], anchor_points(weights[b], x_np[particles.part == b])) for b in range(B)]
         loss_fn = PartLoss(particles.part, weights, targets)
 
         frame_time = float(cfg.frame_time)

@@ -126,3 +126,20 @@ def test_total_variation_matches_its_definition():
     planes = torch.zeros(3, 1, 3, 3)
     planes[0, 0, 1, 1] = 2.0  # one spike: 4 neighbours differ by 2 -> 4 * 4 = 16
     assert float(total_variation(planes)) == pytest.approx(16.0)
+
+
+def test_recentred_parts_keep_rotation_and_move_centroid_by_bone_displacement():
+    from sync4d.motion import recentre_on_parts
+    from sync4d.scenes.laptop import rigid, rotation_x
+
+    T = np.stack([np.eye(4), rigid(rotation_x(0.7), np.array([0.0, 0.02, -0.12]))])[None]  # (1, 2, 4, 4)
+    bone_centers = np.array([[0.0, 0.01, 0.0], [0.0, 0.13, -0.17]])
+    centroids = np.array([[0.05, 0.0, 0.01], [0.02, 0.1, -0.15]])
+    A = recentre_on_parts(T, bone_centers, centroids)
+    np.testing.assert_allclose(A[..., :3, :3], T[..., :3, :3])
+    for b in range(2):
+        bone_shift = T[0, b, :3, :3] @ bone_centers[b] + T[0, b, :3, 3] - bone_centers[b]
+        moved = A[0, b, :3, :3] @ centroids[b] + A[0, b, :3, 3]
+        np.testing.assert_allclose(moved - centroids[b], bone_shift, atol=1e-12)
+    # Where the centroid is the bone centre, nothing changes.
+    np.testing.assert_allclose(recentre_on_parts(T, bone_centers, bone_centers), T, atol=1e-12)

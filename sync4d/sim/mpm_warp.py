@@ -439,7 +439,7 @@ class MPMWarp:
         refit_grid: bool = True
         # Motion transfer (sync4d.transfer): how each frame pair is initialised and supervised.
         init: str = "rigid"  # centroid (paper: one velocity per part) | rigid (the bone's rigid velocity field)
-        loss_points: str = "anchors"  # centroid (paper: part mass centroids) | anchors (centroid + 6 half-space centroids)
+        loss_points: str = "particles"  # centroid (paper) | anchors (centroid + 6 half-space centroids) | particles (every particle)
         target_mode: str = "absolute"  # relative (paper: the reference's step from the current state) | absolute (pose at t+1)
 
         def validate(self) -> None:
@@ -468,7 +468,7 @@ class MPMWarp:
             if len(self.gravity) != 3:
                 raise ConfigError(f"sim.gravity={self.gravity}: expected 3 values [m/s^2]")
             for key, value, allowed in (("init", self.init, ("centroid", "rigid")),
-                                        ("loss_points", self.loss_points, ("centroid", "anchors")),
+                                        ("loss_points", self.loss_points, ("centroid", "anchors", "particles")),
                                         ("target_mode", self.target_mode, ("relative", "absolute"))):
                 if value not in allowed:
                     raise ConfigError(f"sim.{key}={value!r}: must be one of {', '.join(allowed)}")
