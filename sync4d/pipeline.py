@@ -7,6 +7,7 @@ interrupted run loses nothing; reconstruction and matching are cached by :mod:`s
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -188,6 +189,32 @@ def reference_to_target_rotation(cfg: DictConfig, reference: Reference, target_p
     return alignment.transform.rotation.T
 
 
+def apply_budget(ctx: RunContext, sim_cfg: dict[str, Any], target: TargetGaussians, motion: Any) -> dict[str, Any]:
+    """With ``budget=auto``, size the simulation from the scene (:mod:`sync4d.budget`); else unchanged."""
+    budget_mode = str(ctx.cfg.get("budget", "off"))
+    if budget_mode == "off":
+        return sim_cfg
+    if budget_mode != "auto":
+        from sync4d.errors import ConfigError
+
+        raise ConfigError(f"budget={budget_mode}: use 'off' or 'auto'")
+    if sim_cfg.get("type") != "mpm_warp":
+        log.info("budget=auto applies to sim=mpm_warp only; sim=%s unchanged", sim_cfg.get("type"))
+        return sim_cfg
+    from sync4d.budget import choose_budget
+    from sync4d.sim.mpm_warp import MPMWarp
+
+    full = {**{f: getattr(MPMWarp.Config(), f) for f in ("E", "nu", "density", "frame_time", "grid_padding",
+                                                         "wall_cells", "cfl_safety")}, **sim_cfg}
+    chosen = choose_budget(
+        target.means.astype(np.float64), motion, E=full["E"], nu=full["nu"], density=full["density"],
+        frame_time=full["frame_time"], padding=full["grid_padding"], wall=full["wall_cells"],
+        cfl_safety=full["cfl_safety"],
+    )
+    atomic_write_json(ctx.run_dir / "budget.json", dataclasses.asdict(chosen))
+    return {**sim_cfg, "control_grid": chosen.control_grid, "n_grid": chosen.n_grid, "substeps": chosen.substeps}
+
+
 def write_frame(run_dir: Path, index: int, gaussians: TargetGaussians) -> Path:
     """Write one output frame as ``frames/%06d.ply`` (atomically)."""
     return write_gaussians_ply(run_dir / "frames" / f"{index:06d}.ply", gaussians)
@@ -297,7 +324,8 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
     from sync4d.outputs import FrameWriter
 
     writer = FrameWriter(ctx.run_dir, target, motion, logger=ctx.logger, run_config=run_config_record(cfg))
-    simulator = build("sim", group_cfg(cfg, "sim"), device=cfg.device)
+    sim_cfg = apply_budget(ctx, group_cfg(cfg, "sim"), target, motion)
+    simulator = build("sim", sim_cfg, device=cfg.device)
     trajectory = simulator.run(
         target, part_map, motion,
         velocity_cfg=group_cfg(cfg, "velocity"), num_frames=int(cfg.frames), on_frame=writer.on_frame,
