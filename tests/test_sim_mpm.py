@@ -86,7 +86,7 @@ def test_yaml_builds(repo_root):
     from sync4d.registry import build
 
     sim = build("sim", OmegaConf.load(repo_root / "conf/sim/mpm_warp.yaml"), device="cpu")
-    assert isinstance(sim, MPMWarp) and sim.cfg.E == 1e4 and sim.cfg.control_grid is None
+    assert isinstance(sim, MPMWarp) and sim.cfg.E == 1e4 and sim.cfg.control_grid == 20
 
 
 def test_prepare_mass_and_volume_from_density_and_share():
