@@ -1,0 +1,1 @@
+"""sync4d.recon: see the modules in this package."""

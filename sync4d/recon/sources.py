@@ -1,0 +1,238 @@
+"""Reference sources for files on disk (group ``reference``): mesh sequences, Lab4D exports, BVH,
+joint-position mocap and videos with masks.
+
+Relative paths are tried against the working directory first, then against the project root (so
+``../shared/data/...`` works from the project folder and from tests). A missing file stops with
+:class:`~sync4d.errors.DataMissingError` naming the path.
+
+Shared data these default to (attribution, see ``../shared/data/README.md``):
+    * ``lab4d_export/shiba-haru-1002``: ``gengshan-y/ppr-diffphys`` (MIT).
+    * ``motion/cmu_bvh/131_01.bvh``: CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu; created
+      with funding from NSF EIA-0196217), via ``yuki-koyama/bvh11``.
+    * ``motion/dog_mocap/dog_trot_joint_pos.txt``: AI4Animation via ``erwincoumans/motion_imitation``,
+      CC BY-NC 4.0.
+    * ``rendered/metaworld_laptop_hinge``: rendered with MuJoCo from the Meta-World laptop model (MIT).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sync4d.errors import DataMissingError, InputError
+from sync4d.io.lab4d import find_mesh_files, read_mesh_sequence
+from sync4d.io.video import read_video_clip
+from sync4d.registry import register
+from sync4d.types import Camera, ReferenceInput
+
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
+
+
+def resolve_path(path: str, *, what: str) -> Path:
+    """An existing path: as given (relative to the working directory) or relative to the project root.
+
+    Raises:
+        DataMissingError: neither exists; names both places tried.
+    """
+    p = Path(path).expanduser()
+    if p.exists():
+        return p
+    alt = PROJECT_ROOT / path
+    if not p.is_absolute() and alt.exists():
+        return alt
+    raise DataMissingError(f"{what} not found: {path} (also tried {alt}); check the path or fetch the data")
+
+
+def camera_from_look(
+    K: np.ndarray, position: np.ndarray, forward: np.ndarray, up: np.ndarray, width: int, height: int
+) -> Camera:
+    """A :class:`Camera` (OpenCV axes: x right, y down, z forward) from a look-at description.
+
+    A world point p projects as ``x = (p-c).r, y = (p-c).up, z = (p-c).fwd`` with ``r = fwd x up``, then
+    ``u = cx + fx x / z, v = cy - fy y / z`` (the convention of the laptop renders' ``gt.npz``); in OpenCV
+    axes that is the rotation with rows ``r, -up, fwd``.
+    """
+    fwd = np.asarray(forward, dtype=np.float64)
+    fwd = fwd / np.linalg.norm(fwd)
+    upv = np.asarray(up, dtype=np.float64)
+    upv = upv - fwd * (upv @ fwd)
+    upv = upv / np.linalg.norm(upv)
+    right = np.cross(fwd, upv)
+    rot = np.stack([right, -upv, fwd])
+    w2c = np.eye(4)
+    w2c[:3, :3] = rot
+    w2c[:3, 3] = -rot @ np.asarray(position, dtype=np.float64)
+    return Camera(K=np.asarray(K, dtype=np.float64), world_to_cam=w2c, width=int(width), height=int(height)).validate()
+
+
+@register("reference", "meshseq")
+class MeshSequenceSource:
+    """Posed meshes with fixed topology: a folder of .obj files (sorted by frame number) or a glob."""
+
+    @dataclass
+    class Config:
+        """Attributes:
+        path: folder of .obj files or a glob pattern (e.g. ``.../*-mesh-*.obj``).
+        fps: frame rate of the sequence [1/s].
+        unit_scale: metres per file unit.
+        max_frames: keep at most this many frames (0 = all).
+        """
+
+        path: str = "../shared/data/lab4d_export/shiba-haru-1002/*-mesh-*.obj"
+        fps: float = 10.0
+        unit_scale: float = 1.0
+        max_frames: int = 0
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg = cfg
+
+    def load(self) -> ReferenceInput:
+        path = self.cfg.path
+        if not any(ch in path for ch in "*?["):
+            path = str(resolve_path(path, what="mesh sequence"))
+        elif not Path(path).is_absolute() and not list(Path().glob(path)):
+            path = str(PROJECT_ROOT / path)
+        files = find_mesh_files(path)
+        if self.cfg.max_frames > 0:
+            files = files[: self.cfg.max_frames]
+        verts, faces, _ = read_mesh_sequence(files)
+        return ReferenceInput(
+            name=Path(files[0]).parent.name, fps=self.cfg.fps, mesh_sequence=verts * self.cfg.unit_scale,
+            faces=faces, path=str(Path(files[0]).parent),
+        )
+
+
+@register("reference", "lab4d")
+class Lab4DSource:
+    """A Lab4D export folder, read by ``recon=lab4d`` (its posed meshes are loaded here too, if any)."""
+
+    @dataclass
+    class Config:
+        """Attributes:
+        path: the export folder.
+        fps: frame rate of the export [1/s] (Lab4D exports do not store it).
+        """
+
+        path: str = "../shared/data/lab4d_export/shiba-haru-1002"
+        fps: float = 10.0
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg = cfg
+
+    def load(self) -> ReferenceInput:
+        from sync4d.io.lab4d import read_lab4d_export
+
+        root = resolve_path(self.cfg.path, what="Lab4D export folder")
+        export = read_lab4d_export(root)
+        return ReferenceInput(
+            name=root.name, fps=self.cfg.fps, mesh_sequence=export.posed_vertices, faces=export.faces, path=str(root)
+        )
+
+
+@register("reference", "bvh")
+class BVHSource:
+    """A BVH motion file, read by ``recon=mocap``."""
+
+    @dataclass
+    class Config:
+        """Attributes:
+        path: the .bvh file.
+        """
+
+        path: str = "../shared/data/motion/cmu_bvh/131_01.bvh"
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg = cfg
+
+    def load(self) -> ReferenceInput:
+        from sync4d.io.mocap import parse_bvh
+
+        path = resolve_path(self.cfg.path, what="BVH file")
+        _, _, frame_time = parse_bvh(path.read_text(errors="replace"), source=str(path))
+        return ReferenceInput(name=path.stem, fps=1.0 / frame_time, path=str(path))
+
+
+@register("reference", "joint_positions")
+class JointPositionsSource:
+    """A joint-position mocap text file (one frame per line, x y z per joint), read by ``recon=mocap``."""
+
+    @dataclass
+    class Config:
+        """Attributes:
+        path: the text file.
+        fps: frame rate of the file [1/s] (the format does not store it; the dog trot is 60 fps).
+        """
+
+        path: str = "../shared/data/motion/dog_mocap/dog_trot_joint_pos.txt"
+        fps: float = 60.0
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg = cfg
+
+    def load(self) -> ReferenceInput:
+        from sync4d.io.mocap import read_joint_positions
+
+        path = resolve_path(self.cfg.path, what="joint-position file")
+        read_joint_positions(path)  # fail here, at load, on a malformed file
+        return ReferenceInput(name=path.stem, fps=self.cfg.fps, path=str(path))
+
+
+@register("reference", "video")
+class VideoSource:
+    """A reference video with foreground masks and, optionally, a known camera (``gt.npz``)."""
+
+    @dataclass
+    class Config:
+        """Attributes:
+        video: video file or folder of frames.
+        masks: folder of mask PNGs or a mask video; empty = no masks (``recon=video`` then uses a
+            static-camera background model).
+        camera: ``.npz`` with ``K`` and ``cam_pos``/``cam_forward``/``cam_up`` (laptop renders' layout),
+            or with ``K`` and ``world_to_cam`` (4x4); empty = unknown camera.
+        fps: frame rate [1/s]; 0 = from the video file.
+        max_frames: keep at most this many frames (0 = all).
+        stride: keep every ``stride``-th frame.
+        """
+
+        video: str = "../shared/data/rendered/metaworld_laptop_hinge/rgb.mp4"
+        masks: str = "../shared/data/rendered/metaworld_laptop_hinge/masks"
+        camera: str = "../shared/data/rendered/metaworld_laptop_hinge/gt.npz"
+        fps: float = 0.0
+        max_frames: int = 0
+        stride: int = 1
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg = cfg
+
+    def load(self) -> ReferenceInput:
+        video = resolve_path(self.cfg.video, what="reference video")
+        masks = resolve_path(self.cfg.masks, what="mask folder") if self.cfg.masks else None
+        clip = read_video_clip(
+            video, masks, fps=self.cfg.fps or None, max_frames=self.cfg.max_frames or None, stride=self.cfg.stride
+        )
+        camera = None
+        if self.cfg.camera:
+            camera = load_camera(resolve_path(self.cfg.camera, what="camera file"), clip.frames.shape[2],
+                                 clip.frames.shape[1])
+            clip = type(clip)(clip.frames, clip.masks, clip.fps, camera.K, None, clip.source).validate()
+        return ReferenceInput(name=video.parent.name if video.is_file() else video.name, fps=clip.fps, video=clip,
+                              camera=camera, path=str(video))
+
+
+def load_camera(path: Path, width: int, height: int) -> Camera:
+    """A camera from an .npz holding ``K`` and either ``world_to_cam`` or ``cam_pos/cam_forward/cam_up``.
+
+    Raises:
+        InputError: the keys are missing.
+    """
+    data = np.load(path)
+    if "K" not in data:
+        raise InputError(f"{path}: camera file needs 'K' (3x3 intrinsics)")
+    if "world_to_cam" in data:
+        return Camera(K=data["K"].astype(np.float64), world_to_cam=data["world_to_cam"].astype(np.float64),
+                      width=width, height=height).validate()
+    if all(k in data for k in ("cam_pos", "cam_forward", "cam_up")):
+        return camera_from_look(data["K"], data["cam_pos"], data["cam_forward"], data["cam_up"], width, height)
+    raise InputError(f"{path}: camera file needs 'world_to_cam' or 'cam_pos', 'cam_forward', 'cam_up'")
