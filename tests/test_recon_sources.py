@@ -19,7 +19,7 @@ CONF = Path(__file__).resolve().parent.parent / "conf"
 
 @pytest.mark.parametrize(
     "group, name",
-    [("recon", "skinning_fit"), ("recon", "lab4d"), ("recon", "mocap"), ("recon", "ground_truth"),
+    [("recon", "skinning_fit"), ("recon", "lab4d"), ("recon", "mocap"), ("recon", "ground_truth"), ("recon", "video"),
      ("reference", "meshseq"), ("reference", "lab4d"), ("reference", "bvh"), ("reference", "joint_positions"),
      ("reference", "video")],
 )
