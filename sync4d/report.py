@@ -77,6 +77,14 @@ class RunRecord:
     config: dict[str, Any] = field(default_factory=dict)
 
 
+OUTCOME_LEGEND = {
+    "stable": "stable",
+    "guarded": "guarded (automatic sub-stepping)",
+    "diverged": "stopped with a clear error (CFL guard / divergence check)",
+    "rejected": "config refused (ConfigError)",
+}
+
+
 def parse_overrides(items: Iterable[str]) -> dict[str, str]:
     """``["sim.E=1e4", "+foo=1"]`` -> ``{"sim.E": "1e4", "foo": "1"}`` (Hydra's ``+``/``~``/``++`` dropped)."""
     out: dict[str, str] = {}
@@ -453,7 +461,7 @@ def plot_stability_map(runs: Sequence[RunRecord], root: Path, y_axis: str, keys:
             pts = [where[id(run)] for run in members if outcome_of(run) == outcome]
             if pts:
                 ax.scatter([p[0] for p in pts], [p[1] for p in pts], s=160, marker="s", color=color,
-                           label=outcome, edgecolors="k", zorder=3)
+                           label=OUTCOME_LEGEND.get(outcome, outcome), edgecolors="k", zorder=3)
         _draw_cfl(ax, members, root, y_axis, E_range)
         ax.set_xscale("log")
         if y_axis == "dt":
