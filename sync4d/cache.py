@@ -20,7 +20,7 @@ from sync4d.io.atomic import atomic_save_npz, atomic_write_json
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
-CACHE_VERSION = 1  # bump when a stage's algorithm changes so old entries are not reused
+CACHE_VERSION = 2  # bump when a stage's algorithm changes so old entries are not reused
 
 
 def stage_key(stage: str, *parts: Any) -> str:

@@ -184,3 +184,16 @@ def test_match_with_target_mesh_and_far_gaussian_orphan(extractor) -> None:
         match_parts(reference, target, extractor, target_faces=f)
     with pytest.raises(ConfigError):
         match_parts(reference, target, extractor, tie_break="random")
+
+
+def test_smooth_labels_fixes_an_isolated_label_and_keeps_a_clean_boundary():
+    from sync4d.match import smooth_labels
+
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.random((200, 3)), rng.random((200, 3)) + [2.0, 0.0, 0.0]])
+    truth = np.repeat([0, 1], 200)
+    noisy = truth.copy()
+    noisy[[5, 17, 250]] = 1 - noisy[[5, 17, 250]]
+    similarity = np.full((400, 2), 0.5)
+    out = smooth_labels(points, noisy, similarity, 2, 12)
+    np.testing.assert_array_equal(out, truth)
