@@ -54,9 +54,10 @@ class FeatureExtractor(Protocol):
 class Simulator(Protocol):
     """Group ``sim``: built with ``(cfg, device=...)``; animates the target with the driving motion.
 
-    ``velocity`` is the built velocity-field module (may be ignored, e.g. by ``sim=lbs``);
-    ``on_frame(t, frame_x, frame_F, metrics)`` is called after every completed frame so the pipeline
-    can write outputs and checkpoints as the run goes.
+    ``velocity_cfg`` selects the velocity field (ignored by ``sim=lbs``); ``on_frame(t, x, F, stats,
+    checkpoint=None)`` is called after every completed frame with the Gaussians' positions (N, 3) [m]
+    and deformation gradients (N, 3, 3), so the pipeline writes outputs as the run goes; ``checkpoint``
+    is the simulator's state to resume from. ``resume`` is that state (plus ``frame``) when resuming.
     """
 
     def run(
