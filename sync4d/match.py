@@ -8,6 +8,10 @@ Steps, each a small pure function:
    (centroid at 0, unit RMS radius), where the features are computed;
 3. mean reference feature per part, ``f_b = mean_{y_ref = b} f_ref`` (:func:`part_mean_features`);
 4. each target vertex takes the part of highest cosine similarity (:func:`assign_by_similarity`);
+   with ``prototypes`` other than 1 a part is represented by several prototype features (k-means
+   within the part) or by all its vertices (nearest-neighbour feature matching), and its similarity
+   is that of its most similar prototype (:func:`part_prototype_features`; not in the paper, whose
+   single mean loses to a compact neighbouring part at seams: measured in docs/results.md);
 5. outliers are dropped: vertices farther from their part's centre than ``outlier_sigma`` robust
    spreads (:func:`remove_outliers`);
 6. a box per part around its kept vertices (:func:`part_boxes`), and every Gaussian is given the part
@@ -120,6 +124,90 @@ def part_mean_features(features: np.ndarray, labels: np.ndarray, num_parts: int)
     present = counts > 0
     sums[present] /= counts[present, None]
     return sums, present
+
+
+def prototype_count(spec: int | str) -> int:
+    """``match.prototypes`` as a count: ``"all"`` -> 0 (every reference vertex), else an int >= 1."""
+    if isinstance(spec, str) and spec.strip().lower() == "all":
+        return 0
+    try:
+        count = int(spec)
+    except (TypeError, ValueError):
+        count = -1
+    if count < 1:
+        raise ConfigError(
+            f"match.prototypes={spec!r}: use 1 (the paper's part mean), k > 1 (k prototypes per part) or 'all'"
+        )
+    return count
+
+
+def part_prototype_features(
+    features: np.ndarray, labels: np.ndarray, num_parts: int, per_part: int, *, iterations: int = 10, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit-length prototype features of every part, sorted by part.
+
+    ``per_part = 1`` is the paper's part mean (normalised, which leaves its cosine unchanged);
+    ``per_part = k > 1`` runs spherical k-means within each part, so that a part spanning
+    different-looking regions (a torso's front and sides, a lid's two faces) is matched region by
+    region; ``per_part = 0`` makes every reference vertex a prototype, i.e. nearest-neighbour feature
+    matching, the way Diff3F transfers labels.
+
+    Args:
+        features: (V, D) reference features.
+        labels: (V,) part per vertex in [0, num_parts).
+        num_parts: B.
+        per_part: prototypes per part (0 = all vertices).
+        iterations: k-means rounds.
+        seed: k-means initialisation seed.
+
+    Returns:
+        prototypes (P, D) unit rows, owner (P,) non-decreasing part of each prototype.
+    """
+    unit = features / np.maximum(np.linalg.norm(features, axis=1, keepdims=True), 1e-12)
+    labels = np.asarray(labels, dtype=np.int64)
+    rng = np.random.default_rng(seed)
+    protos, owner = [], []
+    for b in range(num_parts):
+        members = unit[labels == b]
+        if len(members) == 0:
+            continue
+        if per_part == 1:
+            mean = features[labels == b].mean(axis=0)
+            centres = (mean / max(np.linalg.norm(mean), 1e-12))[None]
+        elif per_part == 0 or len(members) <= per_part:
+            centres = members
+        else:
+            centres = members[rng.choice(len(members), per_part, replace=False)]
+            for _ in range(iterations):
+                assign = np.argmax(members @ centres.T, axis=1)
+                sums = np.zeros_like(centres)
+                np.add.at(sums, assign, members)
+                norms = np.linalg.norm(sums, axis=1, keepdims=True)
+                # An empty cluster keeps its previous centre rather than collapsing to zero.
+                centres = np.where(norms > 1e-12, sums / np.maximum(norms, 1e-12), centres)
+        protos.append(centres)
+        owner.append(np.full(len(centres), b))
+    return np.concatenate(protos), np.concatenate(owner)
+
+
+def prototype_similarity(
+    features: np.ndarray, prototypes: np.ndarray, owner: np.ndarray, num_parts: int, *, chunk: int = 2048
+) -> np.ndarray:
+    """(N, B) highest cosine similarity of each row of ``features`` to any prototype of each part.
+
+    Args:
+        features: (N, D) target features.
+        prototypes: (P, D) unit rows sorted by ``owner``.
+        owner: (P,) non-decreasing part of each prototype.
+        num_parts: B; parts without a prototype get -inf.
+    """
+    unit = features / np.maximum(np.linalg.norm(features, axis=1, keepdims=True), 1e-12)
+    parts, starts = np.unique(owner, return_index=True)
+    out = np.full((len(unit), num_parts), -np.inf)
+    for s in range(0, len(unit), chunk):
+        sims = unit[s : s + chunk] @ prototypes.T
+        out[s : s + chunk, parts] = np.maximum.reduceat(sims, starts, axis=1)
+    return out
 
 
 def cosine_similarity(features: np.ndarray, means: np.ndarray) -> np.ndarray:
@@ -386,6 +474,7 @@ def match_parts_detailed(
     box_padding: float = 0.02,
     tie_break: str = "centroid",
     smooth_neighbours: int = 0,
+    prototypes: int | str = 1,
     max_target_vertices: int = 6000,
     min_opacity: float = 0.1,
     seed: int = 0,
@@ -407,6 +496,9 @@ def match_parts_detailed(
         tie_break: how a Gaussian in several boxes (or in none) picks its part: ``centroid`` (the paper's
             reading: nearest part centroid) or ``nearest_vertex`` (the part of the nearest kept target
             vertex, which follows long limbs that a centroid misrepresents).
+        prototypes: how a part is represented in the cosine assignment: 1 = its mean feature (the
+            paper), k > 1 = k spherical k-means prototypes, ``"all"`` = every reference vertex of the
+            part (nearest-neighbour feature matching); see :func:`part_prototype_features`.
         smooth_neighbours: after the cosine assignment, each target vertex takes the similarity-weighted
             majority part of its k nearest target vertices (k = this, 0 = off): parts are contiguous
             regions, so isolated labels at seams are noise (not in the paper; measured in docs/results.md).
@@ -439,7 +531,12 @@ def match_parts_detailed(
     if f_ref.shape[1] != f_tgt.shape[1]:
         raise InputError(f"match: reference features have {f_ref.shape[1]} dims, target {f_tgt.shape[1]}")
     means, present = part_mean_features(f_ref, ref_labels, num_parts)
-    similarity = cosine_similarity(f_tgt, means)
+    per_part = prototype_count(prototypes)
+    if per_part == 1:
+        similarity = cosine_similarity(f_tgt, means)  # the paper's rule, exactly
+    else:
+        protos, owner = part_prototype_features(f_ref, ref_labels, num_parts, per_part, seed=seed)
+        similarity = prototype_similarity(f_tgt, protos, owner, num_parts)
     vertex_part, margin = assign_by_similarity(similarity, present)
     if smooth_neighbours > 1:
         vertex_part = smooth_labels(tgt_pts, vertex_part, similarity, num_parts, smooth_neighbours)

@@ -165,7 +165,7 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
             reference, target, extractor,
             outlier_sigma=cfg.match.outlier_sigma, align=cfg.match.align,
             icp_iterations=int(cfg.match.icp_iterations), smooth_neighbours=int(cfg.match.smooth_neighbours),
-            tie_break=str(cfg.match.tie_break), target_vertices=points, target_faces=faces, seed=int(cfg.seed),
+            tie_break=str(cfg.match.tie_break), prototypes=cfg.match.prototypes, target_vertices=points, target_faces=faces, seed=int(cfg.seed),
         )
 
     part_map = cache.cached(ctx.cache_root, "match", key, PartMap, compute, enabled=cfg.cache).validate()

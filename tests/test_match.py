@@ -197,3 +197,61 @@ def test_smooth_labels_fixes_an_isolated_label_and_keeps_a_clean_boundary():
     similarity = np.full((400, 2), 0.5)
     out = smooth_labels(points, noisy, similarity, 2, 12)
     np.testing.assert_array_equal(out, truth)
+
+
+def test_prototype_count_parses_all_and_rejects_nonsense() -> None:
+    from sync4d.match import prototype_count
+
+    assert prototype_count(1) == 1 and prototype_count("8") == 8 and prototype_count("all") == 0
+    for bad in (0, -3, "many", None):
+        with pytest.raises(ConfigError, match="match.prototypes"):
+            prototype_count(bad)
+
+
+def test_one_prototype_is_the_papers_part_mean_and_all_is_nearest_neighbour() -> None:
+    from sync4d.match import part_prototype_features, prototype_similarity
+
+    rng = np.random.default_rng(3)
+    ref = rng.normal(size=(60, 5))
+    labels = rng.integers(0, 3, 60)
+    tgt = rng.normal(size=(25, 5))
+    means, _ = part_mean_features(ref, labels, 3)
+    protos, owner = part_prototype_features(ref, labels, 3, 1)
+    np.testing.assert_allclose(prototype_similarity(tgt, protos, owner, 3), cosine_similarity(tgt, means), atol=1e-12)
+    protos, owner = part_prototype_features(ref, labels, 3, 0)
+    assert len(protos) == 60 and np.all(np.diff(owner) >= 0)
+    brute = cosine_similarity(tgt, ref)  # (25, 60): every reference vertex is a prototype
+    expected = np.stack([brute[:, labels == b].max(axis=1) for b in range(3)], axis=1)
+    np.testing.assert_allclose(prototype_similarity(tgt, protos, owner, 3, chunk=7), expected, atol=1e-12)
+
+
+def test_kmeans_prototypes_find_both_lobes_of_a_two_lobed_part() -> None:
+    """A part made of two distant feature clusters: its mean matches neither lobe, two prototypes do."""
+    from sync4d.match import part_prototype_features, prototype_similarity
+
+    rng = np.random.default_rng(0)
+    lobe_a, lobe_b = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    ref = np.concatenate([lobe_a + 0.01 * rng.normal(size=(30, 3)), lobe_b + 0.01 * rng.normal(size=(30, 3)),
+                          np.array([0.9, 0.1, 0.0]) + 0.01 * rng.normal(size=(30, 3))])
+    labels = np.repeat([0, 0, 1], 30)  # part 0 = both lobes, part 1 = next to lobe a
+    protos, owner = part_prototype_features(ref, labels, 2, 2, seed=1)
+    sim = prototype_similarity(np.stack([lobe_a, lobe_b]), protos, owner, 2)
+    assert np.all(sim[:, 0] > 0.99) and np.all(np.argmax(sim, axis=1) == 0)
+    # with the paper's single mean (pointing between the lobes), lobe a is closer to part 1's mean
+    means, _ = part_mean_features(ref, labels, 2)
+    assert np.argmax(cosine_similarity(lobe_a[None], means), axis=1)[0] == 1
+
+
+def test_nearest_neighbour_prototypes_remove_the_seam_band(extractor) -> None:
+    """Identical shape, no alignment: every reference vertex as a prototype labels (nearly) every vertex
+    right, where the paper's part mean loses a band at the seam (see the test above)."""
+    v, f, part = glued_boxes(1.0, 0.5)
+    reference = reference_of(v, f, part)
+    target = gaussians_at(v)
+    options = {"align": "none", "target_vertices": v, "target_faces": f, "tie_break": "nearest_vertex"}
+    paper = match_parts_detailed(reference, target, extractor, prototypes=1, **options)
+    nearest = match_parts_detailed(reference, target, extractor, prototypes="all", **options)
+    paper_acc = (paper.diagnostics.vertex_part == part).mean()
+    nearest_acc = (nearest.diagnostics.vertex_part == part).mean()
+    assert nearest_acc > 0.99 and nearest_acc > paper_acc
+    assert (nearest.part_map.tgt_part == part).mean() > 0.99

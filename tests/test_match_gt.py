@@ -39,3 +39,43 @@ def test_grouped_body_keeps_outer_surface_with_parts() -> None:
     pts, lab = sample_labelled_surface(body.vertices, body.faces, body.part, 500, np.random.default_rng(0))
     assert pts.shape == (500, 3) and set(np.unique(lab)) == {0, 1}
     assert np.mean(lab == 1) == pytest.approx(np.mean(np.abs(pts[:, 0]) > 0.15), abs=0.1)
+
+
+def pipeline_match_options() -> dict:
+    """The pipeline's match defaults (conf/config.yaml), with pca_icp: the pairs are randomly rotated."""
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    conf = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "config.yaml")
+    options = dict(OmegaConf.to_container(conf.match, resolve=True))
+    options["align"] = "pca_icp"
+    return options
+
+
+@pytest.fixture(scope="module")
+def geometric_extractor():
+    from sync4d.evaluate.match_gt import load_features_config
+    from sync4d.registry import build
+
+    return build("features", load_features_config("geometric"), device="cpu")
+
+
+def test_laptop_of_other_proportions_meets_the_accuracy_goal(geometric_extractor) -> None:
+    """Issue goal (b): >= 95% part-label accuracy with the pipeline defaults (no shared data needed)."""
+    from sync4d.evaluate.match_gt import pair_laptop_proportions
+
+    pair = pair_laptop_proportions(geometric_extractor, pipeline_match_options(), n_points=1500)
+    assert pair.accuracy >= 0.95
+
+
+def test_human_self_copy_meets_the_accuracy_goal(geometric_extractor) -> None:
+    """Issue goal (a): a resampled, rescaled, rotated, jittered copy of the CMU capsule body, >= 95%."""
+    from sync4d.errors import DataMissingError
+    from sync4d.evaluate.match_gt import pair_self_copy
+
+    try:
+        pair = pair_self_copy(geometric_extractor, pipeline_match_options(), n_points=2000)
+    except DataMissingError as err:
+        pytest.skip(str(err))
+    assert pair.accuracy >= 0.95

@@ -418,11 +418,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--outlier-sigma", type=float, default=2.5)
     p.add_argument("--align", default="pca_icp", choices=("none", "pca", "pca_icp"))
     p.add_argument("--box-frame", default="aligned", choices=("aligned", "pca"))
-    p.add_argument("--tie-break", default="centroid", choices=("centroid", "nearest_vertex"))
+    p.add_argument("--tie-break", default="nearest_vertex", choices=("centroid", "nearest_vertex"),
+                   help="centroid = the paper's reading; nearest_vertex = the pipeline default")
+    p.add_argument("--prototypes", default="all",
+                   help="per-part features in the cosine rule: 1 = the paper's part mean, k, or all (the pipeline default)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pairs", default="self_copy,laptop_proportions,mocap_bodies")
     p.add_argument("--figures", default="", help="folder for one picture per pair")
-    p.add_argument("--smooth-neighbours", type=int, default=16, help="k of the label smoothing vote (0 = off, the paper; 16 = the pipeline default)")
+    p.add_argument("--smooth-neighbours", type=int, default=0, help="k of the label smoothing vote (0 = off: the paper and the pipeline default)")
     p.add_argument("--cross-category", default="", metavar="DIR", help="write the cross-category pictures here (e.g. docs)")
     return p.parse_args(argv)
 
@@ -436,7 +439,8 @@ def main(argv: list[str] | None = None) -> int:
     feat_cfg = OmegaConf.merge(OmegaConf.create(load_features_config(args.features)), OmegaConf.from_dotlist(args.set))
     extractor = build("features", feat_cfg, device="cpu")
     options = {"outlier_sigma": args.outlier_sigma, "align": args.align, "box_frame": args.box_frame,
-               "tie_break": args.tie_break, "smooth_neighbours": args.smooth_neighbours, "seed": args.seed}
+               "tie_break": args.tie_break, "smooth_neighbours": args.smooth_neighbours, "prototypes": args.prototypes,
+               "seed": args.seed}
     runners = {"self_copy": pair_self_copy, "laptop_proportions": pair_laptop_proportions, "mocap_bodies": pair_mocap_bodies}
     out: dict[str, Any] = {}
     details: dict[str, Any] = {}
