@@ -416,7 +416,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--features", default="geometric", help="conf/features/<name>.yaml or a YAML path")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="feature config overrides")
     p.add_argument("--outlier-sigma", type=float, default=2.5)
-    p.add_argument("--align", default="pca_icp", choices=("none", "pca", "pca_icp"))
+    p.add_argument("--align", default="pca_icp", choices=("none", "pca", "pca_icp", "upright_icp"),
+                   help="pca_icp for the randomly rotated pairs; upright_icp (the pipeline default) assumes both shapes upright")
     p.add_argument("--box-frame", default="aligned", choices=("aligned", "pca"))
     p.add_argument("--tie-break", default="nearest_vertex", choices=("centroid", "nearest_vertex"),
                    help="centroid = the paper's reading; nearest_vertex = the pipeline default")
@@ -451,7 +452,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.figures:
             save_pair_figure(pair, Path(args.figures) / f"match_gt_{name}.png")
     if args.cross_category:
-        details["cross_category"] = cross_category(extractor, options, Path(args.cross_category))
+        # The shared meshes are given upright, as the pipeline's experiments use them (match.align
+        # defaults to upright_icp there); --align applies to the randomly rotated pairs above.
+        details["cross_category"] = cross_category(extractor, {**options, "align": "upright_icp"}, Path(args.cross_category))
     out["features"] = str(feat_cfg.get("type"))
     out["details"] = details
     print(json.dumps(out))
