@@ -27,7 +27,7 @@ from sync4d.types import ReferenceInput
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m sync4d.evaluate recon_mocap", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default="../shared/data/motion/cmu_bvh/131_01.bvh", help=".bvh or joint-position .txt")
+    parser.add_argument("--data", default="../shared/data/motion/cmu_bvh/131_01.bvh", help=".bvh, joint-position .txt or DeepMimic clip (JSON .txt)")
     parser.add_argument("--fps", type=float, default=60.0, help="frame rate of joint-position files [1/s]")
     parser.add_argument("--target-fps", type=float, default=0.0, help="subsample to this rate (0 = keep all)")
     parser.add_argument("--bones", default="skeleton")

@@ -10,7 +10,8 @@ Root motion goes into G_t, articulation into J_{t,b}.
 
 Data used in tests and evaluation (attribution): CMU Graphics Lab Motion Capture Database
 (mocap.cs.cmu.edu; "The database was created with funding from NSF EIA-0196217"), via yuki-koyama/bvh11;
-AI4Animation dog mocap via erwincoumans/motion_imitation (CC BY-NC 4.0).
+AI4Animation dog mocap via erwincoumans/motion_imitation (CC BY-NC 4.0); DeepMimic humanoid walk
+clip and URDF (DeepMimic, MIT) from the pybullet 3.2.7 wheel's pybullet_data (zlib).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from sync4d.io.mocap import (
     minimal_rotation,
     rotations_from_positions,
 )
+from sync4d.io.deepmimic import read_deepmimic
 from sync4d.recon import skinning as sk
 from sync4d.recon.body import (
     capsule_body,
@@ -43,6 +45,31 @@ from sync4d.registry import register
 from sync4d.types import Reference, ReferenceInput
 
 log = logging.getLogger(__name__)
+
+
+def detect_motion_format(path: Path) -> str:
+    """``bvh`` for .bvh, ``deepmimic`` for a JSON clip (first non-blank character '{'), else ``joint_positions``."""
+    if path.suffix.lower() == ".bvh":
+        return "bvh"
+    with open(path, "rb") as fh:
+        head = fh.read(256).lstrip()
+    return "deepmimic" if head.startswith(b"{") else "joint_positions"
+
+
+def clip_urdf(clip: Path, urdf: str) -> Path:
+    """The URDF of a DeepMimic clip: ``urdf`` if given, else the only .urdf next to the clip."""
+    if urdf:
+        path = Path(urdf)
+        if not path.is_file():
+            raise DataMissingError(f"recon.urdf={urdf}: file not found")
+        return path
+    found = sorted(clip.parent.glob("*.urdf"))
+    if len(found) != 1:
+        raise ConfigError(
+            f"recon.urdf: {clip.name} is a DeepMimic clip and its folder holds {len(found)} .urdf files; "
+            "set recon.urdf=<the clip's skeleton .urdf>"
+        )
+    return found[0]
 
 
 def relative_rotations(motion: SkeletonMotion, rest_frame: int) -> np.ndarray:
@@ -165,7 +192,10 @@ class MocapReconstructor:
         Attributes:
             bones: ``"skeleton"`` (one bone per segment) or an int B: segments merged greedily (shortest
                 into its parent) down to B bones.
-            format: ``auto`` (by extension: .bvh, else joint positions), ``bvh`` or ``joint_positions``.
+            format: ``auto`` (.bvh -> bvh; a JSON file -> deepmimic; else joint positions), ``bvh``,
+                ``joint_positions`` or ``deepmimic`` (:mod:`sync4d.io.deepmimic`).
+            urdf: the URDF skeleton of a DeepMimic clip; empty = the only .urdf in the clip's folder.
+            urdf_scale: metres per URDF unit (pybullet loads DeepMimic's humanoid at 0.25).
             bvh_unit_scale: metres per BVH unit (CMU: 0.056444).
             joint_unit_scale: metres per unit of joint-position files.
             parents: parent table for joint-position files (-1 = root), or empty to infer it (MST).
@@ -186,6 +216,8 @@ class MocapReconstructor:
 
         bones: Any = "skeleton"
         format: str = "auto"
+        urdf: str = ""
+        urdf_scale: float = 0.25
         bvh_unit_scale: float = CMU_UNIT_SCALE
         joint_unit_scale: float = 1.0
         parents: list[int] = field(default_factory=list)
@@ -207,8 +239,10 @@ class MocapReconstructor:
             if not (self.bones == "skeleton" or (isinstance(self.bones, int) and not isinstance(self.bones, bool)
                                                  and self.bones >= 1)):
                 raise ConfigError(f"recon.bones={self.bones!r}: use 'skeleton' or a positive integer for recon=mocap")
-            if self.format not in ("auto", "bvh", "joint_positions"):
-                raise ConfigError(f"recon.format={self.format!r}: use auto, bvh or joint_positions")
+            if self.format not in ("auto", "bvh", "joint_positions", "deepmimic"):
+                raise ConfigError(f"recon.format={self.format!r}: use auto, bvh, joint_positions or deepmimic")
+            if self.urdf_scale <= 0:
+                raise ConfigError(f"recon.urdf_scale={self.urdf_scale}: must be > 0 (metres per URDF unit)")
             if self.global_motion not in ("root", "heading", "none"):
                 raise ConfigError(f"recon.global_motion={self.global_motion!r}: use root, heading or none")
             if self.target_fps < 0:
@@ -235,9 +269,11 @@ class MocapReconstructor:
             raise DataMissingError(f"motion file not found: {path}")
         fmt = self.cfg.format
         if fmt == "auto":
-            fmt = "bvh" if path.suffix.lower() == ".bvh" else "joint_positions"
+            fmt = detect_motion_format(path)
         if fmt == "bvh":
             motion = read_bvh(path, unit_scale=self.cfg.bvh_unit_scale)
+        elif fmt == "deepmimic":
+            motion = read_deepmimic(path, clip_urdf(path, self.cfg.urdf), urdf_scale=self.cfg.urdf_scale)
         else:
             motion = read_joint_position_motion(
                 path, fps=source.fps, unit_scale=self.cfg.joint_unit_scale, root=self.cfg.root,

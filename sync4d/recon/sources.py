@@ -179,6 +179,29 @@ class JointPositionsSource:
         return ReferenceInput(name=path.stem, fps=self.cfg.fps, path=str(path))
 
 
+@register("reference", "deepmimic")
+class DeepMimicSource:
+    """A DeepMimic clip (JSON ``Frames``) with its URDF skeleton, read by ``recon=mocap``."""
+
+    @dataclass
+    class Config:
+        """Attributes:
+        path: the clip (.txt JSON); the frame rate comes from its frame durations.
+        """
+
+        path: str = "../shared/data/motion/deepmimic/humanoid3d_walk.txt"
+
+    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.cfg = cfg
+
+    def load(self) -> ReferenceInput:
+        from sync4d.io.deepmimic import parse_deepmimic_frames
+
+        path = resolve_path(self.cfg.path, what="DeepMimic clip")
+        rows = parse_deepmimic_frames(path.read_text(errors="replace"), source=str(path))  # fail early
+        return ReferenceInput(name=path.stem, fps=1.0 / float(rows[0, 0]), path=str(path))
+
+
 @register("reference", "video")
 class VideoSource:
     """A reference video with foreground masks and, optionally, a known camera (``gt.npz``)."""
