@@ -13,7 +13,7 @@ import numpy as np
 import trimesh
 
 from sync4d.registry import register
-from sync4d.types import Reference, ReferenceInput
+from sync4d.types import Camera, Reference, ReferenceInput, VideoClip
 
 
 def rotation_x(angle_rad: float) -> np.ndarray:
@@ -173,6 +173,11 @@ class LaptopReference:
         period_frames: int = 24        # frames per open-close cycle
         fps: float = 12.0              # [1/s]
         subdivisions: int = 3          # mesh density (vertices grow 4x per step)
+        video: bool = False            # also film the laptop (static camera, textured) for recon=video
+        video_width: int = 160         # [px]
+        video_height: int = 120        # [px]
+        video_gaussians: int = 6000    # surface Gaussians rendered
+        video_texture_cell: float = 0.02  # checker texture cell [m] (optical flow needs texture; 0 = none)
 
         def validate(self) -> None:
             from sync4d.errors import ConfigError
@@ -186,6 +191,19 @@ class LaptopReference:
 
     def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
         self.cfg = cfg
+        self.device = device
+
+    def film(self, reference: Reference) -> tuple[VideoClip, Camera]:
+        """The laptop filmed by the project's renderer from a fixed camera (see :mod:`sync4d.scenes.reference_video`)."""
+        from sync4d.registry import build
+        from sync4d.scenes.reference_video import FilmSettings, film_reference
+
+        c = self.cfg
+        settings = FilmSettings(width=c.video_width, height=c.video_height, gaussians=c.video_gaussians,
+                                texture_cell=c.video_texture_cell)
+        renderer = build("render", {"type": "splat_torch", "width": c.video_width, "height": c.video_height},
+                         device=self.device)
+        return film_reference(reference, renderer, settings)
 
     def load(self) -> ReferenceInput:
         c = self.cfg
@@ -202,10 +220,13 @@ class LaptopReference:
             subdivisions=c.subdivisions,
         )
         sequence = np.stack([reference.posed_vertices(t) for t in range(reference.num_frames)])
+        clip, camera = self.film(reference) if c.video else (None, None)
         return ReferenceInput(
             name="laptop",
             fps=c.fps,
             mesh_sequence=sequence,
             faces=reference.rest_faces,
             ground_truth=reference,
+            video=clip,
+            camera=camera,
         )

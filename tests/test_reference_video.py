@@ -1,0 +1,45 @@
+"""Filming a reference for recon=video: checker texture, masks that cover the projected surface."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sync4d.errors import ConfigError
+from sync4d.registry import build
+from sync4d.scenes.reference_video import FilmSettings, checker
+
+
+def test_checker_alternates_between_neighbouring_cells() -> None:
+    pts = np.array([[0.005, 0.005, 0.005], [0.015, 0.005, 0.005], [0.015, 0.015, 0.005], [-0.005, 0.005, 0.005]])
+    np.testing.assert_array_equal(checker(pts, 0.01), [1.0, -1.0, 1.0, -1.0])
+
+
+def test_film_settings_reject_nonsense() -> None:
+    with pytest.raises(ConfigError, match="video_size"):
+        FilmSettings(width=8, height=8).validate()
+    with pytest.raises(ConfigError, match="texture"):
+        FilmSettings(texture_contrast=1.5).validate()
+
+
+def test_filmed_laptop_masks_cover_its_projected_vertices_and_the_lid_moves() -> None:
+    source = build("reference", {"type": "laptop", "num_frames": 4, "period_frames": 4, "subdivisions": 1,
+                                 "video": True, "video_width": 64, "video_height": 48, "video_gaussians": 1500},
+                   device="cpu")
+    data = source.load()
+    clip, camera, ref = data.video, data.camera, data.ground_truth
+    assert clip.frames.shape == (4, 48, 64, 3) and clip.masks.shape == (4, 48, 64)
+    np.testing.assert_allclose(clip.intrinsics, camera.K)
+    for t in range(4):
+        posed = ref.posed_vertices(t, apply_global=True)
+        cam = posed @ camera.world_to_cam[:3, :3].T + camera.world_to_cam[:3, 3]
+        assert (cam[:, 2] > 0).all()  # in front of the camera
+        uv = cam[:, :2] / cam[:, 2:] @ camera.K[:2, :2].T + camera.K[:2, 2]
+        px = np.floor(uv).astype(int)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < 64) & (px[:, 1] >= 0) & (px[:, 1] < 48)
+        assert inside.all()  # the framing keeps the whole motion in view
+        assert clip.masks[t][px[:, 1], px[:, 0]].mean() > 0.9
+    # the lid closes between frame 0 and frame 2: the silhouette changes
+    assert (clip.masks[0] != clip.masks[2]).mean() > 0.02
+    # texture: the rendered object is not flat-coloured
+    assert clip.frames[0][clip.masks[0]].std() > 10.0
