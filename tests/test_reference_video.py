@@ -43,3 +43,19 @@ def test_filmed_laptop_masks_cover_its_projected_vertices_and_the_lid_moves() ->
     assert (clip.masks[0] != clip.masks[2]).mean() > 0.02
     # texture: the rendered object is not flat-coloured
     assert clip.frames[0][clip.masks[0]].std() > 10.0
+
+
+def test_filmed_part_labels_and_hinge_angles_of_the_laptop() -> None:
+    from sync4d.scenes.laptop import laptop_reference
+    from sync4d.scenes.reference_video import film_reference, hinge_angles_rad
+
+    ref = laptop_reference(4, period_frames=4, subdivisions=1, rest_angle_deg=110.0, min_angle_deg=40.0)
+    angles = np.degrees(hinge_angles_rad(ref))
+    assert angles[0] == pytest.approx(0.0, abs=1e-9) and angles.max() == pytest.approx(70.0, abs=1e-6)
+    renderer = build("render", {"type": "splat_torch", "width": 48, "height": 36}, device="cpu")
+    clip, camera, labels = film_reference(ref, renderer, FilmSettings(width=48, height=36, gaussians=1500), with_labels=True)
+    assert labels.shape == (4, 36, 48) and set(np.unique(labels)) == {0, 1, 2}
+    np.testing.assert_array_equal(labels > 0, clip.masks)
+    # the base's pixels are the bottom of the object in the image (the lid stands up behind it)
+    rows = np.arange(36)[:, None]
+    assert (rows * (labels[0] == 1)).sum() / (labels[0] == 1).sum() > (rows * (labels[0] == 2)).sum() / (labels[0] == 2).sum()

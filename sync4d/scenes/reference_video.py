@@ -72,7 +72,9 @@ def textured(gaussians: TargetGaussians, cell: float, contrast: float) -> Target
     ).validate()
 
 
-def film_reference(reference: Reference, renderer: object, settings: FilmSettings) -> tuple[VideoClip, Camera]:
+def film_reference(
+    reference: Reference, renderer: object, settings: FilmSettings, *, with_labels: bool = False
+) -> tuple[VideoClip, Camera] | tuple[VideoClip, Camera, np.ndarray]:
     """Render every frame of ``reference`` from one static camera.
 
     Args:
@@ -80,8 +82,12 @@ def film_reference(reference: Reference, renderer: object, settings: FilmSetting
         renderer: a built ``render`` component with ``render_full(means, covs, colours, opacities, camera)``.
         settings: image size, texture and framing.
 
+        with_labels: also render the ground-truth part of every pixel.
+
     Returns:
-        The clip (frames (T, H, W, 3) uint8, masks (T, H, W) bool, intrinsics, static camera) and its camera.
+        The clip (frames (T, H, W, 3) uint8, masks (T, H, W) bool, intrinsics, static camera), its
+        camera, and with ``with_labels`` the (T, H, W) uint8 part labels: 0 background, b + 1 where
+        bone b (the argmax skinning of the nearest rest vertex) is in front.
     """
     from sync4d.render.camera import frame_object
     from sync4d.render_outputs import reference_gaussians
@@ -95,15 +101,44 @@ def film_reference(reference: Reference, renderer: object, settings: FilmSetting
         means.reshape(-1, 3), direction=settings.direction, up=settings.up, fov_deg=settings.fov_deg,
         width=settings.width, height=settings.height, margin=settings.margin,
     )
-    frames, masks = [], []
+    frames, masks, labels = [], [], []
     colours = np.clip(rest.colors(), 0.0, 1.0)
+    onehot = None
+    if with_labels:
+        from scipy.spatial import cKDTree
+
+        part = reference.part_labels()[cKDTree(reference.rest_vertices).query(rest.means)[1]]
+        onehot = np.eye(reference.num_bones, dtype=np.float32)[part]
+        if reference.num_bones == 3:  # three channels would be read as RGB (and composited on the background)
+            onehot = np.concatenate([onehot, np.zeros((len(onehot), 1), np.float32)], axis=1)
     for t in range(reference.num_frames):
         out = renderer.render_full(means[t], covs[t], colours, rest.opacities, camera)  # type: ignore[attr-defined]
-        rgb, alpha = (np.asarray(out[k].detach().cpu() if hasattr(out[k], "detach") else out[k]) for k in ("rgb", "alpha"))
+        rgb, alpha = (_numpy(out[k]) for k in ("rgb", "alpha"))
         frames.append(np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8))
-        masks.append(alpha.reshape(settings.height, settings.width) > 0.5)
+        mask = alpha.reshape(settings.height, settings.width) > 0.5
+        masks.append(mask)
+        if onehot is not None:
+            weights = _numpy(renderer.render_full(means[t], covs[t], onehot, rest.opacities, camera)["rgb"])  # type: ignore[attr-defined]
+            labels.append(np.where(mask, np.argmax(weights[..., : reference.num_bones], axis=-1) + 1, 0).astype(np.uint8))
     clip = VideoClip(
         frames=np.stack(frames), masks=np.stack(masks), fps=reference.fps, intrinsics=camera.K.copy(),
         extrinsics=None, source=f"{reference.name} filmed by sync4d ({settings.width}x{settings.height})",
     ).validate()
+    if with_labels:
+        return clip, camera, np.stack(labels)
     return clip, camera
+
+
+def _numpy(value: object) -> np.ndarray:
+    """A renderer output (torch tensor or array) as a numpy array."""
+    return np.asarray(value.detach().cpu() if hasattr(value, "detach") else value)  # type: ignore[attr-defined]
+
+
+def hinge_angles_rad(reference: Reference, base: int = 0, lid: int = 1) -> np.ndarray:
+    """(T,) angle [rad] of bone ``lid`` relative to bone ``base``, measured from frame 0's relative pose."""
+    from scipy.spatial.transform import Rotation
+
+    j = reference.bone_transforms[:, :, :3, :3]
+    rel = np.swapaxes(j[:, base], 1, 2) @ j[:, lid]
+    change = np.swapaxes(rel[0], 0, 1)[None] @ rel
+    return np.linalg.norm(Rotation.from_matrix(change).as_rotvec(), axis=1)
