@@ -64,6 +64,10 @@ class FrameWriter:
         self.frame_seconds.append(float(seconds))
         moved = deform_gaussians(self.target, x, F, self.motion.global_transforms[t])
         write_gaussians_ply(self.run_dir / "frames" / f"{t:06d}.ply", moved)
+        # Exact per-frame state beside the .ply (which holds float32 world Gaussians): a resume reads it
+        # back, so the checkpoint itself stays one frame's size however long the run.
+        atomic_save_npz(state_path(self.run_dir, t), x=self.frames_x[-1],
+                        F=np.zeros(0) if self.frames_F[-1] is None else self.frames_F[-1])
         if self.logger is not None:
             for key, value in stats.items():
                 self.logger.scalar(key if "/" in key else f"loss/{key}", value, t)
@@ -71,15 +75,13 @@ class FrameWriter:
             self.save_checkpoint(t, checkpoint)
 
     def save_checkpoint(self, t: int, state: dict[str, Any]) -> None:
-        """Atomically store the simulator's state after frame ``t`` and the frames so far."""
+        """Atomically store the simulator's state after frame ``t`` (the frames themselves are in ``state/``)."""
         import torch
 
         payload = {
             "frame": t,
             "config": self.run_config,
             "sim": state,
-            "frames_x": np.stack(self.frames_x),
-            "frames_F": None if self.frames_F[0] is None else np.stack(self.frames_F),
             "frame_stats": self.frame_stats,
             "frame_seconds": self.frame_seconds,
         }
@@ -101,18 +103,20 @@ class FrameWriter:
         """
         if not resume:
             return None
-        payload = load_checkpoint(Path(resume).expanduser(), resume)
+        folder = Path(resume).expanduser()
+        payload = load_checkpoint(folder, resume)
         check_same_config(payload.get("config"), self.run_config, resume)
-        self.frames_x = list(payload["frames_x"])
-        self.frames_F = [None] * len(self.frames_x) if payload["frames_F"] is None else list(payload["frames_F"])
+        last = int(payload["frame"])
+        self.frames_x, self.frames_F = read_frame_states(folder, last, resume)
         self.frame_stats = list(payload["frame_stats"])
         self.frame_seconds = list(payload["frame_seconds"])
-        if len(self.frames_x) != int(payload["frame"]) + 1:
-            raise ConfigError(f"resume={resume}: {CHECKPOINT} holds {len(self.frames_x)} frames for frame "
-                              f"{payload['frame']}; it is damaged, start the run again")
+        if len(self.frame_stats) != last + 1:
+            raise ConfigError(f"resume={resume}: {CHECKPOINT} holds {len(self.frame_stats)} frame records for frame "
+                              f"{last}; it is damaged, start the run again")
         for t, (x, F) in enumerate(zip(self.frames_x, self.frames_F)):
             moved = deform_gaussians(self.target, x, F, self.motion.global_transforms[t])
             write_gaussians_ply(self.run_dir / "frames" / f"{t:06d}.ply", moved)
+            atomic_save_npz(state_path(self.run_dir, t), x=x, F=np.zeros(0) if F is None else F)
             if self.logger is not None:
                 for key, value in self.frame_stats[t].items():
                     self.logger.scalar(key if "/" in key else f"loss/{key}", value, t)
@@ -169,6 +173,34 @@ class FrameWriter:
         return result
 
 
+def state_path(run_dir: Path, t: int) -> Path:
+    """Where frame ``t``'s exact state (Gaussian centres and deformation gradients, float64) is kept."""
+    return Path(run_dir) / "state" / f"{t:06d}.npz"
+
+
+def read_frame_states(folder: Path, last: int, resume: str) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
+    """Frames 0..last of an interrupted run: x (N, 3) and F (N, 3, 3) or None each, from ``state/``.
+
+    Raises:
+        ConfigError: a frame's state file is missing or unreadable (names it and what to do).
+    """
+    xs: list[np.ndarray] = []
+    Fs: list[np.ndarray | None] = []
+    for t in range(last + 1):
+        path = state_path(folder, t)
+        try:
+            with np.load(path) as data:
+                xs.append(np.asarray(data["x"], dtype=np.float64))
+                F = np.asarray(data["F"], dtype=np.float64)
+        except (OSError, KeyError, ValueError) as err:
+            raise ConfigError(
+                f"resume={resume}: frame {t}'s state {path} is missing or unreadable ({type(err).__name__}); "
+                "the checkpoint needs every frame up to it: start the run again"
+            ) from None
+        Fs.append(None if F.size == 0 else F)
+    return xs, Fs
+
+
 def load_checkpoint(folder: Path, resume: str) -> dict[str, Any]:
     """Read ``<folder>/checkpoint.pt``; any failure is a :class:`ConfigError` naming ``resume``."""
     import torch
@@ -184,7 +216,7 @@ def load_checkpoint(folder: Path, resume: str) -> dict[str, Any]:
     except Exception as err:  # noqa: BLE001 - torch/pickle raise many types for a bad file
         raise ConfigError(f"resume={resume}: {CHECKPOINT} is unreadable ({type(err).__name__}: {err}); "
                           "start the run again") from None
-    if not isinstance(payload, dict) or not {"frame", "sim", "frames_x"} <= set(payload):
+    if not isinstance(payload, dict) or not {"frame", "sim", "frame_stats"} <= set(payload):
         raise ConfigError(f"resume={resume}: {CHECKPOINT} is not a sync4d run checkpoint")
     return payload
 

@@ -47,6 +47,8 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: Path) -> None:
     assert not (killed / "metrics.json").exists(), "the run finished before it was killed"
     checkpoint = torch.load(killed / "checkpoint.pt", map_location="cpu", weights_only=False)
     assert 2 <= checkpoint["frame"] < 5, f"checkpoint after frame {checkpoint['frame']}"
+    # the checkpoint holds one frame's simulator state, not the frames so far (those are in state/)
+    assert "frames_x" not in checkpoint and len(list((killed / "state").glob("*.npz"))) >= checkpoint["frame"] + 1
     for frame in sorted((killed / "frames").glob("*.ply")):  # atomic writes: every final name is complete
         read_gaussians_ply(frame)
 
@@ -55,6 +57,17 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: Path) -> None:
     assert "resuming from" in (resumed / "train.log").read_text()
     assert_same_run(full, resumed)
     assert not (killed / "metrics.json").exists(), "the resumed run wrote into the interrupted run's folder"
+
+
+def test_resume_names_a_missing_frame_state(tmp_path: Path) -> None:
+    """A checkpoint whose frame states were deleted: one clear line naming the missing file, exit 2."""
+    full = tmp_path / "full"
+    proc = run_train(full, "frames=3")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (full / "state" / "000001.npz").unlink()
+    proc = run_train(tmp_path / "again", "frames=3", f"resume={full}")
+    assert proc.returncode == 2
+    assert "000001.npz is missing or unreadable" in proc.stderr
 
 
 def test_resume_refuses_other_settings(tmp_path: Path) -> None:
