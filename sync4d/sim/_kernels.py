@@ -181,8 +181,10 @@ def p2g(
     ny: int,
     nz: int,
     substep: int,
+    store_rotation: int,
     grid: wp.array3d(dtype=wp.vec4),
     status: wp.array(dtype=wp.int32),
+    rotation: wp.array(dtype=wp.mat33),
 ):
     """Particle-to-grid scatter with the stress fused in (MLS-MPM).
 
@@ -196,8 +198,11 @@ def p2g(
         mu, lam: Lame parameters [Pa].
         origin: world position of node (0, 0, 0) [m]; dx, inv_dx: cell size [m] and its inverse.
         dt: substep [s]; nx, ny, nz: nodes per axis; substep: index recorded on failure.
+        store_rotation: 1 to also write each particle's polar rotation R (the backward pass rebuilds a
+            substep's grid and then needs R again in :func:`p2g_adjoint`), 0 to skip it.
         grid: (nx, ny, nz) zeroed accumulator of vec4(m v, m) [kg m/s, kg] (output).
         status: (1,) int, min substep index at which a particle left the grid or became non-finite.
+        rotation: (P,) polar rotation of F (output, written only with ``store_rotation``).
     """
     p = wp.tid()
     xp = x[p]
@@ -209,7 +214,12 @@ def p2g(
     wx, wy, wz = bspline_weights(fx)
 
     m = mass[p]
-    tau = kirchhoff_fixed_corotated(F[p], mu, lam)
+    Fp = F[p]
+    R = rotation_part(Fp)
+    if store_rotation != 0:
+        rotation[p] = R
+    J = wp.determinant(Fp)
+    tau = 2.0 * mu * (Fp - R) * wp.transpose(Fp) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
     A = m * C[p] - (dt * volume[p] * 4.0 * inv_dx * inv_dx) * tau
     # (x_i - x_p) = dx (node - fx): split so the loop only adds columns of A.
     mom0 = m * v[p] - dx * (A * fx)
@@ -430,6 +440,7 @@ def p2g_adjoint(
     nx: int,
     ny: int,
     nz: int,
+    rotation: wp.array(dtype=wp.mat33),
     adj_grid: wp.array3d(dtype=wp.vec4),
     adj_x: wp.array(dtype=wp.vec3),
     adj_v: wp.array(dtype=wp.vec3),
@@ -452,7 +463,7 @@ def p2g_adjoint(
 
     m = mass[p]
     Fp = F[p]
-    R = rotation_part(Fp)
+    R = rotation[p]  # stored by the P2G that rebuilt this substep's grid (same F)
     J = wp.determinant(Fp)
     tau = 2.0 * mu * (Fp - R) * wp.transpose(Fp) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
     k_tau = dt * volume[p] * 4.0 * inv_dx * inv_dx

@@ -137,6 +137,9 @@ class _Workspace:
         self.grid = wp.zeros(dims, dtype=wp.vec4, device=device)
         self.grid_v = wp.zeros(dims, dtype=wp.vec3, device=device)
         self.status = wp.full(1, _STATUS_OK, dtype=wp.int32, device=device)
+        # polar rotations of the substep being reversed: written by the P2G that rebuilds its grid,
+        # read by the P2G adjoint (one substep at a time, so one buffer)
+        self.rotation = wp.zeros(n, dtype=wp.mat33, device=device)
         self.ping = WarpState.empty(n, device)
         self.pong = WarpState.empty(n, device)
         # backward-only buffers, allocated on first use
@@ -168,15 +171,15 @@ class _Launch:
     dt: float
     mass_eps: float
 
-    def p2g_args(self, s: WarpState, substep: int) -> tuple[list[Any], list[Any]]:
+    def p2g_args(self, s: WarpState, substep: int, *, store_rotation: bool = False) -> tuple[list[Any], list[Any]]:
         g = self.model.grid
         inputs = [
             s.x, s.v, s.C, s.F, self.mass, self.volume,
             float(self.model.mu), float(self.model.lam),
             wp.vec3(*g.origin), float(g.dx), float(1.0 / g.dx), float(self.dt),
-            int(g.dims[0]), int(g.dims[1]), int(g.dims[2]), int(substep),
+            int(g.dims[0]), int(g.dims[1]), int(g.dims[2]), int(substep), int(store_rotation),
         ]  # fmt: skip
-        return inputs, [self.ws.grid, self.ws.status]
+        return inputs, [self.ws.grid, self.ws.status, self.ws.rotation]
 
     def grid_args(self) -> tuple[list[Any], list[Any]]:
         m, g = self.model, self.model.grid
@@ -246,7 +249,7 @@ def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: War
     g = launch.model.grid
     # forward part: the grid this substep saw
     ws.grid.zero_()
-    p2g_in, p2g_out = launch.p2g_args(s, substep)
+    p2g_in, p2g_out = launch.p2g_args(s, substep, store_rotation=True)
     wp.launch(K.p2g, dim=n, inputs=p2g_in, outputs=p2g_out, device=dev)
     grid_in, grid_out = launch.grid_args()
     wp.launch(K.grid_update, dim=ws.dims, inputs=grid_in, outputs=grid_out, device=dev)
@@ -261,7 +264,7 @@ def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: War
     wp.launch(K.grid_update_adjoint, dim=ws.dims, inputs=grid_in + [ws.adj_grid_v], outputs=[ws.adj_grid], device=dev)
     wp.launch(
         K.p2g_adjoint, dim=n,
-        inputs=p2g_in[:15] + [ws.adj_grid],
+        inputs=p2g_in[:15] + [ws.rotation, ws.adj_grid],
         outputs=[adj_in.x, adj_in.v, adj_in.C, adj_in.F], device=dev,
     )  # fmt: skip
 
@@ -434,7 +437,7 @@ class MPMWarp:
         control_grid: int | None = None
         gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
         checkpoint_every: int | None = None
-        checkpoint_budget_mb: float = 256.0
+        checkpoint_budget_mb: float = 512.0
         sort_particles: bool = True
         refit_grid: bool = True
         # Motion transfer (sync4d.transfer): how each frame pair is initialised and supervised.
