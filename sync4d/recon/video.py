@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from sync4d.errors import ConfigError, InputError
+from sync4d.recon import _video_silhouette as vsil
 from sync4d.recon import skinning as sk
 from sync4d.recon._softsplat import front_weights, project_points, soft_silhouette, splat_alpha
 from sync4d.registry import register
@@ -328,6 +329,21 @@ class VideoReconstructor:
         opacity: float = 0.6
         global_from: str = "root_bone"
         seed: int = 0
+        silhouette_rounds: int = 3  # silhouette tracking + relabelling rounds before the gradient fit (0 = off)
+        silhouette_stride: int = 2  # [px] raster stride of the silhouette IoU
+        silhouette_tilt_frames: int = 14  # first frames tracked to score each part's plane tilt
+        silhouette_tilt_grid_deg: list[float] = field(default_factory=lambda: [-40.0, -20.0, 0.0, 20.0, 40.0])
+        silhouette_tilt_refine_deg: float = 10.0  # [deg] first step of the later rounds' local tilt search
+        silhouette_pivot_step: float = 0.05  # [object widths] first step of the joint position search
+        silhouette_search_evals: int = 30  # whole-sequence trackings per part in the joint/tilt search
+        silhouette_evals: int = 300  # IoU evaluations per frame of the pattern search
+        silhouette_root_motion: str = "auto"  # auto (moves iff its tracks move > static_root_px) | on | off
+        static_root_px: float = 1.0  # [px] median track motion below which the root part counts as static
+        skin_fit_steps: int = 200  # Adam steps fitting bones + skinning delta to the silhouette labels
+        detect_hinges: bool = True  # ball joints whose rotations share one axis become 1-DoF hinges
+        hinge_min_ratio: float = 0.9  # share of the rotation energy on the principal axis of a hinge
+        silhouette_final_ball: bool = True  # a last tracking pass with ball joints from the hinge poses
+        refine_after_silhouette: bool = False  # run the joint gradient refinement after the silhouette stage
 
         def validate(self) -> None:
             if isinstance(self.bones, str) and self.bones.strip().isdigit():
@@ -346,6 +362,8 @@ class VideoReconstructor:
                 raise ConfigError(f"recon.flow={self.flow!r}: use dis or farneback")
             if self.global_from not in ("root_bone", "identity"):
                 raise ConfigError(f"recon.global_from={self.global_from!r}: use root_bone or identity")
+            if self.silhouette_root_motion not in ("auto", "on", "off"):
+                raise ConfigError(f"recon.silhouette_root_motion={self.silhouette_root_motion!r}: use auto, on or off")
             if self.gaussians < self.bones:
                 raise ConfigError(f"recon.gaussians={self.gaussians}: needs at least recon.bones={self.bones}")
 
@@ -445,6 +463,98 @@ class VideoReconstructor:
         return {"uv0": uv0, "points": points, "sigma": sigma, "depth": depth, "width": width_m,
                 "tracks": tracks, "track_ok": ok, "labels": labels}
 
+    def _silhouette_stage(self, masks: np.ndarray, camera: Camera, init: dict[str, Any]) -> np.ndarray:
+        """Labels, shape and per-frame bone transforms by silhouette tracking (:mod:`._video_silhouette`).
+
+        Updates ``init["points"]`` (canonical Gaussian means on their first-frame rays) and
+        ``init["labels"]`` in place and returns the (T, B, 4, 4) world-frame bone transforms.
+        """
+        cfg = self.cfg
+        n_bones = cfg.bones
+        start = time.perf_counter()
+        c2w = sk.rigid_inverse(camera.world_to_cam)
+        # the first mask's cells at the raster stride: dense enough for the silhouette, and cheap
+        vv, uu = np.nonzero(vsil.downsample_mask(masks[0], cfg.silhouette_stride))
+        uv_dense = (np.stack([uu, vv], 1) + 0.5) * cfg.silhouette_stride
+        rays = vsil.pixel_rays(uv_dense, camera.K, c2w[:3, :3])
+        # the root's initial surface: the fronto-parallel plane at the initial depth (a single view cannot
+        # tell more; a static part's shape does not change its silhouette)
+        base_depth = init["depth"] / (rays @ c2w[:3, 2])
+        scene = vsil.SilhouetteScene(
+            uv0=uv_dense, rays=rays, cam_center=c2w[:3, 3], cam_rot=c2w[:3, :3], K=camera.K,
+            world_to_cam=camera.world_to_cam,
+            masks=np.stack([vsil.downsample_mask(m, cfg.silhouette_stride) for m in masks]),
+            stride=cfg.silhouette_stride, image_shape=masks.shape[1:], base_depth=base_depth, width=init["width"])
+        nearest = vsil.nearest_index(init["uv0"], uv_dense)
+        labels = init["labels"][nearest]
+        # root: the part whose flow tracks move least (with a static camera, the part at rest)
+        moves = vsil.part_motion_px(init["tracks"], init["track_ok"], init["labels"], n_bones)
+        root = int(np.nanargmin(moves))
+        root_motion = {"auto": bool(moves[root] > cfg.static_root_px), "on": True, "off": False}[cfg.silhouette_root_motion]
+        log.info("recon=video: silhouette stage: %d dense points, root bone %d (median track motion %.2f px; "
+                 "root motion %s)", len(uv_dense), root, moves[root], root_motion)
+        art = vsil.make_articulation(scene, labels, n_bones, root)
+        # first round: each part's plane tilt from a coarse grid over the first frames (ball joints), then
+        # hinge detection; every round: joint position and tilt by a local search over the whole sequence,
+        # tracking, and relabelling by silhouette consistency
+        for rnd in range(cfg.silhouette_rounds):
+            # the tilt grid again each round: with better labels its best cell can change basin
+            art = vsil.search_tilts(scene, art, frames=cfg.silhouette_tilt_frames,
+                                    grid_deg=tuple(cfg.silhouette_tilt_grid_deg), root_motion=root_motion,
+                                    max_evals=cfg.silhouette_evals)
+            if cfg.detect_hinges:  # re-detected every round: better labels and tilts give a better axis
+                art.axes = np.full_like(art.pivots, np.nan)
+                art = self._detect_hinges(scene, art, root_motion)
+            art, score = vsil.search_joint_and_tilt(scene, art, root_motion=root_motion, max_evals=cfg.silhouette_evals,
+                                                    tilt_step_deg=cfg.silhouette_tilt_refine_deg,
+                                                    pivot_step=cfg.silhouette_pivot_step,
+                                                    search_evals=cfg.silhouette_search_evals)
+            params, ious = vsil.track(scene, art, None, root_motion=root_motion, max_evals=cfg.silhouette_evals)
+            new = vsil.relabel(scene, art, params)
+            log.info("recon=video: silhouette round %d: mean IoU %.4f, min %.4f, tilts %s deg, %d labels changed "
+                     "(%.0f s)", rnd, ious.mean(), ious.min(), np.round(np.degrees(art.tilts), 1).tolist(),
+                     int((new != art.labels).sum()), time.perf_counter() - start)
+            if rnd < cfg.silhouette_rounds - 1:
+                moved = vsil.make_articulation(scene, new, n_bones, root, art.tilts, art.axes)
+                # the joint stays where the search put it, shifted by the boundary's own move
+                old_boundary = vsil.make_articulation(scene, art.labels, n_bones, root).pivots
+                moved.pivots = np.where((art.parent >= 0)[:, None], art.pivots + moved.pivots - old_boundary, moved.pivots)
+                art = moved
+        if cfg.silhouette_final_ball:
+            # last pass with ball joints, started from the hinge poses: frees the residual error of the axis
+            ball = vsil.Articulation(labels=art.labels, parent=art.parent, pivots=art.pivots, tilts=art.tilts)
+            init_ball = vsil.hinge_params_to_ball(params, art)
+            params, ious = vsil.track(scene, ball, init_ball, root_motion=root_motion, max_evals=cfg.silhouette_evals,
+                                      rot_step_deg=2.0)
+            art = ball
+            log.info("recon=video: ball-joint pass: mean IoU %.4f, min %.4f", ious.mean(), ious.min())
+        points = vsil.canonical_points(scene, art)
+        transforms = np.stack([vsil.pose_transforms(p, art, init["width"]) for p in params])
+        # each Gaussian keeps its own first-frame ray and takes the depth and part of its nearest pixel
+        own = vsil.nearest_index(uv_dense, init["uv0"])
+        depth = np.linalg.norm(points[own] - scene.cam_center, axis=1)
+        init["points"] = scene.cam_center + depth[:, None] * vsil.pixel_rays(init["uv0"], camera.K, c2w[:3, :3])
+        init["labels"] = art.labels[own]
+        init["silhouette_iou"] = ious
+        return transforms
+
+    def _detect_hinges(self, scene: Any, art: Any, root_motion: bool) -> Any:
+        """Turn ball joints whose rotations over the first ``silhouette_tilt_frames`` frames share one axis
+        into hinges (1 DoF), which keeps the tracking from drifting where the silhouette is ambiguous."""
+        params, _ = vsil.track(scene, art, None, root_motion=root_motion, frames=self.cfg.silhouette_tilt_frames,
+                               max_evals=self.cfg.silhouette_evals)
+        offsets = vsil.param_offsets(art)
+        axes = art.axes.copy()
+        for b in range(art.n_parts):
+            if art.parent[b] < 0 or art.is_hinge(b):
+                continue
+            axis = vsil.hinge_axis(params[:, offsets[b]: offsets[b] + 3], min_ratio=self.cfg.hinge_min_ratio)
+            if axis is not None:
+                axes[b] = axis
+                log.info("recon=video: joint of bone %d is a hinge, axis %s (world)", b, np.round(axis, 3).tolist())
+        art.axes = axes
+        return art
+
     def _fit(self, frames: np.ndarray, masks: np.ndarray, camera: Camera) -> dict[str, Any]:
         cfg = self.cfg
         rng = np.random.default_rng(cfg.seed)
@@ -453,6 +563,9 @@ class VideoReconstructor:
         fwd, bwd = optical_flow(frames, cfg.flow)
         valid = flow_consistency(fwd, bwd, tol_px=cfg.flow_check_px) & masks[:-1]
         init = self._init_shape(frames, masks, camera, fwd, valid, rng)
+        silhouette_j = None
+        if cfg.silhouette_rounds > 0 and cfg.bones > 1:
+            silhouette_j = self._silhouette_stage(masks, camera, init)
         scale = init["width"]
         centre = init["points"].mean(0)
         n_bones = cfg.bones
@@ -471,7 +584,10 @@ class VideoReconstructor:
                     evecs[:, 0] = -evecs[:, 0]
                 rots0[b], scales0[b] = evecs, np.sqrt(np.maximum(evals, 0.05**2))
         init_j = np.tile(np.eye(4), (n_frames, n_bones, 1, 1))
-        if cfg.init_pnp:
+        if silhouette_j is not None:  # world-frame transforms -> normalised units (J_n = S J S^-1)
+            init_j = silhouette_j.copy()
+            init_j[..., :3, 3] = (silhouette_j[..., :3, 3] + silhouette_j[..., :3, :3] @ centre - centre) / scale
+        elif cfg.init_pnp:
             for b in range(n_bones):
                 members = init["labels"] == b
                 world = pnp_transforms(init["points"][members], init["tracks"][:, members],
@@ -585,6 +701,25 @@ class VideoReconstructor:
                             "flow": float(loss_flow.detach()), "smooth": extra})
             log.debug("recon=video %s", history[-1])
 
+        if silhouette_j is not None and cfg.skin_fit_steps > 0:
+            # The silhouette stage decided each Gaussian's part; fit the bones and the skinning delta so that
+            # W = softmax(-d_M + delta) reproduces it (cross-entropy on the canonical means).
+            target = torch.as_tensor(init["labels"], dtype=torch.long)
+            skin_opt = torch.optim.Adam([{"params": [bone_c, bone_r, bone_s], "lr": cfg.lr * 3},
+                                         {"params": list(mlp.parameters()), "lr": cfg.lr}])
+            with torch.no_grad():
+                means_fixed = canonical()
+            for it in range(cfg.skin_fit_steps):
+                skin_opt.zero_grad(set_to_none=True)
+                w, _ = skin(means_fixed)
+                loss = torch.nn.functional.nll_loss(torch.log(w + 1e-8), target)
+                loss.backward()
+                skin_opt.step()
+            with torch.no_grad():
+                agree = float((torch.argmax(skin(means_fixed)[0], 1) == target).double().mean())
+            log.info("recon=video: skinning fitted to the silhouette labels: cross-entropy %.3f, argmax agreement %.3f",
+                     float(loss.detach()), agree)
+
         # Stage 1: track frame by frame with the canonical shape fixed: J_t starts from J_{t-1} and is fitted
         # to frame t's silhouette and to the flow (t-1 -> t). Cheap (only B transforms move) and it keeps
         # large motions (e.g. a lid folding shut) out of the local minima a joint fit from rest falls into.
@@ -602,7 +737,7 @@ class VideoReconstructor:
         # depths, to frame t's silhouette and the flow t-1 -> t, plus a few earlier frames so that the
         # depths stay consistent with them. Only frame t's transforms move; this keeps large motions (a
         # lid folding shut) out of the local minima of a joint fit started from the rest pose.
-        if cfg.track_steps > 0:
+        if cfg.track_steps > 0 and silhouette_j is None:  # the silhouette stage tracked already
             stride = cfg.levels[0]
             for t in range(1, n_frames):
                 with torch.no_grad():  # constant-velocity prediction from the two previous frames
@@ -636,6 +771,8 @@ class VideoReconstructor:
         # Stage 2: joint refinement of shape, bones, skinning and motion, coarse to fine.
         step = 0
         for level, (stride, iters) in enumerate(zip(cfg.levels, cfg.iterations)):
+            if silhouette_j is not None and not cfg.refine_after_silhouette:
+                break
             for it in range(iters):
                 optim.zero_grad(set_to_none=True)
                 fidx = np.sort(rng.choice(n_frames, size=min(cfg.frames_per_step, n_frames), replace=False))
