@@ -122,3 +122,109 @@ def test_two_plate_hinge_is_recovered() -> None:
     assert abs(rel[-1] - angles[-1]) < 8.0, rel
     assert np.all(np.diff(rel) > 0), rel  # opening monotonically, as the arm does
     assert recon.last_fit_report["gaussians"] == 300
+
+
+# --------------------------------------------------------------------------------------------------
+# Silhouette tracking helpers (sync4d.recon._video_silhouette)
+# --------------------------------------------------------------------------------------------------
+
+from sync4d.recon import _video_silhouette as vsil  # noqa: E402
+
+
+def test_about_pivot_fixes_the_pivot_and_rotates() -> None:
+    rot = vsil.rotvec_to_matrix(np.array([0.0, 0.0, np.pi / 2]))
+    assert np.allclose(rot @ [1.0, 0, 0], [0, 1.0, 0], atol=1e-12)
+    tf = vsil.about_pivot(rot, np.array([1.0, 2.0, 3.0]))
+    assert np.allclose(tf[:3, :3] @ [1.0, 2.0, 3.0] + tf[:3, 3], [1.0, 2.0, 3.0])
+    assert np.allclose(tf[:3, :3] @ [2.0, 2.0, 3.0] + tf[:3, 3], [1.0, 3.0, 3.0])
+
+
+def test_raster_iou_and_downsampling() -> None:
+    mask = np.zeros((8, 8), bool)
+    mask[2:6, 2:6] = True
+    small = vsil.downsample_mask(mask, 2)
+    assert small.shape == (4, 4) and small.sum() == 4 and small[1:3, 1:3].all()
+    # every pixel centre of the square, rasterised at stride 2, gives back the 2 x 2 cells
+    vv, uu = np.nonzero(mask)
+    img = vsil.raster_points(np.stack([uu, vv], 1) + 0.5, (8, 8), 2)
+    assert np.array_equal(img, small)
+    half = small.copy()
+    half[1, 1:3] = False
+    assert vsil.mask_iou(half, small) == 0.5 and vsil.mask_iou(small, small) == 1.0
+    assert np.isclose(vsil.outside_distance(small)[1, 0], 1.0) and vsil.outside_distance(small)[1, 1] == 0.0
+
+
+def test_pattern_search_finds_a_quadratic_peak() -> None:
+    x, best = vsil.pattern_search(lambda x: -((x[0] - 1.3) ** 2) - (x[1] + 0.4) ** 2, np.zeros(2),
+                                  np.array([1.0, 1.0]), min_scale=1e-3, max_evals=2000)
+    assert np.allclose(x, [1.3, -0.4], atol=2e-3) and best > -1e-5
+
+
+def test_ray_plane_depths_and_tilted_normal() -> None:
+    rays = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    d = vsil.ray_plane_depths(rays, np.zeros(3), np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, 1.0]))
+    assert np.allclose(d, [2.0, 2.5])
+    # no tilt: the normal faces the camera; 90 deg about the camera's x axis turns it onto -y... (+/-)
+    n0 = vsil.tilted_normal(np.array([0.0, 0.0, 1.0]), np.zeros(2), np.eye(3))
+    n1 = vsil.tilted_normal(np.array([0.0, 0.0, 1.0]), np.array([np.pi / 2, 0.0]), np.eye(3))
+    assert np.allclose(n0, [0, 0, -1.0]) and np.allclose(np.abs(n1), [0, 1.0, 0], atol=1e-12)
+
+
+def _two_part_image() -> np.ndarray:
+    img = np.full((10, 12), -1)
+    img[2:8, 1:6] = 0
+    img[2:8, 6:11] = 1
+    return img
+
+
+def test_boundary_pivot_tree_and_islands() -> None:
+    img = _two_part_image()
+    assert np.allclose(vsil.boundary_pivot(img, 1, 0, radius=1), [6.5, 5.0])
+    assert vsil.kinematic_tree(img, 2, root=0).tolist() == [-1, 0]
+    noisy = img.copy()
+    noisy[3, 9] = 0  # an island of part 0 inside part 1
+    assert np.array_equal(vsil.merge_label_islands(noisy, 2), img)
+
+
+def test_joint_from_motion_recovers_the_rotation_centre() -> None:
+    pivot = np.array([0.3, -0.2, 1.0])
+    tfs = np.stack([vsil.about_pivot(vsil.rotvec_to_matrix(v), pivot)
+                    for v in ([0.3, 0.1, 0.0], [0.0, 0.5, 0.2], [0.4, 0.0, -0.3])])
+    assert np.allclose(vsil.joint_from_motion(tfs, np.zeros(3), prior_weight=1e-9), pivot, atol=1e-6)
+    # a hinge leaves the position along its axis to the prior
+    axis = np.array([1.0, 0.0, 0.0])
+    hinge = np.stack([vsil.about_pivot(vsil.rotvec_to_matrix(axis * a), pivot) for a in (0.2, 0.6, 1.0)])
+    got = vsil.joint_from_motion(hinge, np.array([0.0, 0.0, 0.9]), prior_weight=1e-9, axis=axis)
+    assert np.allclose(got, [0.0, -0.2, 1.0], atol=1e-5)
+
+
+def test_hinge_axis_detection() -> None:
+    axis = np.array([0.0, 0.6, 0.8])
+    rv = np.outer([0.1, 0.5, 1.2, 0.7], axis) + 1e-3 * np.random.default_rng(0).normal(size=(4, 3))
+    got = vsil.hinge_axis(rv)
+    assert got is not None and np.allclose(got, axis, atol=0.01)
+    assert vsil.hinge_axis(np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])) is None
+
+
+def test_articulated_pose_parameters() -> None:
+    art = vsil.Articulation(labels=np.array([0, 1]), parent=np.array([-1, 0]),
+                            pivots=np.array([[0.0, 0, 0], [1.0, 0, 0]]), tilts=np.zeros((2, 2)),
+                            axes=np.array([[np.nan] * 3, [0.0, 0.0, 1.0]]))
+    assert vsil.param_offsets(art).tolist() == [0, 6, 7]
+    params = np.zeros(7)
+    params[3] = 0.5  # root translation [object widths]
+    params[6] = np.pi / 2  # hinge angle about z through (1, 0, 0)
+    tfs = vsil.pose_transforms(params, art, width=2.0)
+    pts = vsil.posed_points(np.array([[0.0, 0, 0], [2.0, 0, 0]]), art.labels, tfs)
+    assert np.allclose(pts, [[1.0, 0, 0], [2.0, 1.0, 0]])
+    ball = vsil.hinge_params_to_ball(params[None], art)
+    assert ball.shape == (1, 9) and np.allclose(ball[0, 6:], [0, 0, np.pi / 2])
+
+
+def test_part_motion_and_nearest_index() -> None:
+    tracks = np.zeros((3, 4, 2))
+    tracks[1:, 2:] += [[3.0, 4.0]]
+    ok = np.ones((3, 4), bool)
+    moves = vsil.part_motion_px(tracks, ok, np.array([0, 0, 1, 1]), 3)
+    assert np.allclose(moves[:2], [0.0, 5.0]) and np.isnan(moves[2])
+    assert vsil.nearest_index(np.array([[0.0, 0], [10.0, 0]]), np.array([[9.0, 1.0], [1.0, 0]])).tolist() == [1, 0]
