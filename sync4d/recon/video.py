@@ -5,6 +5,14 @@ the world frame of the first video frame), B Gaussian bones with skinning
 ``W = softmax(-d_M(x, bones) + W_delta(x))`` and per-frame bone transforms J_{t,b} (J_0 = identity: the
 canonical pose is the first frame's pose). Posed Gaussians are projected with the known static camera.
 
+Silhouette stage (``silhouette_rounds`` > 0, B > 1; :mod:`sync4d.recon._video_silhouette`): with the
+known static camera, a dense first-frame point cloud is tracked by derivative-free pattern search on the
+silhouette IoU (root 6 DoF or static when its flow tracks do not move; other parts about joints at their
+part boundary, turned into 1-DoF hinges when their rotations share an axis); each round re-estimates the
+non-root parts' plane tilts (grid), the joint positions and tilts (whole-sequence search) and the labels
+(silhouette consistency over all frames). Its labels, depths and poses initialise the model below, the
+skinning is fitted to its labels, and the gradient stages are skipped unless ``refine_after_silhouette``.
+
 Fit (coarse to fine, Adam):
     * initialisation: the first frame's mask back-projected at an estimated depth (the world origin's
       depth when the camera is known, else ``init_depth``) and thickened along the viewing rays; pixel
@@ -336,6 +344,7 @@ class VideoReconstructor:
         silhouette_tilt_refine_deg: float = 10.0  # [deg] first step of the later rounds' local tilt search
         silhouette_pivot_step: float = 0.05  # [object widths] first step of the joint position search
         silhouette_search_evals: int = 30  # whole-sequence trackings per part in the joint/tilt search
+        silhouette_search_axis: bool = False  # also search hinge axes there (measured worse: 12.7 vs 5.3 deg)
         silhouette_evals: int = 300  # IoU evaluations per frame of the pattern search
         silhouette_root_motion: str = "auto"  # auto (moves iff its tracks move > static_root_px) | on | off
         static_root_px: float = 1.0  # [px] median track motion below which the root part counts as static
@@ -508,12 +517,15 @@ class VideoReconstructor:
             art, score = vsil.search_joint_and_tilt(scene, art, root_motion=root_motion, max_evals=cfg.silhouette_evals,
                                                     tilt_step_deg=cfg.silhouette_tilt_refine_deg,
                                                     pivot_step=cfg.silhouette_pivot_step,
-                                                    search_evals=cfg.silhouette_search_evals)
+                                                    search_evals=cfg.silhouette_search_evals,
+                                                    search_axis=cfg.silhouette_search_axis)
             params, ious = vsil.track(scene, art, None, root_motion=root_motion, max_evals=cfg.silhouette_evals)
             new = vsil.relabel(scene, art, params)
             log.info("recon=video: silhouette round %d: mean IoU %.4f, min %.4f, tilts %s deg, %d labels changed "
                      "(%.0f s)", rnd, ious.mean(), ious.min(), np.round(np.degrees(art.tilts), 1).tolist(),
                      int((new != art.labels).sum()), time.perf_counter() - start)
+            if np.array_equal(new, art.labels):  # converged: another round would repeat this one
+                break
             if rnd < cfg.silhouette_rounds - 1:
                 moved = vsil.make_articulation(scene, new, n_bones, root, art.tilts, art.axes)
                 # the joint stays where the search put it, shifted by the boundary's own move

@@ -1,0 +1,610 @@
+"""Silhouette-driven articulated tracking for ``recon=video`` (NumPy / OpenCV, no gradients).
+
+Why: with a known static camera the masks constrain an articulated pose strongly, even where the
+optical flow fails (a lid folding shut shows only its textureless back). Gradient descent on a soft
+silhouette falls into local minima for large motions; a derivative-free pattern search over each
+bone's few degrees of freedom, started from the previous frame's pose, does not need a good gradient.
+
+Model used here (a discretised stand-in for the Gaussians, all in world units [m]):
+    * a dense point cloud: every foreground pixel of the first frame back-projected on its viewing ray
+      (``x = c + d r``); each point belongs to one part (bone);
+    * parts form a kinematic tree: the root moves freely (6 DoF), every other part rotates about a ball
+      joint (3 DoF) carried by its parent; the joint is the centre of the image boundary between the two
+      parts in the first frame (rigid parts connected by joints);
+    * a non-root part's initial surface is a plane through its joint whose orientation (two tilt angles)
+      is estimated from the silhouettes of all frames (the part seen at many angles, like a turntable);
+    * labels are re-estimated by silhouette consistency: a point belongs to the bone whose motion keeps
+      it inside the masks of all frames (robust to occlusion: an occluded point still projects inside the
+      occluder's mask).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import cv2
+import numpy as np
+
+
+# --------------------------------------------------------------------------------------------------
+# Small pure helpers
+# --------------------------------------------------------------------------------------------------
+
+
+def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of a rotation vector (3,) [rad] (Rodrigues)."""
+    return cv2.Rodrigues(np.asarray(v, np.float64).reshape(3, 1))[0]
+
+
+def about_pivot(rot: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """(4, 4) rigid transform x -> rot (x - pivot) + pivot (a rotation about the point ``pivot`` [m])."""
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = pivot - rot @ pivot
+    return out
+
+
+def raster_points(uv: np.ndarray, shape: tuple[int, int], stride: int, *, grow: int = 1) -> np.ndarray:
+    """(H // stride, W // stride) bool image of pixel points (N, 2) (u, v) [px], closed over ``grow`` cells.
+
+    A dense point cloud rasterised at a coarse stride approximates the object's silhouette; a
+    morphological closing fills the gaps between neighbouring points without growing the outline.
+    """
+    h, w = shape[0] // stride, shape[1] // stride
+    iu = np.floor(uv[:, 0] / stride).astype(np.int64)
+    iv = np.floor(uv[:, 1] / stride).astype(np.int64)
+    keep = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+    img = np.zeros((h, w), np.uint8)
+    img[iv[keep], iu[keep]] = 1
+    if grow > 0:
+        # constant zero border: the erosion must not treat the outside of the image as foreground
+        img = cv2.morphologyEx(img, cv2.MORPH_CLOSE, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8),
+                               borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return img > 0
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two bool images (1 when both are empty)."""
+    union = np.count_nonzero(a | b)
+    return 1.0 if union == 0 else np.count_nonzero(a & b) / union
+
+
+def downsample_mask(mask: np.ndarray, stride: int) -> np.ndarray:
+    """(H // stride, W // stride) bool: cells more than half covered by the (H, W) mask."""
+    h, w = mask.shape[0] // stride * stride, mask.shape[1] // stride * stride
+    cells = mask[:h, :w].reshape(h // stride, stride, w // stride, stride).mean((1, 3))
+    return cells > 0.5
+
+
+def outside_distance(mask: np.ndarray) -> np.ndarray:
+    """(H, W) float32 distance [cells] from each pixel to the mask (0 inside)."""
+    return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float32)
+
+
+def pattern_search(
+    objective: Callable[[np.ndarray], float], x0: np.ndarray, steps: np.ndarray, *, shrink: float = 0.5,
+    min_scale: float = 1.0 / 16, max_evals: int = 400,
+) -> tuple[np.ndarray, float]:
+    """Maximise ``objective`` by compass search (Hooke-Jeeves without pattern moves).
+
+    Each round tries x +- step_k along every coordinate k and keeps any improvement; when a round
+    improves nothing, all steps shrink by ``shrink`` until they fall below ``min_scale`` x their start.
+
+    Args:
+        objective: maps a parameter vector (D,) to a score (higher is better).
+        x0: (D,) start.
+        steps: (D,) initial step per coordinate.
+
+    Returns:
+        (best x (D,), best score).
+    """
+    x = np.asarray(x0, np.float64).copy()
+    best = objective(x)
+    scale, evals = 1.0, 1
+    while scale >= min_scale and evals < max_evals:
+        improved = False
+        for k in range(len(x)):
+            for sign in (1.0, -1.0):
+                trial = x.copy()
+                trial[k] += sign * scale * steps[k]
+                score = objective(trial)
+                evals += 1
+                if score > best:
+                    x, best, improved = trial, score, True
+                    break
+        if not improved:
+            scale *= shrink
+    return x, best
+
+
+def ray_plane_depths(rays: np.ndarray, origin: np.ndarray, point: np.ndarray, normal: np.ndarray,
+                     *, min_cos: float = 0.15) -> np.ndarray:
+    """(N,) distances along unit rays (N, 3) from ``origin`` to the plane through ``point`` with ``normal``.
+
+    Rays nearly parallel to the plane (|cos| < ``min_cos``) are clamped to that angle, so the depth stays
+    finite.
+    """
+    cos = rays @ normal
+    cos = np.where(np.abs(cos) < min_cos, np.copysign(min_cos, cos + 1e-12), cos)
+    return float((point - origin) @ normal) / cos
+
+
+def tilted_normal(view_dir: np.ndarray, tilt: np.ndarray, cam_rot: np.ndarray) -> np.ndarray:
+    """(3,) unit plane normal: the direction ``-view_dir`` (facing the camera) turned by tilt (2,) [rad]
+    about the camera's x then y axes (``cam_rot``: camera-to-world rotation (3, 3))."""
+    rx = rotvec_to_matrix(cam_rot[:, 0] * tilt[0])
+    ry = rotvec_to_matrix(cam_rot[:, 1] * tilt[1])
+    n = ry @ rx @ (-view_dir)
+    return n / np.linalg.norm(n)
+
+
+def boundary_pivot(label_img: np.ndarray, child: int, parent: int, *, radius: int = 2) -> np.ndarray | None:
+    """(2,) mean pixel (u, v) of ``child``'s pixels within ``radius`` px of ``parent``'s, or None.
+
+    Args:
+        label_img: (H, W) int part image, -1 = background.
+    """
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    near_parent = cv2.dilate((label_img == parent).astype(np.uint8), kernel) > 0
+    vv, uu = np.nonzero(near_parent & (label_img == child))
+    if len(uu) == 0:
+        return None
+    return np.array([uu.mean(), vv.mean()]) + 0.5
+
+
+def kinematic_tree(label_img: np.ndarray, n_parts: int, root: int, *, radius: int = 2) -> np.ndarray:
+    """(n_parts,) parent of each part (-1 for the root): a maximum spanning tree of the parts' shared
+    image boundary lengths (parts that touch over a long boundary are joined); parts touching nothing
+    hang from the root."""
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    grown = [cv2.dilate((label_img == b).astype(np.uint8), kernel) > 0 for b in range(n_parts)]
+    contact = np.zeros((n_parts, n_parts))
+    for a in range(n_parts):
+        for b in range(n_parts):
+            if a != b:
+                contact[a, b] = np.count_nonzero(grown[a] & (label_img == b))
+    contact = contact + contact.T
+    parent = np.full(n_parts, -1)
+    in_tree = {root}
+    while len(in_tree) < n_parts:  # Prim's algorithm on -contact
+        best, pair = -1.0, None
+        for a in in_tree:
+            for b in range(n_parts):
+                if b not in in_tree and contact[a, b] > best:
+                    best, pair = contact[a, b], (a, b)
+        assert pair is not None
+        parent[pair[1]] = pair[0]
+        in_tree.add(pair[1])
+    return parent
+
+
+# --------------------------------------------------------------------------------------------------
+# The tracker
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SilhouetteScene:
+    """Inputs of the silhouette tracker (world units [m], pixels [px]).
+
+    Attributes:
+        uv0: (M, 2) first-frame foreground pixels (u, v) [px] (the dense cloud's pixels).
+        rays: (M, 3) unit viewing rays of ``uv0`` (world).
+        cam_center: (3,) camera centre (world).
+        cam_rot: (3, 3) camera-to-world rotation.
+        K: (3, 3) intrinsics.
+        world_to_cam: (4, 4).
+        masks: (T, h, w) bool masks at ``stride``.
+        stride: raster stride [px].
+        image_shape: (H, W) full-resolution size.
+        base_depth: (M,) depth along the rays of the root's (fronto-parallel) initial surface [m].
+        width: object size [m] (translation steps).
+    """
+
+    uv0: np.ndarray
+    rays: np.ndarray
+    cam_center: np.ndarray
+    cam_rot: np.ndarray
+    K: np.ndarray
+    world_to_cam: np.ndarray
+    masks: np.ndarray
+    stride: int
+    image_shape: tuple[int, int]
+    base_depth: np.ndarray
+    width: float
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels of world points (N, 3)."""
+        pc = points @ self.world_to_cam[:3, :3].T + self.world_to_cam[:3, 3]
+        z = np.maximum(pc[:, 2], 1e-6)
+        return np.stack([self.K[0, 0] * pc[:, 0] / z + self.K[0, 2], self.K[1, 1] * pc[:, 1] / z + self.K[1, 2]], 1)
+
+    def render(self, points: np.ndarray) -> np.ndarray:
+        """(h, w) bool silhouette of world points at the scene's stride."""
+        return raster_points(self.project(points), self.image_shape, self.stride)
+
+
+@dataclass
+class Articulation:
+    """Parts, joints and shape of the tracker's point cloud.
+
+    Attributes:
+        labels: (M,) part of each point.
+        parent: (B,) kinematic parent (-1 = root).
+        pivots: (B, 3) canonical joint position of each non-root part (root: its centroid) [m].
+        tilts: (B, 2) plane tilt of each non-root part [rad].
+        axes: (B, 3) hinge axis (world, unit) of a 1-DoF joint, or NaN for a ball joint (3 DoF).
+    """
+
+    labels: np.ndarray
+    parent: np.ndarray
+    pivots: np.ndarray
+    tilts: np.ndarray
+    axes: np.ndarray | None = None
+    free: bool = False  # every non-root part moves freely (6 DoF) relative to its parent: joint estimation
+
+    def __post_init__(self) -> None:
+        if self.axes is None:
+            self.axes = np.full((len(self.parent), 3), np.nan)
+
+    def is_hinge(self, b: int) -> bool:
+        assert self.axes is not None
+        return bool(np.isfinite(self.axes[b]).all())
+
+    @property
+    def n_parts(self) -> int:
+        return len(self.parent)
+
+    def order(self) -> list[int]:
+        """Parts ordered root first, each after its parent."""
+        out = [int(np.flatnonzero(self.parent < 0)[0])]
+        while len(out) < self.n_parts:
+            out += [b for b in range(self.n_parts) if b not in out and self.parent[b] in out]
+        return out
+
+
+def canonical_points(scene: SilhouetteScene, art: Articulation) -> np.ndarray:
+    """(M, 3) canonical points: the root's on its initial surface, every other part's on its tilted plane."""
+    depth = scene.base_depth.copy()
+    for b in range(art.n_parts):
+        if art.parent[b] < 0:
+            continue
+        sel = art.labels == b
+        view = art.pivots[b] - scene.cam_center
+        normal = tilted_normal(view / np.linalg.norm(view), art.tilts[b], scene.cam_rot)
+        d = ray_plane_depths(scene.rays[sel], scene.cam_center, art.pivots[b], normal)
+        pivot_depth = np.linalg.norm(view)
+        depth[sel] = np.clip(d, 0.5 * pivot_depth, 2.0 * pivot_depth)
+    return scene.cam_center + depth[:, None] * scene.rays
+
+
+def pose_transforms(params: np.ndarray, art: Articulation, width: float) -> np.ndarray:
+    """(B, 4, 4) bone transforms from parameters: root (6,) = rotation vector [rad] about its pivot and
+    translation [object widths]; a ball-jointed part (3,) = rotation vector about its joint, which its
+    parent carries; a hinged part (1,) = angle [rad] about its axis (canonical frame) through its joint."""
+    out = np.tile(np.eye(4), (art.n_parts, 1, 1))
+    offsets = param_offsets(art)
+    assert art.axes is not None
+    for b in art.order():
+        p = params[offsets[b]: offsets[b + 1]]
+        if art.parent[b] < 0 or art.free:
+            out[b] = about_pivot(rotvec_to_matrix(p[:3]), art.pivots[b])
+            out[b, :3, 3] += p[3:6] * width
+            if art.parent[b] >= 0:
+                out[b] = out[art.parent[b]] @ out[b]
+        else:
+            rv = art.axes[b] * p[0] if art.is_hinge(b) else p[:3]
+            out[b] = out[art.parent[b]] @ about_pivot(rotvec_to_matrix(rv), art.pivots[b])
+    return out
+
+
+def param_offsets(art: Articulation) -> np.ndarray:
+    """(B + 1,) start of each part's parameters in the flat pose vector (root 6, ball 3, hinge 1)."""
+    sizes = [6 if art.parent[b] < 0 or art.free else (1 if art.is_hinge(b) else 3) for b in range(art.n_parts)]
+    return np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+
+
+def joint_from_motion(transforms: np.ndarray, prior: np.ndarray, *, prior_weight: float = 1e-3,
+                      axis: np.ndarray | None = None) -> np.ndarray:
+    """(3,) the point that moves least under relative rigid motions (T, 4, 4): the least-squares solution
+    of (R_t - I) p = -t_t for all t, plus ``prior_weight`` |p - prior|^2 (regularises the directions the
+    motion leaves free). With a hinge ``axis`` (3,), p moves from ``prior`` only perpendicular to it: along a
+    hinge every point of the axis fits, and the prior (the part boundary) is the better guess."""
+    a = transforms[:, :3, :3] - np.eye(3)
+    lhs = np.einsum("tji,tjk->ik", a, a) + prior_weight * np.eye(3)
+    rhs = -np.einsum("tji,tj->i", a, transforms[:, :3, 3]) + prior_weight * prior
+    p = np.linalg.solve(lhs, rhs)
+    if axis is not None:
+        delta = p - prior
+        p = prior + delta - (delta @ axis) * axis
+    return p
+
+
+def hinge_axis(rotvecs: np.ndarray, *, min_ratio: float = 0.9) -> np.ndarray | None:
+    """(3,) unit axis when the rotation vectors (T, 3) [rad] of a joint are nearly collinear, else None.
+
+    A joint whose rotations all share one axis is a hinge: the axis is the principal direction of the
+    rotation vectors, accepted when it carries at least ``min_ratio`` of their energy (sum of squares).
+    Its sign makes the largest rotation positive.
+    """
+    if len(rotvecs) < 2 or not np.any(rotvecs):
+        return None
+    _, sv, vt = np.linalg.svd(rotvecs, full_matrices=False)
+    if sv[0] ** 2 < min_ratio * (sv**2).sum():
+        return None
+    axis = vt[0]
+    big = rotvecs[np.argmax(np.linalg.norm(rotvecs, axis=1))]
+    return axis if big @ axis >= 0 else -axis
+
+
+def posed_points(points: np.ndarray, labels: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """(M, 3) points moved rigidly by their part's transform (B, 4, 4)."""
+    t = transforms[labels]
+    return np.einsum("nij,nj->ni", t[:, :3, :3], points) + t[:, :3, 3]
+
+
+def fit_frame(scene: SilhouetteScene, art: Articulation, points: np.ndarray, t: int, x0: np.ndarray,
+              *, rot_step: float, trans_step: float, max_evals: int, root_motion: bool = True) -> tuple[np.ndarray, float]:
+    """Pose parameters of frame t maximising the silhouette IoU, by pattern search from ``x0``
+    (``root_motion`` False keeps the root's parameters at ``x0``'s)."""
+    offsets = param_offsets(art)
+    steps = np.full(offsets[-1], rot_step)
+    for b in range(art.n_parts):
+        if art.parent[b] < 0 or art.free:
+            steps[offsets[b] + 3: offsets[b] + 6] = trans_step
+        if art.parent[b] < 0 and not root_motion:
+            steps[offsets[b]: offsets[b] + 6] = 0.0
+
+    def score(x: np.ndarray) -> float:
+        return mask_iou(scene.render(posed_points(points, art.labels, pose_transforms(x, art, scene.width))),
+                        scene.masks[t])
+
+    return pattern_search(score, x0, steps, max_evals=max_evals)
+
+
+def track(scene: SilhouetteScene, art: Articulation, init: np.ndarray | None = None, *,
+          rot_step_deg: float = 8.0, trans_step: float = 0.02, max_evals: int = 300, root_motion: bool = True,
+          frames: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame pose parameters (T, D) and IoUs (T,), frame by frame from frame 0 (identity).
+
+    Each frame starts from a constant-velocity prediction (or from ``init`` when given, a previous
+    round's poses) and keeps whichever start scores better.
+    """
+    points = canonical_points(scene, art)
+    n_frames = scene.masks.shape[0] if frames is None else min(frames, scene.masks.shape[0])
+    dim = int(param_offsets(art)[-1])
+    params = np.zeros((n_frames, dim))
+    ious = np.zeros(n_frames)
+    ious[0] = mask_iou(scene.render(points), scene.masks[0])
+    for t in range(1, n_frames):
+        # constant velocity and constant position: the first fails at a turning point, the second in fast motion
+        starts = [params[t - 1] + (params[t - 1] - params[t - 2] if t >= 2 else 0.0)]
+        if t >= 2:
+            starts.append(params[t - 1].copy())
+        if init is not None:
+            starts.append(init[t])
+        best = None
+        for x0 in starts:
+            x, s = fit_frame(scene, art, points, t, x0, rot_step=math.radians(rot_step_deg), trans_step=trans_step,
+                             max_evals=max_evals, root_motion=root_motion)
+            if best is None or s > best[1]:
+                best = (x, s)
+        params[t], ious[t] = best
+    return params, ious
+
+
+def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, smooth_px: int = 7,
+            min_points: int = 20, margin: float = 0.5) -> np.ndarray:
+    """(M,) labels: each point goes to the bone whose motion keeps it inside the masks of all frames.
+
+    The cost of bone b for point i is the mean over frames of the distance [cells] from the mask of
+    J_{t,b} x_i's projection over the frames ``params`` covers (T' <= T); costs are box-filtered over ``smooth_px`` in the first frame (neighbouring
+    pixels belong to the same part unless the evidence says otherwise). A point changes part only when
+    its best cost beats its current part's by ``margin`` cells: bones that barely move relative to each
+    other explain a point equally well, and a tie is no evidence.
+    """
+    points = canonical_points(scene, art)
+    n_frames = len(params)
+    dist = [outside_distance(m) for m in scene.masks[:n_frames]]
+    h, w = scene.masks.shape[1:]
+    cost = np.zeros((len(points), art.n_parts))
+    for t in range(n_frames):
+        tf = pose_transforms(params[t], art, scene.width)
+        for b in range(art.n_parts):
+            uv = scene.project(points @ tf[b, :3, :3].T + tf[b, :3, 3]) / scene.stride
+            iu = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 1)
+            iv = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 1)
+            outside = (uv[:, 0] < 0) | (uv[:, 0] >= w) | (uv[:, 1] < 0) | (uv[:, 1] >= h)
+            cost[:, b] += np.where(outside, float(max(h, w)), dist[t][iv, iu])
+    cost /= n_frames
+    # smooth the costs over the first frame's image
+    H, W = scene.image_shape
+    iu0 = np.clip(scene.uv0[:, 0].astype(int), 0, W - 1)
+    iv0 = np.clip(scene.uv0[:, 1].astype(int), 0, H - 1)
+    sm = np.zeros_like(cost)
+    count = np.zeros((H, W), np.float32)
+    count[iv0, iu0] = 1.0
+    cnt = cv2.blur(count, (smooth_px, smooth_px))[iv0, iu0]
+    for b in range(art.n_parts):
+        img = np.zeros((H, W), np.float32)
+        img[iv0, iu0] = cost[:, b]
+        sm[:, b] = cv2.blur(img, (smooth_px, smooth_px))[iv0, iu0] / np.maximum(cnt, 1e-6)
+    labels = np.argmin(sm, 1)
+    current = sm[np.arange(len(sm)), art.labels]
+    labels = np.where(sm[np.arange(len(sm)), labels] < current - margin, labels, art.labels)
+    if any(np.count_nonzero(labels == b) < min_points for b in range(art.n_parts)):
+        return art.labels.copy()
+    return labels
+
+
+# --------------------------------------------------------------------------------------------------
+# Driver: from the first mask, initial labels and a camera to labels, shape and per-frame poses
+# --------------------------------------------------------------------------------------------------
+
+
+def pixel_rays(uv: np.ndarray, K: np.ndarray, cam_rot: np.ndarray) -> np.ndarray:
+    """(N, 3) unit world directions of the viewing rays through pixels (N, 2) [px]."""
+    dirs = np.concatenate([uv, np.ones((len(uv), 1))], 1) @ np.linalg.inv(K).T
+    world = dirs @ cam_rot.T
+    return world / np.linalg.norm(world, axis=1, keepdims=True)
+
+
+def make_articulation(scene: SilhouetteScene, labels: np.ndarray, n_parts: int, root: int,
+                      tilts: np.ndarray | None = None, axes: np.ndarray | None = None) -> Articulation:
+    """Kinematic tree, joints (boundary centres on the root's initial surface), tilts and hinge axes for
+    ``labels`` (M,) of the scene's points, after merging label islands."""
+    h, w = scene.masks.shape[1:]
+    label_img = np.full((h, w), -1)
+    iu = np.clip((scene.uv0[:, 0] // scene.stride).astype(int), 0, w - 1)
+    iv = np.clip((scene.uv0[:, 1] // scene.stride).astype(int), 0, h - 1)
+    label_img[iv, iu] = labels
+    label_img = merge_label_islands(label_img, n_parts)
+    labels = label_img[iv, iu]
+    parent = kinematic_tree(label_img, n_parts, root)
+    base = scene.cam_center + scene.base_depth[:, None] * scene.rays
+    pivots = np.zeros((n_parts, 3))
+    forward = scene.cam_rot[:, 2]
+    # joints lie on the initial (fronto-parallel) surface at the cloud's median depth
+    depth_fp = float(np.median(scene.base_depth * (scene.rays @ forward)))
+    for b in range(n_parts):
+        members = labels == b
+        pivots[b] = base[members].mean(0) if members.any() else base.mean(0)
+        if parent[b] < 0:
+            continue
+        p = boundary_pivot(label_img, b, int(parent[b]), radius=1)
+        if p is None:  # parts that do not touch: the joint is the child's centroid
+            continue
+        ray = pixel_rays(p[None] * scene.stride, scene.K, scene.cam_rot)[0]
+        pivots[b] = scene.cam_center + ray * depth_fp / float(ray @ forward)
+    return Articulation(labels=labels.copy(), parent=parent, pivots=pivots,
+                        tilts=np.zeros((n_parts, 2)) if tilts is None else tilts.copy(),
+                        axes=None if axes is None else axes.copy())
+
+
+def search_tilts(scene: SilhouetteScene, art: Articulation, *, frames: int, grid_deg: tuple[float, ...],
+                 root_motion: bool, max_evals: int, refine_deg: float = 0.0) -> Articulation:
+    """Each non-root part's plane tilt, scored by the mean IoU of tracking the first ``frames`` frames:
+    the best of a grid (both angles in ``grid_deg``; empty = keep the current tilt), then a pattern
+    search with ``refine_deg`` initial steps (0 = none). Parts are searched root outwards."""
+
+    def score(b: int, tilt: np.ndarray) -> float:
+        art.tilts[b] = tilt
+        _, ious = track(scene, art, None, root_motion=root_motion, frames=frames, max_evals=max_evals)
+        return float(ious.mean())
+
+    for b in art.order():
+        if art.parent[b] < 0:
+            continue
+        best = (score(b, art.tilts[b].copy()), art.tilts[b].copy())
+        for ta in grid_deg:
+            for tb in grid_deg:
+                tilt = np.radians([ta, tb])
+                value = score(b, tilt)
+                if value > best[0]:
+                    best = (value, tilt)
+        if refine_deg > 0:
+            tilt, value = pattern_search(lambda x: score(b, x), best[1], np.radians([refine_deg] * 2),
+                                         min_scale=0.25, max_evals=20)
+            best = (value, tilt)
+        art.tilts[b] = best[1]
+    return art
+
+
+def search_joint_and_tilt(scene: SilhouetteScene, art: Articulation, *, root_motion: bool, max_evals: int,
+                          tilt_step_deg: float, pivot_step: float, search_evals: int = 40,
+                          search_axis: bool = False) -> tuple[Articulation, float]:
+    """Each non-root part's joint position (moved in the camera's image plane, steps ``pivot_step``
+    object widths), plane tilt and, for a hinge with ``search_axis``, axis direction (both in steps of
+    ``tilt_step_deg``) by a
+    pattern search on the mean IoU of tracking the whole sequence. A joint placed from a wrong part
+    boundary, or an axis estimated from the first frames only, makes the part swing about the wrong line;
+    the whole sequence's silhouettes tell. Returns the articulation and its mean IoU."""
+    assert art.axes is not None
+    best_score = -1.0
+    for b in art.order():
+        if art.parent[b] < 0:
+            continue
+        pivot0, tilt0, axis0 = art.pivots[b].copy(), art.tilts[b].copy(), art.axes[b].copy()
+        hinge = art.is_hinge(b) and search_axis
+        if hinge:  # two directions perpendicular to the axis: small rotations of it
+            perp = np.linalg.svd(axis0[None])[2][1:]
+
+        def score(x: np.ndarray) -> float:
+            art.pivots[b] = pivot0 + (scene.cam_rot[:, 0] * x[0] + scene.cam_rot[:, 1] * x[1]) * scene.width
+            art.tilts[b] = tilt0 + x[2:4]
+            if hinge:
+                axis = axis0 + perp[0] * x[4] + perp[1] * x[5]
+                art.axes[b] = axis / np.linalg.norm(axis)
+            _, ious = track(scene, art, None, root_motion=root_motion, max_evals=max_evals)
+            return float(ious.mean())
+
+        step = math.radians(tilt_step_deg)
+        steps = np.array([pivot_step, pivot_step, step, step] + ([step, step] if hinge else []))
+        x, best_score = pattern_search(score, np.zeros(len(steps)), steps, min_scale=0.25, max_evals=search_evals)
+        score(x)  # leave the articulation at the best parameters
+    return art, best_score
+
+
+def hinge_params_to_ball(params: np.ndarray, art: Articulation) -> np.ndarray:
+    """(T, D') pose parameters of the same poses with every hinge (angle) turned into a ball joint
+    (rotation vector = axis x angle); (T, D) ``params`` of ``art``."""
+    ball = Articulation(labels=art.labels, parent=art.parent, pivots=art.pivots, tilts=art.tilts)
+    src, dst = param_offsets(art), param_offsets(ball)
+    out = np.zeros((len(params), int(dst[-1])))
+    for b in range(art.n_parts):
+        p = params[:, src[b]: src[b + 1]]
+        out[:, dst[b]: dst[b + 1]] = p * art.axes[b] if art.is_hinge(b) else p
+    return out
+
+
+def nearest_index(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """(Q,) index of the nearest of ``points`` (N, D) to each of ``queries`` (Q, D)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points).query(queries)[1]
+
+
+def part_motion_px(tracks: np.ndarray, ok: np.ndarray, labels: np.ndarray, n_parts: int) -> np.ndarray:
+    """(n_parts,) median image displacement [px] from the first frame of each part's trusted track
+    samples (NaN for a part without any)."""
+    disp = np.linalg.norm(tracks - tracks[:1], axis=-1)  # (T, N)
+    out = np.full(n_parts, np.nan)
+    for b in range(n_parts):
+        sel = ok[1:] & (labels == b)[None]
+        if sel.any():
+            out[b] = float(np.median(disp[1:][sel]))
+    return out
+
+
+def merge_label_islands(label_img: np.ndarray, n_parts: int) -> np.ndarray:
+    """(H, W) part image where every part keeps only its largest 4-connected region; the other regions
+    (islands, e.g. a thin rim mislabelled where flow tracks break at an occluding edge) join the part
+    that most of their one-pixel border belongs to. Rigid parts are connected in the first view.
+
+    Args:
+        label_img: (H, W) int, -1 = background, parts in [0, n_parts).
+    """
+    out = label_img.copy()
+    kernel = np.ones((3, 3), np.uint8)
+    for _ in range(3):  # a merged island can make another part's island; a few passes settle it
+        changed = False
+        for b in range(n_parts):
+            count, comp = cv2.connectedComponents((out == b).astype(np.uint8), connectivity=4)
+            if count <= 2:
+                continue
+            sizes = np.bincount(comp.ravel(), minlength=count)
+            sizes[0] = 0
+            keep = int(np.argmax(sizes))
+            for c in range(1, count):
+                if c == keep:
+                    continue
+                island = comp == c
+                ring = (cv2.dilate(island.astype(np.uint8), kernel) > 0) & ~island & (out >= 0) & (out != b)
+                if ring.any():
+                    out[island] = np.bincount(out[ring], minlength=n_parts).argmax()
+                    changed = True
+        if not changed:
+            break
+    return out
