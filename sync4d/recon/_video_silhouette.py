@@ -514,11 +514,13 @@ def search_tilts(scene: SilhouetteScene, art: Articulation, *, frames: int, grid
 
 def search_joint_and_tilt(scene: SilhouetteScene, art: Articulation, *, root_motion: bool, max_evals: int,
                           tilt_step_deg: float, pivot_step: float, search_evals: int = 40,
-                          search_axis: bool = False) -> tuple[Articulation, float]:
+                          search_axis: bool = False, search_depth: bool = False) -> tuple[Articulation, float]:
     """Each non-root part's joint position (moved in the camera's image plane, steps ``pivot_step``
     object widths), plane tilt and, for a hinge with ``search_axis``, axis direction (both in steps of
     ``tilt_step_deg``) by a
-    pattern search on the mean IoU of tracking the whole sequence. A joint placed from a wrong part
+    pattern search on the mean IoU of tracking the whole sequence. With ``search_depth`` the joint also
+    moves along its viewing ray (same step): the first view fixes only the joint's pixel, and a hinge at
+    the wrong depth swings its part along the wrong arc. A joint placed from a wrong part
     boundary, or an axis estimated from the first frames only, makes the part swing about the wrong line;
     the whole sequence's silhouettes tell. Returns the articulation and its mean IoU."""
     assert art.axes is not None
@@ -531,17 +533,22 @@ def search_joint_and_tilt(scene: SilhouetteScene, art: Articulation, *, root_mot
         if hinge:  # two directions perpendicular to the axis: small rotations of it
             perp = np.linalg.svd(axis0[None])[2][1:]
 
+        ray = (pivot0 - scene.cam_center) / np.linalg.norm(pivot0 - scene.cam_center)
+
         def score(x: np.ndarray) -> float:
             art.pivots[b] = pivot0 + (scene.cam_rot[:, 0] * x[0] + scene.cam_rot[:, 1] * x[1]) * scene.width
             art.tilts[b] = tilt0 + x[2:4]
             if hinge:
                 axis = axis0 + perp[0] * x[4] + perp[1] * x[5]
                 art.axes[b] = axis / np.linalg.norm(axis)
+            if search_depth:  # the last parameter: along the joint's viewing ray
+                art.pivots[b] = art.pivots[b] + ray * x[-1] * scene.width
             _, ious = track(scene, art, None, root_motion=root_motion, max_evals=max_evals)
             return float(ious.mean())
 
         step = math.radians(tilt_step_deg)
-        steps = np.array([pivot_step, pivot_step, step, step] + ([step, step] if hinge else []))
+        steps = np.array([pivot_step, pivot_step, step, step] + ([step, step] if hinge else [])
+                         + ([pivot_step] if search_depth else []))
         x, best_score = pattern_search(score, np.zeros(len(steps)), steps, min_scale=0.25, max_evals=search_evals)
         score(x)  # leave the articulation at the best parameters
     return art, best_score
