@@ -276,3 +276,45 @@ def test_contact_root_plane_lies_behind_a_folding_part() -> None:
     z_root = depths[labels == 0] * rays[labels == 0, 2]
     # the folded child is in front of the stand-in; the contact plane comes forward to meet it (from the joint)
     assert z_root.mean() < 2.0 - 0.05 and np.allclose(depths[labels == 1], scene.base_depth[labels == 1])
+
+
+def test_composite_weights_hide_a_dense_surface_behind_an_opaque_one() -> None:
+    """One opaque Gaussian in front of ten translucent ones: compositing gives the front one nearly all
+    the weight (T alpha, as a rasteriser blends); the soft z-buffer vote lets the ten behind outvote it."""
+    import torch
+
+    from sync4d.recon._softsplat import composite_weights, front_weights
+
+    alpha = torch.tensor([[[0.99]] + [[0.6]] * 10], dtype=torch.float64)  # (F=1, N=11, P=1)
+    z = torch.tensor([[1.0] + [1.01 + 0.001 * i for i in range(10)]], dtype=torch.float64)
+    w = composite_weights(alpha, z)[0, :, 0]
+    assert w[0].item() == pytest.approx(0.99)
+    assert w[1].item() == pytest.approx(0.01 * 0.6)  # light through the front one, then the first behind
+    assert w[1:].sum().item() == pytest.approx(0.01 * (1 - 0.4**10))
+    # the Gaussians' input order does not matter, only their depths
+    perm = torch.tensor([3, 0, 5, 1, 2, 4, 6, 7, 8, 9, 10])
+    w_perm = composite_weights(alpha[:, perm], z[:, perm])[0, :, 0]
+    assert torch.allclose(w_perm, w[perm])
+    soft = front_weights(alpha, z, tau=0.05)[0, :, 0]
+    assert soft[1:].sum() > soft[0]
+
+
+def test_relabel_ties_go_to_the_root() -> None:
+    """Points that either part's motion explains equally (the child never moves) keep their label under
+    ``tie_part=None`` and go to the root with ``tie_part``; a point only the child explains stays child."""
+    h, w = 20, 20
+    masks = np.zeros((3, h, w), bool)
+    masks[:, 5:15, 5:15] = True
+    uv0 = (np.stack(np.meshgrid(np.arange(5, 15), np.arange(5, 15)), -1).reshape(-1, 2) + 0.5).astype(float)
+    rays = vsil.pixel_rays(uv0, K_small := np.array([[20.0, 0, 10], [0, 20.0, 10], [0, 0, 1]]), np.eye(3))
+    scene = vsil.SilhouetteScene(uv0=uv0, rays=rays, cam_center=np.zeros(3), cam_rot=np.eye(3), K=K_small,
+                                 world_to_cam=np.eye(4), masks=masks, stride=1, image_shape=(h, w),
+                                 base_depth=np.ones(len(uv0)) / rays[:, 2], width=0.5)
+    labels = (uv0[:, 0] > 10).astype(int)  # right half starts as the child
+    art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]), pivots=np.zeros((2, 3)),
+                            tilts=np.zeros((2, 2)))
+    params = np.zeros((3, int(vsil.param_offsets(art)[-1])))  # nothing moves: every point is a tie
+    kept = vsil.relabel(scene, art, params, margin=0.05)
+    assert np.array_equal(kept, labels)
+    to_root = vsil.relabel(scene, art, params, margin=0.05, tie_part=0, min_points=0)
+    assert np.all(to_root == 0)

@@ -8,8 +8,9 @@ Prints one JSON object on the last line:
       recovered angle is the rotation angle of the lid bone relative to the base bone (rest = frame 0)
       and the gt angle is |hinge_angle_rad[t] - hinge_angle_rad[0]|;
     * ``part_label_agreement``: fraction of the gt foreground pixels (all frames) whose rendered part
-      (soft front-most Gaussians posed at frame t, each labelled by its argmax bone, bones mapped to
-      base/lid by majority vote) equals ``part_labels``;
+      (Gaussians posed at frame t, each labelled by its argmax bone, alpha-composited front to back as
+      the renderer blends them, bones mapped to base/lid by majority vote) equals ``part_labels``
+      (``--blend soft_z``: the fit's soft z-buffer vote instead, as reported before 2026-11-24);
     * ``seconds``, ``bones`` and per-frame angles.
 
 With B > 2 bones, each bone is assigned to base or lid by majority over the pixels it renders, and the
@@ -29,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sync4d.recon._softsplat import front_weights, project_points, splat_alpha
+from sync4d.recon._softsplat import composite_weights, front_weights, project_points, splat_alpha
 from sync4d.recon.sources import VideoSource, resolve_path
 from sync4d.recon.video import VideoReconstructor, rotation_angle_deg
 from sync4d.types import Reference
@@ -37,9 +38,12 @@ from sync4d.types import Reference
 
 def render_bone_labels(
     ref: Reference, means: np.ndarray, sigma: np.ndarray, opacity: np.ndarray, camera: Any, t: int,
-    pixels: np.ndarray, *, tau: float, chunk: int = 4000,
+    pixels: np.ndarray, *, tau: float, chunk: int = 2000, blend: str = "composite",
 ) -> np.ndarray:
-    """(P,) bone index rendered at pixels (P, 2) (u, v) of frame t (soft front-most Gaussian vote)."""
+    """(P,) bone index rendered at pixels (P, 2) (u, v) of frame t: the bone with the largest blending
+    weight, ``composite`` (front-to-back alpha compositing, as the renderer and 3DGS blend) or ``soft_z``
+    (the fit's soft z-buffer with depth softness ``tau`` [m], which lets a dense surface just behind a
+    sparse one outvote it)."""
     posed = ref.posed_vertices(t, apply_global=True)
     labels = ref.part_labels()
     K = torch.as_tensor(camera.K)
@@ -52,12 +56,13 @@ def render_bone_labels(
         for s in range(0, len(pixels), chunk):
             pix = torch.as_tensor(pixels[s : s + chunk] + 0.5)[None]
             a = splat_alpha(uv, sig, torch.as_tensor(opacity), pix)
-            w = front_weights(a, z, tau)[0]  # (N, P)
+            w = (composite_weights(a, z) if blend == "composite" else front_weights(a, z, tau))[0]  # (N, P)
             out.append(torch.argmax(w.T @ onehot, dim=1).numpy())
     return np.concatenate(out)
 
 
-def evaluate(recon: VideoReconstructor, ref: Reference, gt: dict[str, np.ndarray]) -> dict[str, Any]:
+def evaluate(recon: VideoReconstructor, ref: Reference, gt: dict[str, np.ndarray], *,
+             blend: str = "composite") -> dict[str, Any]:
     """Hinge-angle error and part-label agreement of a fitted reference against ``gt.npz``."""
     state = recon.last_state
     camera = state["camera"]
@@ -68,7 +73,8 @@ def evaluate(recon: VideoReconstructor, ref: Reference, gt: dict[str, np.ndarray
     tau = 0.02 * recon.last_fit_report["object_width_m"]
     for t in range(n_frames):
         pix = np.argwhere(labels_gt[t] > 0)[:, ::-1].astype(np.float64)  # (u, v)
-        lab = render_bone_labels(ref, state["means"], state["sigma"], state["opacity"], camera, t, pix, tau=tau)
+        lab = render_bone_labels(ref, state["means"], state["sigma"], state["opacity"], camera, t, pix, tau=tau,
+                                 blend=blend)
         rendered.append(lab)
         g = labels_gt[t][labels_gt[t] > 0]
         np.add.at(votes, (lab, g), 1)
@@ -109,6 +115,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                              "renderer (24 frames, 160x120, lid 110 -> 40 deg), scored the same way")
     parser.add_argument("--bones", type=int, default=2)
     parser.add_argument("--max-frames", type=int, default=0)
+    parser.add_argument("--blend", default="composite", choices=("composite", "soft_z"),
+                        help="how rendered part labels blend: front-to-back alpha compositing (as the renderer) "
+                             "or the fit's soft z-buffer vote (earlier sessions' figures)")
     parser.add_argument("--set", nargs="*", default=[], help="recon=video overrides key=value (YAML values)")
     args = parser.parse_args(argv)
 
@@ -134,7 +143,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     _, cfg = make_config("recon", conf)
     recon = VideoReconstructor(cfg)
     ref = recon.reconstruct(source)
-    result = evaluate(recon, ref, gt)
+    result = evaluate(recon, ref, gt, blend=args.blend)
     out = {
         "hinge_angle_error_deg": round(result["hinge_angle_error_deg"], 3),
         "part_label_agreement": round(result["part_label_agreement"], 4),

@@ -69,3 +69,22 @@ def front_weights(alpha: torch.Tensor, z: torch.Tensor, tau: float) -> torch.Ten
     """
     logit = torch.log(alpha + 1e-12) - (z - z.min(dim=1, keepdim=True).values)[..., None] / tau
     return torch.softmax(logit, dim=1)
+
+
+def composite_weights(alpha: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """(F, N, P) front-to-back alpha-compositing weights T_i alpha_i, as a 3DGS rasteriser blends.
+
+    T_i = prod over the Gaussians j nearer than i of (1 - alpha_j). Unlike :func:`front_weights`, a
+    surface hidden behind an opaque one gets (almost) no weight however many Gaussians it has; the
+    order is each frame's global depth order of the Gaussian centres, as in 3DGS.
+
+    Args:
+        alpha: (F, N, P) in [0, 0.99].
+        z: (F, N) depths [m].
+    """
+    order = torch.argsort(z, dim=1)
+    a = torch.take_along_dim(alpha, order[..., None], dim=1)
+    log_t = torch.cumsum(torch.log1p(-a), dim=1)
+    log_t = torch.cat([torch.zeros_like(log_t[:, :1]), log_t[:, :-1]], dim=1)  # exclusive: light reaching i
+    w_sorted = torch.exp(log_t) * a
+    return torch.zeros_like(alpha).scatter_(1, order[..., None].expand_as(alpha), w_sorted)

@@ -396,7 +396,7 @@ def track(scene: SilhouetteScene, art: Articulation, init: np.ndarray | None = N
 
 
 def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, smooth_px: int = 7,
-            min_points: int = 20, margin: float = 0.5) -> np.ndarray:
+            min_points: int = 20, margin: float = 0.5, tie_part: int | None = None) -> np.ndarray:
     """(M,) labels: each point goes to the bone whose motion keeps it inside the masks of all frames.
 
     The cost of bone b for point i is the mean over frames of the distance [cells] from the mask of
@@ -404,6 +404,11 @@ def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, sm
     pixels belong to the same part unless the evidence says otherwise). A point changes part only when
     its best cost beats its current part's by ``margin`` cells: bones that barely move relative to each
     other explain a point equally well, and a tie is no evidence.
+
+    With ``tie_part`` (the root), a point whose cost under that part is within ``margin`` of its best goes
+    to it instead: near a joint a child's motion is small, so the silhouettes cannot tell the parts apart,
+    and a label there left from the flow clustering is as likely wrong as right; the part that needs no
+    extra motion to explain the point is the simpler explanation.
     """
     points = canonical_points(scene, art)
     n_frames = len(params)
@@ -433,7 +438,10 @@ def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, sm
         sm[:, b] = cv2.blur(img, (smooth_px, smooth_px))[iv0, iu0] / np.maximum(cnt, 1e-6)
     labels = np.argmin(sm, 1)
     current = sm[np.arange(len(sm)), art.labels]
-    labels = np.where(sm[np.arange(len(sm)), labels] < current - margin, labels, art.labels)
+    if tie_part is None:
+        labels = np.where(sm[np.arange(len(sm)), labels] < current - margin, labels, art.labels)
+    else:
+        labels = np.where(sm[:, tie_part] <= sm[np.arange(len(sm)), labels] + margin, tie_part, labels)
     if any(np.count_nonzero(labels == b) < min_points for b in range(art.n_parts)):
         return art.labels.copy()
     return labels
