@@ -318,3 +318,36 @@ def test_relabel_ties_go_to_the_root() -> None:
     assert np.array_equal(kept, labels)
     to_root = vsil.relabel(scene, art, params, margin=0.05, tie_part=0, min_points=0)
     assert np.all(to_root == 0)
+
+
+def test_relabel_flow_term_keeps_a_part_turning_in_the_image_plane() -> None:
+    """The child (right half of a square) turns 20 deg about the viewing axis at the square's centre while
+    the silhouette stays the same square. Silhouettes alone explain most child points by the static root
+    (they stay inside the mask), so root ties take them; their flow tracks follow the turn, so with the
+    flow term the child keeps the points that move more than a few pixels."""
+    h, w = 40, 40
+    masks = np.zeros((3, h, w), bool)
+    masks[:, 8:32, 8:32] = True
+    K_small = np.array([[40.0, 0, 20], [0, 40.0, 20], [0, 0, 1]])
+    uv0 = (np.stack(np.meshgrid(np.arange(8, 32), np.arange(8, 32)), -1).reshape(-1, 2) + 0.5).astype(float)
+    rays = vsil.pixel_rays(uv0, K_small, np.eye(3))
+    scene = vsil.SilhouetteScene(uv0=uv0, rays=rays, cam_center=np.zeros(3), cam_rot=np.eye(3), K=K_small,
+                                 world_to_cam=np.eye(4), masks=masks, stride=1, image_shape=(h, w),
+                                 base_depth=np.ones(len(uv0)) / rays[:, 2], width=0.5)
+    child = uv0[:, 0] > 20
+    labels = child.astype(int)
+    art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]), pivots=np.array([[0, 0, 1.0], [0, 0, 1.0]]),
+                            tilts=np.zeros((2, 2)))
+    angles = np.radians([0.0, 10.0, 20.0])
+    params = np.zeros((3, int(vsil.param_offsets(art)[-1])))
+    params[:, 6:9] = np.outer(angles, [0.0, 0.0, 1.0])  # the child's ball joint: about the optical axis
+    points = vsil.canonical_points(scene, art)
+    tracks = np.stack([scene.project(vsil.posed_points(points, labels, vsil.pose_transforms(p, art, scene.width)))
+                       for p in params])
+    ok = np.ones((3, len(uv0)), bool)
+    silhouettes_only = vsil.relabel(scene, art, params, margin=0.05, tie_part=0, min_points=0)
+    with_flow = vsil.relabel(scene, art, params, margin=0.05, tie_part=0, min_points=0, tracks=tracks, track_ok=ok)
+    far = child & (np.linalg.norm(uv0 - 20.0, axis=1) > 8.0)  # moves > 2.7 px by the last frame
+    assert silhouettes_only[far].mean() < 0.5  # most go to the root: the mask never changes
+    assert with_flow[far].mean() > 0.95
+    assert np.all(with_flow[~child] == 0)  # the static half stays root

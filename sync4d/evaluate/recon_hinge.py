@@ -52,12 +52,22 @@ def render_bone_labels(
     sig = (K[0, 0] * torch.as_tensor(sigma)[None] / z).clamp_min(0.5)
     onehot = torch.nn.functional.one_hot(torch.as_tensor(labels), ref.num_bones).double()
     out = []
+    opacity_t = torch.as_tensor(opacity)
     with torch.no_grad():
         for s in range(0, len(pixels), chunk):
             pix = torch.as_tensor(pixels[s : s + chunk] + 0.5)[None]
-            a = splat_alpha(uv, sig, torch.as_tensor(opacity), pix)
-            w = (composite_weights(a, z) if blend == "composite" else front_weights(a, z, tau))[0]  # (N, P)
-            out.append(torch.argmax(w.T @ onehot, dim=1).numpy())
+            # only Gaussians within 5 projected std-devs of the chunk's box (alpha < 4e-6 beyond) take part
+            lo, hi = pix[0].min(0).values, pix[0].max(0).values
+            reach = 5.0 * sig[0]
+            near = ((uv[0] >= lo - reach[:, None]) & (uv[0] <= hi + reach[:, None])).all(1)
+            idx = torch.nonzero(near)[:, 0]
+            if len(idx) == 0:
+                out.append(np.zeros(pix.shape[1], dtype=np.int64))
+                continue
+            a = splat_alpha(uv[:, idx], sig[:, idx], opacity_t[idx], pix)
+            zi = z[:, idx]
+            w = (composite_weights(a, zi) if blend == "composite" else front_weights(a, zi, tau))[0]  # (n, P)
+            out.append(torch.argmax(w.T @ onehot[idx], dim=1).numpy())
     return np.concatenate(out)
 
 

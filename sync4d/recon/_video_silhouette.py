@@ -396,7 +396,9 @@ def track(scene: SilhouetteScene, art: Articulation, init: np.ndarray | None = N
 
 
 def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, smooth_px: int = 7,
-            min_points: int = 20, margin: float = 0.5, tie_part: int | None = None) -> np.ndarray:
+            min_points: int = 20, margin: float = 0.5, tie_part: int | None = None,
+            tracks: np.ndarray | None = None, track_ok: np.ndarray | None = None, flow_weight: float = 1.0,
+            flow_cap: float = 2.0) -> np.ndarray:
     """(M,) labels: each point goes to the bone whose motion keeps it inside the masks of all frames.
 
     The cost of bone b for point i is the mean over frames of the distance [cells] from the mask of
@@ -409,6 +411,11 @@ def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, sm
     to it instead: near a joint a child's motion is small, so the silhouettes cannot tell the parts apart,
     and a label there left from the flow clustering is as likely wrong as right; the part that needs no
     extra motion to explain the point is the simpler explanation.
+
+    With flow ``tracks`` (T, M, 2) [px] and ``track_ok`` (T, M) (trusted frames), each cost also gets
+    ``flow_weight`` x the mean over frames of the distance [cells, capped at ``flow_cap``] between a
+    point's track and its projection under the bone (untrusted frames add nothing): a part turning in
+    the image plane hardly changes the silhouette near its joint, but its texture moves.
     """
     points = canonical_points(scene, art)
     n_frames = len(params)
@@ -423,6 +430,9 @@ def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, sm
             iv = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 1)
             outside = (uv[:, 0] < 0) | (uv[:, 0] >= w) | (uv[:, 1] < 0) | (uv[:, 1] >= h)
             cost[:, b] += np.where(outside, float(max(h, w)), dist[t][iv, iu])
+            if tracks is not None and track_ok is not None and flow_weight > 0 and t < len(tracks):
+                miss = np.linalg.norm(uv - tracks[t] / scene.stride, axis=1)
+                cost[:, b] += flow_weight * np.where(track_ok[t], np.minimum(miss, flow_cap), 0.0)
     cost /= n_frames
     # smooth the costs over the first frame's image
     H, W = scene.image_shape

@@ -120,6 +120,22 @@ def track_points(uv0: np.ndarray, fwd: np.ndarray) -> np.ndarray:
     return np.stack(tracks)
 
 
+def trusted_tracks(uv0: np.ndarray, fwd: np.ndarray, valid_flow: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel tracks (T, N, 2) [px] from (N, 2) starts and a (T, N) bool of the frames each is trusted in.
+
+    A track stays trusted while its flow is forward-backward consistent (``valid_flow`` (T-1, H, W)) and
+    it stays inside the masks (T, H, W); once lost it is not trusted again.
+    """
+    tracks = track_points(uv0, fwd)
+    h, w = masks.shape[1:]
+    ok = np.ones((len(masks), len(uv0)), dtype=bool)
+    for t in range(len(fwd)):
+        ui = np.clip(np.round(tracks[t]).astype(int), 0, [w - 1, h - 1])
+        un = np.clip(np.round(tracks[t + 1]).astype(int), 0, [w - 1, h - 1])
+        ok[t + 1] = ok[t] & valid_flow[t][ui[:, 1], ui[:, 0]] & masks[t + 1][un[:, 1], un[:, 0]]
+    return tracks, ok
+
+
 def refine_motion_labels(
     uv0: np.ndarray, tracks: np.ndarray, ok: np.ndarray, labels: np.ndarray, *, iterations: int = 8,
     compactness: float = 0.1,
@@ -373,9 +389,13 @@ class VideoReconstructor:
         # its current part by ``silhouette_relabel_margin`` cells; ``root`` ties: a point the root explains
         # within that margin goes to the root (near a joint the child barely moves, and the flow clustering's
         # label there is a guess); ``keep``: ties keep the current label. Measured on the laptop-hinge
-        # renders: root 1.20 deg / 0.943 agreement, keep 5.13 deg / 0.895.
+        # renders (soft z-buffer agreement, as reported before): keep 5.13 deg / 0.895, root 2.04 / 0.946.
         silhouette_relabel_ties: str = "root"
         silhouette_relabel_margin: float = 0.05  # [raster cells], mean over frames
+        # weight of the flow-track term in relabelling (0 = silhouettes only): a point also pays the
+        # distance [cells, capped] between its trusted flow track and its projection under each bone, so a
+        # part that moves in the image plane (where the silhouette barely changes) keeps its points
+        silhouette_relabel_flow: float = 1.0
 
         def validate(self) -> None:
             if isinstance(self.bones, str) and self.bones.strip().isdigit():
@@ -399,6 +419,8 @@ class VideoReconstructor:
                                   "occlusion or contact")
             if self.silhouette_relabel_ties not in ("root", "keep"):
                 raise ConfigError(f"recon.silhouette_relabel_ties={self.silhouette_relabel_ties!r}: use root or keep")
+            if self.silhouette_relabel_flow < 0:
+                raise ConfigError(f"recon.silhouette_relabel_flow={self.silhouette_relabel_flow}: needs >= 0")
             if self.silhouette_relabel_margin < 0:
                 raise ConfigError(f"recon.silhouette_relabel_margin={self.silhouette_relabel_margin}: needs >= 0")
             if self.silhouette_root_motion not in ("auto", "on", "off"):
@@ -435,7 +457,10 @@ class VideoReconstructor:
     def reconstruct(self, source: ReferenceInput) -> Reference:
         """Fit the video of ``source`` (validated Reference; report in :attr:`last_fit_report`)."""
         if source.video is None:
-            raise InputError(f"recon=video needs a video, but reference '{source.name}' has none; use reference=video")
+            raise InputError(f"recon=video (the default reconstructor) needs a video, but reference '{source.name}' has "
+                             "none; use reference=video (or reference.video=true on the laptop), or pick the "
+                             "reconstructor for this input: recon=mocap, recon=lab4d, recon=skinning_fit or "
+                             "recon=ground_truth")
         clip = source.video.validate()
         if clip.num_frames < 2:
             raise InputError(f"recon=video: '{clip.source}' has {clip.num_frames} frame; need at least 2")
@@ -471,14 +496,7 @@ class VideoReconstructor:
         points = backproject(uv0, depths, camera)
         spacing_px = math.sqrt(masks[0].sum() / len(pick))
         sigma = spacing_px * depth / K[0, 0]
-        tracks = track_points(uv0, fwd)
-        # A track stays trusted while its flow is forward-backward consistent and it stays in the mask.
-        ok = np.ones((len(frames), len(pick)), dtype=bool)
-        for t in range(len(fwd)):
-            ui = np.clip(np.round(tracks[t]).astype(int), 0, [frames.shape[2] - 1, frames.shape[1] - 1])
-            ok[t + 1] = ok[t] & valid_flow[t][ui[:, 1], ui[:, 0]] & masks[t + 1][
-                np.clip(np.round(tracks[t + 1][:, 1]).astype(int), 0, frames.shape[1] - 1),
-                np.clip(np.round(tracks[t + 1][:, 0]).astype(int), 0, frames.shape[2] - 1)]
+        tracks, ok = trusted_tracks(uv0, fwd, valid_flow, masks)
         disp = (tracks - tracks[:1]) * (depth / K[0, 0]) / width_m  # in object widths
         disp = np.where(ok[..., None], disp, 0.0)
         pos_feat = (points - points.mean(0)) / width_m
@@ -500,7 +518,7 @@ class VideoReconstructor:
         if cfg.bones > 1 and cfg.affine_label_iterations > 0:
             labels = refine_motion_labels(uv0, tracks, ok, labels, iterations=cfg.affine_label_iterations)
         return {"uv0": uv0, "points": points, "sigma": sigma, "depth": depth, "width": width_m,
-                "tracks": tracks, "track_ok": ok, "labels": labels}
+                "tracks": tracks, "track_ok": ok, "labels": labels, "flow": fwd, "flow_valid": valid_flow}
 
     def _silhouette_stage(self, masks: np.ndarray, camera: Camera, init: dict[str, Any],
                           frames: np.ndarray | None = None) -> np.ndarray:
@@ -534,6 +552,8 @@ class VideoReconstructor:
         log.info("recon=video: silhouette stage: %d dense points, root bone %d (median track motion %.2f px; "
                  "root motion %s)", len(uv_dense), root, moves[root], root_motion)
         art = vsil.make_articulation(scene, labels, n_bones, root)
+        # every dense point's flow track: relabelling weighs which bone's motion its track follows
+        dense_tracks, dense_ok = trusted_tracks(uv_dense, init["flow"], init["flow_valid"], masks)
         # first round: each part's plane tilt from a coarse grid over the first frames (ball joints), then
         # hinge detection; every round: joint position and tilt by a local search over the whole sequence,
         # tracking, and relabelling by silhouette consistency
@@ -553,7 +573,9 @@ class VideoReconstructor:
                                                     search_depth=cfg.silhouette_search_depth)
             params, ious = vsil.track(scene, art, None, root_motion=root_motion, max_evals=cfg.silhouette_evals)
             new = vsil.relabel(scene, art, params, margin=cfg.silhouette_relabel_margin,
-                               tie_part=root if cfg.silhouette_relabel_ties == "root" else None)
+                               tie_part=root if cfg.silhouette_relabel_ties == "root" else None,
+                               tracks=dense_tracks if cfg.silhouette_relabel_flow > 0 else None,
+                               track_ok=dense_ok, flow_weight=cfg.silhouette_relabel_flow)
             log.info("recon=video: silhouette round %d: mean IoU %.4f, min %.4f, tilts %s deg, %d labels changed "
                      "(%.0f s)", rnd, ious.mean(), ious.min(), np.round(np.degrees(art.tilts), 1).tolist(),
                      int((new != art.labels).sum()), time.perf_counter() - start)
