@@ -542,6 +542,8 @@ class ReferenceInput:
         path: a file or folder the reconstructor reads itself (BVH, Lab4D export), if any.
         ground_truth: the exact articulated reference when the source is synthetic, else None.
         fps: frames per second [1/s].
+        world_up: (3,) unit up direction of the world frame of ``camera``, when the source knows it (a
+            scene it filmed itself), else None.
     """
 
     name: str
@@ -552,3 +554,4 @@ class ReferenceInput:
     faces: np.ndarray | None = None
     path: str | None = None
     ground_truth: Reference | None = None
+    world_up: np.ndarray | None = None

@@ -351,3 +351,39 @@ def test_relabel_flow_term_keeps_a_part_turning_in_the_image_plane() -> None:
     assert silhouettes_only[far].mean() < 0.5  # most go to the root: the mask never changes
     assert with_flow[far].mean() > 0.95
     assert np.all(with_flow[~child] == 0)  # the static half stays root
+
+
+def test_horizontal_root_depths_put_the_root_on_the_plane_through_its_joint() -> None:
+    """A camera 30 deg above a table looks at a static root (label 0) with a child (label 1) hinged at
+    y = 0: the root's points land on the plane y = 0 through the joint, in front of the camera."""
+    elevation = np.radians(30.0)
+    cam_center = np.array([0.0, np.sin(elevation), -np.cos(elevation)]) * 2.0
+    forward = -cam_center / np.linalg.norm(cam_center)
+    down = np.array([0.0, -1.0, 0.0]) - forward * -forward[1]  # world down, orthogonal to the view
+    down /= np.linalg.norm(down)
+    right = np.cross(down, forward)  # (right, down, forward) right-handed, as OpenCV's axes
+    cam_rot = np.stack([right, down, forward], 1)  # camera-to-world, OpenCV axes
+    K_small = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    uv0 = np.stack(np.meshgrid(np.arange(10, 54, 4.0), np.arange(2, 46, 4.0)), -1).reshape(-1, 2)
+    rays = vsil.pixel_rays(uv0, K_small, cam_rot)
+    w2c = np.eye(4)
+    w2c[:3, :3] = cam_rot.T
+    w2c[:3, 3] = -cam_rot.T @ cam_center
+    scene = vsil.SilhouetteScene(uv0=uv0, rays=rays, cam_center=cam_center, cam_rot=cam_rot, K=K_small,
+                                 world_to_cam=w2c, masks=np.ones((1, 48, 64), bool), stride=1,
+                                 image_shape=(48, 64), base_depth=np.full(len(uv0), 2.0), width=0.5)
+    labels = np.zeros(len(uv0), int)
+    labels[:5] = 1
+    art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]),
+                            pivots=np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.2]]), tilts=np.zeros((2, 2)))
+    depth = vsil.horizontal_root_depths(scene, art, 0, np.array([0.0, 2.0, 0.0]))
+    points = cam_center + depth[:, None] * rays[labels == 0]
+    clip = 2.0 * np.linalg.norm(art.pivots[1] - cam_center)  # rays meeting the table beyond twice the joint's distance
+    on_plane = depth < clip - 1e-9
+    assert on_plane.sum() >= 30 and (~on_plane).sum() >= 1
+    assert np.allclose(points[on_plane, 1], 0.0, atol=1e-9)
+    assert np.allclose(depth[~on_plane], clip)
+    assert np.all(depth > 0)
+    lone = vsil.Articulation(labels=np.zeros(len(uv0), int), parent=np.array([-1]), pivots=np.zeros((1, 3)),
+                             tilts=np.zeros((1, 2)))
+    assert vsil.horizontal_root_depths(scene, lone, 0, np.array([0.0, 1.0, 0.0])) is None

@@ -280,6 +280,21 @@ def canonical_points(scene: SilhouetteScene, art: Articulation) -> np.ndarray:
     return scene.cam_center + depth[:, None] * scene.rays
 
 
+def horizontal_root_depths(scene: SilhouetteScene, art: Articulation, root: int, up: np.ndarray) -> np.ndarray | None:
+    """(R,) depths along the rays of the root's R points that put them on the plane through the mean of its
+    children's joints perpendicular to ``up`` (3,) (world), clipped to [0.5, 2] x that joint's distance;
+    None when the root has no points or no children. A static part's silhouette leaves its depth free; a
+    part at rest on a support is the usual case (a laptop's base, a box under its lid)."""
+    sel = art.labels == root
+    children = np.flatnonzero(art.parent == root)
+    if not sel.any() or len(children) == 0:
+        return None
+    pivot = art.pivots[children].mean(0)
+    pivot_depth = float(np.linalg.norm(pivot - scene.cam_center))
+    depth = ray_plane_depths(scene.rays[sel], scene.cam_center, pivot, up / np.linalg.norm(up))
+    return np.clip(np.where(depth > 0, depth, 2.0 * pivot_depth), 0.5 * pivot_depth, 2.0 * pivot_depth)
+
+
 def pose_transforms(params: np.ndarray, art: Articulation, width: float) -> np.ndarray:
     """(B, 4, 4) bone transforms from parameters: root (6,) = rotation vector [rad] about its pivot and
     translation [object widths]; a ball-jointed part (3,) = rotation vector about its joint, which its

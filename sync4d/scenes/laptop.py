@@ -221,6 +221,9 @@ class LaptopReference:
         )
         sequence = np.stack([reference.posed_vertices(t) for t in range(reference.num_frames)])
         clip, camera = self.film(reference) if c.video else (None, None)
+        from sync4d.scenes.reference_video import FilmSettings
+
+        up = np.asarray(FilmSettings().up, dtype=np.float64)  # film() keeps FilmSettings' world up
         return ReferenceInput(
             name="laptop",
             fps=c.fps,
@@ -229,4 +232,5 @@ class LaptopReference:
             ground_truth=reference,
             video=clip,
             camera=camera,
+            world_up=up / np.linalg.norm(up) if c.video else None,
         )

@@ -159,6 +159,8 @@ def filmed_laptop_case(settings: FilmSettings | None = None, *, num_frames: int 
     reference = laptop_reference(num_frames)
     renderer = build("render", {"type": "splat_torch", "width": settings.width, "height": settings.height}, device=device)
     clip, camera, labels = film_reference(reference, renderer, settings, with_labels=True)  # type: ignore[misc]
-    source = ReferenceInput(name="laptop_filmed", fps=reference.fps, video=clip, camera=camera)
+    up = np.asarray(settings.up, dtype=np.float64)
+    source = ReferenceInput(name="laptop_filmed", fps=reference.fps, video=clip, camera=camera,
+                            world_up=up / np.linalg.norm(up))
     gt = {"hinge_angle_rad": hinge_angles_rad(reference), "part_labels": labels, "K": camera.K}
     return source, gt
