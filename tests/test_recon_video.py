@@ -387,3 +387,25 @@ def test_horizontal_root_depths_put_the_root_on_the_plane_through_its_joint() ->
     lone = vsil.Articulation(labels=np.zeros(len(uv0), int), parent=np.array([-1]), pivots=np.zeros((1, 3)),
                              tilts=np.zeros((1, 2)))
     assert vsil.horizontal_root_depths(scene, lone, 0, np.array([0.0, 1.0, 0.0])) is None
+
+
+def test_render_parts_matches_posing_then_rendering() -> None:
+    """The pose search's composed per-part projection draws the same silhouette as moving every point by
+    its part's transform and projecting it."""
+    rng = np.random.default_rng(3)
+    K_small = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    w2c = np.eye(4)
+    w2c[:3, :3] = vsil.rotvec_to_matrix(np.array([0.1, -0.2, 0.05]))
+    w2c[:3, 3] = [0.05, -0.02, 1.5]
+    scene = vsil.SilhouetteScene(uv0=np.zeros((1, 2)), rays=np.zeros((1, 3)), cam_center=np.zeros(3),
+                                 cam_rot=np.eye(3), K=K_small, world_to_cam=w2c, masks=np.ones((1, 24, 32), bool),
+                                 stride=2, image_shape=(48, 64), base_depth=np.ones(1), width=0.5)
+    points = rng.normal(0.0, 0.2, (2000, 3))
+    labels = rng.integers(0, 3, 2000)
+    transforms = np.stack([vsil.about_pivot(vsil.rotvec_to_matrix(rng.normal(0, 0.3, 3)), rng.normal(0, 0.1, 3))
+                           for _ in range(3)])
+    transforms[:, :3, 3] += rng.normal(0.0, 0.05, (3, 3))
+    expected = scene.render(vsil.posed_points(points, labels, transforms))
+    got = scene.render_parts([points[labels == b] for b in range(3)], transforms)
+    assert expected.any() and not expected.all()
+    assert np.array_equal(got, expected)

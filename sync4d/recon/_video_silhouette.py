@@ -225,6 +225,23 @@ class SilhouetteScene:
         """(h, w) bool silhouette of world points at the scene's stride."""
         return raster_points(self.project(points), self.image_shape, self.stride)
 
+    def render_parts(self, points_by_part: list[np.ndarray], transforms: np.ndarray) -> np.ndarray:
+        """(h, w) bool silhouette of each part's points (N_b, 3) moved by its transform (B, 4, 4) [m].
+
+        Same image as ``render(posed_points(...))``: a part's rigid motion and the camera's extrinsics are
+        composed into one 3x4 matrix, so each point is transformed once (the pose search's inner loop)."""
+        uv = []
+        for b, pts in enumerate(points_by_part):
+            if len(pts) == 0:
+                continue
+            m = self.world_to_cam @ transforms[b]
+            pc = pts @ m[:3, :3].T + m[:3, 3]
+            z = np.maximum(pc[:, 2], 1e-6)
+            uv.append(np.stack([self.K[0, 0] * pc[:, 0] / z + self.K[0, 2], self.K[1, 1] * pc[:, 1] / z + self.K[1, 2]], 1))
+        if not uv:
+            return np.zeros((self.image_shape[0] // self.stride, self.image_shape[1] // self.stride), bool)
+        return raster_points(np.concatenate(uv), self.image_shape, self.stride)
+
 
 @dataclass
 class Articulation:
@@ -372,9 +389,10 @@ def fit_frame(scene: SilhouetteScene, art: Articulation, points: np.ndarray, t: 
         if art.parent[b] < 0 and not root_motion:
             steps[offsets[b]: offsets[b] + 6] = 0.0
 
+    groups = [points[art.labels == b] for b in range(art.n_parts)]
+
     def score(x: np.ndarray) -> float:
-        return mask_iou(scene.render(posed_points(points, art.labels, pose_transforms(x, art, scene.width))),
-                        scene.masks[t])
+        return mask_iou(scene.render_parts(groups, pose_transforms(x, art, scene.width)), scene.masks[t])
 
     return pattern_search(score, x0, steps, max_evals=max_evals)
 
