@@ -10,9 +10,10 @@ known static camera, a dense first-frame point cloud is tracked by derivative-fr
 silhouette IoU (root 6 DoF or static when its flow tracks do not move; other parts about joints at their
 part boundary, turned into 1-DoF hinges when their rotations share an axis); each round re-estimates the
 non-root parts' plane tilts (grid), the joint positions and tilts (whole-sequence search) and the labels
-(silhouette consistency over all frames). A static root's surface, which its silhouette cannot place, becomes
-optionally the plane through its joints closest behind everything the moving parts sweep over
-(``silhouette_root_depth``, :mod:`sync4d.recon._video_occlusion`; off by default). Its labels, depths and poses initialise the model below (one small
+(silhouette and flow-track consistency over all frames). A static root's surface, which its silhouette
+cannot place, becomes the horizontal plane through its joints when the source knows its world up, else
+stays a fronto-parallel stand-in (``silhouette_root_depth``; occlusion- and contact-based planes in
+:mod:`sync4d.recon._video_occlusion` are options). Its labels, depths and poses initialise the model below (one small
 Gaussian per raster cell, ``silhouette_dense_gaussians``, so rendered labels do not bleed across part
 boundaries), the skinning is fitted to its labels, and the gradient stages are skipped unless
 ``refine_after_silhouette``.
@@ -378,21 +379,22 @@ class VideoReconstructor:
         # instead of the ``gaussians`` sampled at initialisation (whose labelling seeds that stage)
         silhouette_search_depth: bool = False  # also move joints along their viewing rays (measured worse: 8.96 vs 5.13 deg)
         silhouette_dense_gaussians: bool = True
-        # the static root's surface after the silhouette stage: ``stand_in`` (fronto-parallel, as tracked) or
-        # ``occlusion`` (the plane through its joints that best explains where the moving parts hide it, by
-        # colour change) or ``contact`` (the plane closest behind everything the moving parts sweep over).
-        # Measured: contact 0.931 vs 0.895 part agreement on the laptop-hinge render (the lid closes onto
-        # its base) but 0.773 vs 0.923 on the filmed default laptop (it never closes), so stand_in stays;
-        # occlusion fails on renders whose shading changes the visible base's colours as the lid moves.
-        # ``horizontal``: the plane through its joints perpendicular to the source's world up (a static part
-        # rests on a support), ``auto``: horizontal when the source knows its world up, else stand_in.
-        # Measured on the filmed default laptop (world up known): horizontal 0.957 vs stand_in 0.944.
+        # the static root's surface after the silhouette stage (its silhouette cannot place it):
+        # ``stand_in`` (fronto-parallel, as tracked); ``horizontal`` (the plane through its joints
+        # perpendicular to the source's world up: a static part rests on a support); ``auto`` (horizontal
+        # when the source knows its world up, else stand_in); ``occlusion`` (the plane through its joints
+        # that best explains where the moving parts hide it, by colour change); ``contact`` (the plane
+        # closest behind everything the moving parts sweep over). Measured (composited agreement): filmed
+        # default laptop horizontal 0.958 vs stand_in 0.949; hinge renders (no world up given) stand_in
+        # 0.957, contact 0.948, horizontal told z up 0.940; occlusion fails where shading changes the
+        # visible base's colours as the lid moves.
         silhouette_root_depth: str = "auto"
         # relabelling: a point moves to the part whose motion keeps it inside the masks best, when that beats
         # its current part by ``silhouette_relabel_margin`` cells; ``root`` ties: a point the root explains
         # within that margin goes to the root (near a joint the child barely moves, and the flow clustering's
         # label there is a guess); ``keep``: ties keep the current label. Measured on the laptop-hinge
-        # renders (soft z-buffer agreement, as reported before): keep 5.13 deg / 0.895, root 2.04 / 0.946.
+        # renders at seed 0 (soft z-buffer agreement, as reported before): keep 5.13 deg / 0.895, root 2.04 /
+        # 0.947 (seeds 1, 2: 12.1, 9.8 deg: the lid's tilt and its swing still trade off).
         silhouette_relabel_ties: str = "root"
         silhouette_relabel_margin: float = 0.05  # [raster cells], mean over frames
         # weight of the flow-track term in relabelling (0 = silhouettes only): a point also pays the
@@ -437,6 +439,7 @@ class VideoReconstructor:
         self.cfg = cfg
         self.device = device  # the fit is sized for the CPU
         self.last_fit_report: dict[str, Any] = {}
+        self._world_up: np.ndarray | None = None  # (3,) of the source being reconstructed, when it gives one
         self.last_state: dict[str, Any] = {}
 
     # ----------------------------------------------------------------------------------------------
@@ -616,7 +619,7 @@ class VideoReconstructor:
         points = vsil.canonical_points(scene, art)
         transforms = np.stack([vsil.pose_transforms(p, art, init["width"]) for p in params])
         mode = cfg.silhouette_root_depth
-        world_up = getattr(self, "_world_up", None)
+        world_up = self._world_up
         if mode == "auto":
             mode = "horizontal" if world_up is not None else "stand_in"
         if mode == "horizontal" and not root_motion and world_up is not None:
