@@ -215,9 +215,11 @@ class SilhouetteScene:
     base_depth: np.ndarray
     width: float
 
-    def project(self, points: np.ndarray) -> np.ndarray:
-        """(N, 2) pixels of world points (N, 3)."""
-        pc = points @ self.world_to_cam[:3, :3].T + self.world_to_cam[:3, 3]
+    def project(self, points: np.ndarray, motion: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) pixels of world points (N, 3), first moved by the rigid ``motion`` (4, 4) when given (one
+        composed matrix, so each point is transformed once)."""
+        m = self.world_to_cam if motion is None else self.world_to_cam @ motion
+        pc = points @ m[:3, :3].T + m[:3, 3]
         z = np.maximum(pc[:, 2], 1e-6)
         return np.stack([self.K[0, 0] * pc[:, 0] / z + self.K[0, 2], self.K[1, 1] * pc[:, 1] / z + self.K[1, 2]], 1)
 
@@ -230,14 +232,7 @@ class SilhouetteScene:
 
         Same image as ``render(posed_points(...))``: a part's rigid motion and the camera's extrinsics are
         composed into one 3x4 matrix, so each point is transformed once (the pose search's inner loop)."""
-        uv = []
-        for b, pts in enumerate(points_by_part):
-            if len(pts) == 0:
-                continue
-            m = self.world_to_cam @ transforms[b]
-            pc = pts @ m[:3, :3].T + m[:3, 3]
-            z = np.maximum(pc[:, 2], 1e-6)
-            uv.append(np.stack([self.K[0, 0] * pc[:, 0] / z + self.K[0, 2], self.K[1, 1] * pc[:, 1] / z + self.K[1, 2]], 1))
+        uv = [self.project(pts, transforms[b]) for b, pts in enumerate(points_by_part) if len(pts)]
         if not uv:
             return np.zeros((self.image_shape[0] // self.stride, self.image_shape[1] // self.stride), bool)
         return raster_points(np.concatenate(uv), self.image_shape, self.stride)

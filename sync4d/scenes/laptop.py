@@ -8,12 +8,16 @@ the base; the angle grows as the lid opens (90 deg = upright). Bone 0 is the bas
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
 
 from sync4d.registry import register
 from sync4d.types import Camera, Reference, ReferenceInput, VideoClip
+
+if TYPE_CHECKING:
+    from sync4d.scenes.reference_video import FilmSettings
 
 
 def rotation_x(angle_rad: float) -> np.ndarray:
@@ -193,17 +197,23 @@ class LaptopReference:
         self.cfg = cfg
         self.device = device
 
+    def film_settings(self) -> FilmSettings:
+        """The camera and texture the laptop is filmed with (its ``up`` is the world's up)."""
+        from sync4d.scenes.reference_video import FilmSettings
+
+        c = self.cfg
+        return FilmSettings(width=c.video_width, height=c.video_height, gaussians=c.video_gaussians,
+                            texture_cell=c.video_texture_cell)
+
     def film(self, reference: Reference) -> tuple[VideoClip, Camera]:
         """The laptop filmed by the project's renderer from a fixed camera (see :mod:`sync4d.scenes.reference_video`)."""
         from sync4d.registry import build
-        from sync4d.scenes.reference_video import FilmSettings, film_reference
+        from sync4d.scenes.reference_video import film_reference
 
         c = self.cfg
-        settings = FilmSettings(width=c.video_width, height=c.video_height, gaussians=c.video_gaussians,
-                                texture_cell=c.video_texture_cell)
         renderer = build("render", {"type": "splat_torch", "width": c.video_width, "height": c.video_height},
                          device=self.device)
-        return film_reference(reference, renderer, settings)
+        return film_reference(reference, renderer, self.film_settings())
 
     def load(self) -> ReferenceInput:
         c = self.cfg
@@ -221,9 +231,7 @@ class LaptopReference:
         )
         sequence = np.stack([reference.posed_vertices(t) for t in range(reference.num_frames)])
         clip, camera = self.film(reference) if c.video else (None, None)
-        from sync4d.scenes.reference_video import FilmSettings
-
-        up = np.asarray(FilmSettings().up, dtype=np.float64)  # film() keeps FilmSettings' world up
+        up = np.asarray(self.film_settings().up, dtype=np.float64)
         return ReferenceInput(
             name="laptop",
             fps=c.fps,
