@@ -311,7 +311,7 @@ def test_relabel_ties_go_to_the_root() -> None:
                                  world_to_cam=np.eye(4), masks=masks, stride=1, image_shape=(h, w),
                                  base_depth=np.ones(len(uv0)) / rays[:, 2], width=0.5)
     labels = (uv0[:, 0] > 10).astype(int)  # right half starts as the child
-    art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]), pivots=np.zeros((2, 3)),
+    art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]), pivots=np.array([[0, 0, 1.0], [0, 0, 1.0]]),
                             tilts=np.zeros((2, 2)))
     params = np.zeros((3, int(vsil.param_offsets(art)[-1])))  # nothing moves: every point is a tie
     kept = vsil.relabel(scene, art, params, margin=0.05)
@@ -409,3 +409,100 @@ def test_render_parts_matches_posing_then_rendering() -> None:
     got = scene.render_parts([points[labels == b] for b in range(3)], transforms)
     assert expected.any() and not expected.all()
     assert np.array_equal(got, expected)
+
+
+def _fronto_square_scene(n_frames: int, *, stride: int = 1) -> vsil.SilhouetteScene:
+    """A 24 x 24 px square of points on the plane z = 1 (identity camera, f = 40 px), static masks."""
+    h, w = 40, 40
+    K_small = np.array([[40.0, 0, 20], [0, 40.0, 20], [0, 0, 1]])
+    uv0 = (np.stack(np.meshgrid(np.arange(8, 32), np.arange(8, 32)), -1).reshape(-1, 2) + 0.5).astype(float)
+    rays = vsil.pixel_rays(uv0, K_small, np.eye(3))
+    masks = np.zeros((n_frames, h // stride, w // stride), bool)
+    masks[:, 8 // stride: 32 // stride, 8 // stride: 32 // stride] = True
+    return vsil.SilhouetteScene(uv0=uv0, rays=rays, cam_center=np.zeros(3), cam_rot=np.eye(3), K=K_small,
+                                world_to_cam=np.eye(4), masks=masks, stride=stride, image_shape=(h, w),
+                                base_depth=np.ones(len(uv0)) / rays[:, 2], width=0.5)
+
+
+def test_flow_penalty_against_a_uniform_flow() -> None:
+    """Flow (dx, 0) px everywhere: a static pose misses every trusted point by dx / stride cells (capped);
+    the pose translating by dx follows it exactly; untrusted flow adds nothing; the tracked score is the
+    IoU minus weight x penalty."""
+    scene = _fronto_square_scene(3, stride=2)
+    art = vsil.Articulation(labels=np.zeros(len(scene.uv0), int), parent=np.array([-1]), pivots=np.array([[0, 0, 1.0]]),
+                            tilts=np.zeros((1, 2)))
+    points = vsil.canonical_points(scene, art)
+    dx = 3.0
+    scene.flow = np.zeros((2, 40, 40, 2))
+    scene.flow[..., 0] = dx
+    scene.flow_valid = np.ones((2, 40, 40), bool)
+    scene.flow_weight, scene.flow_cap = 0.5, 2.0
+    still = np.zeros(6)
+    moved = np.array([0, 0, 0, dx / 40.0 / scene.width, 0, 0])  # dx px at depth 1 with f = 40 px
+    assert vsil.flow_penalty(scene, art, points, still, still, 1) == pytest.approx(dx / 2)
+    assert vsil.flow_penalty(scene, art, points, still, moved, 1) == pytest.approx(0.0, abs=1e-9)
+    scene.flow_cap = 1.0
+    assert vsil.flow_penalty(scene, art, points, still, still, 1) == pytest.approx(1.0)
+    scene.flow_cap = 2.0
+    scene.flow_valid[:, :, :20] = False  # the left half of the square is untrusted
+    assert vsil.flow_penalty(scene, art, points, still, still, 1) == pytest.approx(dx / 2 / 2)
+    # the tracked score: the pose search follows the silhouette (static), the flow term charges the miss
+    params, scores = vsil.track(scene, art, None, root_motion=False, max_evals=20)
+    assert np.allclose(params, 0.0)
+    assert scores[0] == pytest.approx(1.0)
+    assert np.allclose(scores[1:], 1.0 - 0.5 * dx / 2 / 2)
+    assert np.allclose(vsil.sequence_ious(scene, art, params), 1.0)
+
+
+def test_relabel_judges_a_point_on_the_candidate_part_surface() -> None:
+    """A lid hinged along y = 0 on a root plane z = 1 leans 40 deg back and swings 120 deg forward. Lid
+    points mislabelled as root sit on the root's plane; judged there, the lid's motion would move them
+    along the wrong arc. Judged on the lid's plane, they follow the lid and all return to it."""
+    K_small = np.array([[60.0, 0, 32], [0, 60.0, 40], [0, 0, 1]])
+    h, w = 64, 64
+    lean = np.radians(40.0)
+    # lid plane through the hinge line (y = 0, z = 1), rising towards -y and leaning away (+z)
+    up_lid = np.array([0.0, -np.cos(lean), np.sin(lean)])
+    s, t = np.meshgrid(np.linspace(-0.2, 0.2, 25), np.linspace(0.01, 0.25, 16))
+    lid = np.array([0, 0, 1.0]) + s.reshape(-1, 1) * np.array([1.0, 0, 0]) + t.reshape(-1, 1) * up_lid
+    rs, rt = np.meshgrid(np.linspace(-0.2, 0.2, 25), np.linspace(0.01, 0.2, 12))
+    root = np.stack([rs.ravel(), rt.ravel(), np.ones(rs.size)], 1)
+    pts = np.concatenate([root, lid])
+    truth = np.concatenate([np.zeros(len(root), int), np.ones(len(lid), int)])
+    uv0 = pts @ K_small.T
+    uv0 = uv0[:, :2] / uv0[:, 2:]
+    rays = vsil.pixel_rays(uv0, K_small, np.eye(3))
+    angles = np.radians([0.0, -60.0, -120.0])  # forward: over the root
+    axis = np.array([1.0, 0, 0])
+    pivot = np.array([0, 0, 1.0])
+    masks = []
+    for a in angles:
+        moved = (lid - pivot) @ vsil.rotvec_to_matrix(axis * a).T + pivot
+        proj = np.concatenate([root, moved]) @ K_small.T
+        masks.append(vsil.raster_points(proj[:, :2] / proj[:, 2:], (h, w), 1, grow=2))
+    view = pivot / np.linalg.norm(pivot)
+    # the lid's tilt in the scene's parametrisation: its normal, turned from facing the camera
+    normal = np.cross(axis, up_lid)
+    normal = normal if normal @ view < 0 else -normal
+    from scipy.optimize import minimize
+
+    tilt = minimize(lambda x: np.sum((vsil.tilted_normal(view, x, np.eye(3)) - normal) ** 2), np.zeros(2),
+                    method="Nelder-Mead", options={"xatol": 1e-9, "fatol": 1e-14}).x
+    scene = vsil.SilhouetteScene(uv0=uv0, rays=rays, cam_center=np.zeros(3), cam_rot=np.eye(3), K=K_small,
+                                 world_to_cam=np.eye(4), masks=np.stack(masks), stride=1, image_shape=(h, w),
+                                 base_depth=1.0 / rays[:, 2], width=0.5)
+    labels = truth.copy()
+    wrong = (truth == 1) & (np.arange(len(truth)) % 3 == 0)  # a third of the lid's points start as root
+    labels[wrong] = 0
+    art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]), pivots=np.array([pivot, pivot]),
+                            tilts=np.array([[0.0, 0.0], tilt]), axes=np.array([[np.nan] * 3, axis]))
+    assert np.allclose(vsil.canonical_points(scene, vsil.Articulation(
+        labels=truth, parent=art.parent, pivots=art.pivots, tilts=art.tilts, axes=art.axes))[truth == 1], lid, atol=1e-9)
+    params = np.zeros((3, int(vsil.param_offsets(art)[-1])))
+    params[:, 6] = angles
+    cost = vsil.relabel_costs(scene, art, params)
+    assert np.all(cost[wrong, 1] == 0.0)  # on the lid's plane, the lid's motion keeps them in every mask
+    assert np.all(cost[wrong, 0] > 0.5)  # left behind by the root, they fall out of the later masks
+    new = vsil.relabel(scene, art, params, margin=0.05, tie_part=0, min_points=0, smooth_px=1)
+    assert np.all(new[wrong] == 1)
+    assert np.all(new[truth == 0] == 0)
