@@ -506,3 +506,19 @@ def test_relabel_judges_a_point_on_the_candidate_part_surface() -> None:
     new = vsil.relabel(scene, art, params, margin=0.05, tie_part=0, min_points=0, smooth_px=1)
     assert np.all(new[wrong] == 1)
     assert np.all(new[truth == 0] == 0)
+
+
+def test_tilt_grid_ranks_cells_and_leaves_the_articulation() -> None:
+    """Every cell of the grid is scored once, best first, and the part keeps its tilt; a part that never
+    moves scores the same at every tilt (a static plane's silhouette is its first-frame pixels)."""
+    scene = _fronto_square_scene(3)
+    labels = (scene.uv0[:, 0] > 20).astype(int)
+    art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]), pivots=np.array([[0, 0, 1.0], [0, 0, 1.0]]),
+                            tilts=np.array([[0.0, 0.0], [0.1, -0.2]]))
+    cells = vsil.tilt_grid(scene, art, 1, frames=3, grid_deg=(-20.0, 0.0, 20.0), root_motion=False, max_evals=10)
+    assert len(cells) == 9
+    assert [c[0] for c in cells] == sorted((c[0] for c in cells), reverse=True)
+    assert {tuple(np.round(np.degrees(c[1]), 6)) for c in cells} == {(a, b) for a in (-20.0, 0.0, 20.0)
+                                                                     for b in (-20.0, 0.0, 20.0)}
+    assert np.allclose([c[0] for c in cells], 1.0)
+    assert np.allclose(art.tilts[1], [0.1, -0.2])
