@@ -92,15 +92,27 @@ def test_config_errors() -> None:
         build("recon", {"type": "video", "levels": [4, 2], "iterations": [10]})
     with pytest.raises(InputError, match="needs a video"):
         build("recon", {"type": "video"}).reconstruct(ReferenceInput(name="none", fps=1.0))
+    with pytest.raises(ConfigError, match="silhouette_hypothesis_cells=1"):
+        build("recon", {"type": "video", "silhouette_hypotheses": 2, "silhouette_hypothesis_cells": 1})
+    with pytest.raises(ConfigError, match="silhouette_flow_cap=0"):
+        build("recon", {"type": "video", "silhouette_flow_cap": 0})
+    with pytest.raises(ConfigError, match="own or candidate"):
+        build("recon", {"type": "video", "silhouette_relabel_surface": "mine"})
 
 
 @pytest.mark.slow
-def test_two_plate_hinge_is_recovered() -> None:
+@pytest.mark.parametrize("options", [
+    {},
+    # the opt-in flow-scored search: flow term, fresh tilt/hinge hypotheses, candidate-surface relabelling
+    {"silhouette_flow_weight": 0.5, "silhouette_hypotheses": 1, "silhouette_hypothesis_cells": 2,
+     "silhouette_relabel_surface": "candidate"},
+], ids=["default", "flow_hypotheses"])
+def test_two_plate_hinge_is_recovered(options: dict) -> None:
     clip, labels, angles = hinge_video()
     camera = Camera(K=K, world_to_cam=np.eye(4), width=W, height=H)
     recon = build("recon", {"type": "video", "bones": 2, "gaussians": 300, "init_depth": 1.2, "levels": [2],
                             "iterations": [20], "track_steps": 20, "first_frame_steps": 20, "pixels_per_frame": 400,
-                            "flow_pixels_per_frame": 200, "frames_per_step": 3}, device="cpu")
+                            "flow_pixels_per_frame": 200, "frames_per_step": 3, **options}, device="cpu")
     ref = recon.reconstruct(ReferenceInput(name="hinge", fps=10.0, video=clip, camera=camera))
     assert ref.num_bones == 2 and ref.num_frames == len(angles) and ref.rest_faces is None
     # parts: each Gaussian's bone agrees with the plate under its first-frame pixel

@@ -501,12 +501,18 @@ def flow_penalty(scene: SilhouetteScene, art: Articulation, points: np.ndarray, 
 
 def relabel_costs(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *,
                   tracks: np.ndarray | None = None, track_ok: np.ndarray | None = None, flow_weight: float = 1.0,
-                  flow_cap: float = 2.0) -> np.ndarray:
+                  flow_cap: float = 2.0, candidate_surface: bool = True) -> np.ndarray:
     """(M, B) mean over the frames of ``params`` (T', D) of each point's distance [cells] from the mask when
-    moved by each bone, plus the flow-track term (see :func:`relabel`)."""
-    # a point's cost under bone b puts it where it would be as part of b (on b's surface): judged at its
-    # current part's depth, a point mislabelled near a joint lands off the other part's arc and stays
-    points_as = [canonical_points(scene, replace(art, labels=np.full(len(art.labels), b))) for b in range(art.n_parts)]
+    moved by each bone, plus the flow-track term (see :func:`relabel`).
+
+    With ``candidate_surface`` a point's cost under bone b puts it where it would be as part of b (on its
+    first-frame ray at b's surface); otherwise at its current part's depth, where a point mislabelled
+    near a joint moves along the wrong arc under the other part's motion and tends to stay."""
+    if candidate_surface:
+        points_as = [canonical_points(scene, replace(art, labels=np.full(len(art.labels), b)))
+                     for b in range(art.n_parts)]
+    else:
+        points_as = [canonical_points(scene, art)] * art.n_parts
     n_frames = len(params)
     dist = [outside_distance(m) for m in scene.masks[:n_frames]]
     h, w = scene.masks.shape[1:]
@@ -528,12 +534,12 @@ def relabel_costs(scene: SilhouetteScene, art: Articulation, params: np.ndarray,
 def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, smooth_px: int = 7,
             min_points: int = 20, margin: float = 0.5, tie_part: int | None = None,
             tracks: np.ndarray | None = None, track_ok: np.ndarray | None = None, flow_weight: float = 1.0,
-            flow_cap: float = 2.0) -> np.ndarray:
+            flow_cap: float = 2.0, candidate_surface: bool = True) -> np.ndarray:
     """(M,) labels: each point goes to the bone whose motion keeps it inside the masks of all frames.
 
     The cost of bone b for point i is the mean over frames of the distance [cells] from the mask of
     J_{t,b} x_i's projection over the frames ``params`` covers (T' <= T), with x_i on its first-frame ray
-    at bone b's surface (:func:`relabel_costs`); costs are box-filtered over ``smooth_px`` in the first frame (neighbouring
+    at bone b's surface with ``candidate_surface``, else at its current part's (:func:`relabel_costs`); costs are box-filtered over ``smooth_px`` in the first frame (neighbouring
     pixels belong to the same part unless the evidence says otherwise). A point changes part only when
     its best cost beats its current part's by ``margin`` cells: bones that barely move relative to each
     other explain a point equally well, and a tie is no evidence.
@@ -549,7 +555,7 @@ def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, sm
     the image plane hardly changes the silhouette near its joint, but its texture moves.
     """
     cost = relabel_costs(scene, art, params, tracks=tracks, track_ok=track_ok, flow_weight=flow_weight,
-                         flow_cap=flow_cap)
+                         flow_cap=flow_cap, candidate_surface=candidate_surface)
     # smooth the costs over the first frame's image
     H, W = scene.image_shape
     iu0 = np.clip(scene.uv0[:, 0].astype(int), 0, W - 1)
