@@ -416,8 +416,10 @@ class VideoReconstructor:
         # over all points]; 0 = silhouettes only. Each frame's pose still maximises its IoU; the term judges
         # the shape hypotheses (tilts, joints, axes). A lid's first-frame tilt and its swing trade off in the
         # silhouettes (laptop-hinge renders, same labels: the true and a 15-deg-off tilt/axis pair score IoU
-        # 0.9805 and 0.9826), not in the flow (cap-2 penalties 0.139 and 0.149). Measured weights: 0.5 (seeds
-        # 0/1/2 see docs/results.md); 1.0 lost seed 2 (11.6 deg)
+        # 0.9805 and 0.9826), not in the flow (cap-2 penalties 0.138 and 0.149). With 0.5, 5 rounds, 2
+        # hypotheses and candidate-surface relabelling, seeds 0/1/2: renders 2.3/7.2/8.4 deg (defaults
+        # 2.0/12.1/9.8), filmed laptop 1.5/11.4/6.5 (defaults 1.8/10.9/2.7), 1.6x slower: opt-in. 1.0 lost
+        # seed 2 (11.6 deg)
         silhouette_flow_weight: float = 0.0
         silhouette_flow_cap: float = 2.0  # [raster cells] cap of one point's flow residual
         # after the rounds: this many fresh tilt-grid cells per part, each with its hinge re-detected and its
@@ -719,8 +721,9 @@ class VideoReconstructor:
 
         Why: a hinge's axis and its part's tilt are found once, from the first round's labels, and a wrong
         pair is a local optimum that the later rounds' local searches cannot leave (laptop-hinge renders,
-        seed 1: lid tilt and axis 15 deg off, 4.3 deg hinge error; a fresh grid with the final labels finds
-        the pair that scores higher and errs 1.5 deg)."""
+        seed 1, from its final articulation: 4.3 deg hinge error; a fresh grid with the final labels finds
+        a pair that scores higher and errs 1.0-1.5 deg). End to end the result still varies with the seed
+        (docs/results.md), so this is opt-in."""
         cfg = self.cfg
         for b in art.order():
             if art.parent[b] < 0:
