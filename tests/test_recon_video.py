@@ -508,8 +508,8 @@ def test_relabel_judges_a_point_on_the_candidate_part_surface() -> None:
     labels[wrong] = 0
     art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]), pivots=np.array([pivot, pivot]),
                             tilts=np.array([[0.0, 0.0], tilt]), axes=np.array([[np.nan] * 3, axis]))
-    assert np.allclose(vsil.canonical_points(scene, vsil.Articulation(
-        labels=truth, parent=art.parent, pivots=art.pivots, tilts=art.tilts, axes=art.axes))[truth == 1], lid, atol=1e-9)
+    true_art = vsil.Articulation(labels=truth, parent=art.parent, pivots=art.pivots, tilts=art.tilts, axes=art.axes)
+    assert np.allclose(vsil.canonical_points(scene, true_art)[truth == 1], lid, atol=1e-9)  # the tilt fits
     params = np.zeros((3, int(vsil.param_offsets(art)[-1])))
     params[:, 6] = angles
     cost = vsil.relabel_costs(scene, art, params)

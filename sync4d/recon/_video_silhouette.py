@@ -205,8 +205,8 @@ class SilhouetteScene:
         width: object size [m] (translation steps).
         flow: optional (T-1, H, W, 2) forward optical flow [px] between consecutive frames.
         flow_valid: optional (T-1, H, W) bool: where ``flow`` is trusted (forward-backward consistent, in the mask).
-        flow_weight: weight of the frame-to-frame flow term in the pose score [IoU per raster cell of
-            mean residual over all points]; 0 scores silhouettes only.
+        flow_weight: weight of :func:`flow_penalty` in each frame's score (:func:`track`) [IoU per raster
+            cell of mean residual over all points]; 0 scores silhouettes only.
         flow_cap: [raster cells] cap of one point's flow residual (outliers: occlusion, textureless areas).
     """
 
@@ -539,8 +539,9 @@ def relabel(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *, sm
 
     The cost of bone b for point i is the mean over frames of the distance [cells] from the mask of
     J_{t,b} x_i's projection over the frames ``params`` covers (T' <= T), with x_i on its first-frame ray
-    at bone b's surface with ``candidate_surface``, else at its current part's (:func:`relabel_costs`); costs are box-filtered over ``smooth_px`` in the first frame (neighbouring
-    pixels belong to the same part unless the evidence says otherwise). A point changes part only when
+    at bone b's surface with ``candidate_surface``, else at its current part's (:func:`relabel_costs`);
+    costs are box-filtered over ``smooth_px`` in the first frame (neighbouring pixels belong to the same
+    part unless the evidence says otherwise). A point changes part only when
     its best cost beats its current part's by ``margin`` cells: bones that barely move relative to each
     other explain a point equally well, and a tie is no evidence.
 

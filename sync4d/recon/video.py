@@ -10,11 +10,12 @@ known static camera, a dense first-frame point cloud is tracked by derivative-fr
 silhouette IoU (root 6 DoF or static when its flow tracks do not move; other parts about joints at their
 part boundary, turned into 1-DoF hinges when their rotations share an axis); each round re-estimates the
 non-root parts' plane tilts (grid), the joint positions and tilts (whole-sequence search) and the labels
-(silhouette and flow-track consistency over all frames, each point judged on each part's surface). A
-sequence's score is its mean IoU minus a frame-to-frame optical-flow term, so the texture's motion
-settles what the silhouettes leave open (a hinged part's tilt against its swing); after the rounds, fresh
-tilt-grid hypotheses with re-detected hinges compete with the rounds' result. A static root's surface, which its silhouette
-cannot place, becomes the horizontal plane through its joints when the source knows its world up, else
+(silhouette and flow-track consistency over all frames). Options, measured mixed and so off by default:
+a sequence's score minus a frame-to-frame optical-flow term (``silhouette_flow_weight``: the texture's
+motion judges what the silhouettes leave open, a hinged part's tilt against its swing), fresh tilt-grid
+hypotheses with re-detected hinges after the rounds (``silhouette_hypotheses``), and relabelling that
+judges each point on each part's surface (``silhouette_relabel_surface``). A static root's surface, which
+its silhouette cannot place, becomes the horizontal plane through its joints when the source knows its world up, else
 stays a fronto-parallel stand-in (``silhouette_root_depth``; occlusion- and contact-based planes in
 :mod:`sync4d.recon._video_occlusion` are options). Its labels, depths and poses initialise the model below (one small
 Gaussian per raster cell, ``silhouette_dense_gaussians``, so rendered labels do not bleed across part
