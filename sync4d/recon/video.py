@@ -701,7 +701,8 @@ class VideoReconstructor:
             depth = np.linalg.norm(points[own] - scene.cam_center, axis=1)
             init["points"] = scene.cam_center + depth[:, None] * vsil.pixel_rays(init["uv0"], camera.K, c2w[:3, :3])
             init["labels"] = art.labels[own]
-        init["silhouette_iou"] = vsil.sequence_ious(scene, art, params)
+        # the tracked scores are the IoUs unless a flow term was subtracted
+        init["silhouette_iou"] = vsil.sequence_ious(scene, art, params) if scene.uses_flow else ious
         return transforms
 
     def _detect_hinges(self, scene: Any, art: Any, root_motion: bool) -> Any:
