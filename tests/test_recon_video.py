@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from sync4d.errors import ConfigError, InputError
 from sync4d.recon.video import (
     background_masks,
+    feature_motions,
     flow_consistency,
     optical_flow,
     rotation_angle_deg,
@@ -77,6 +79,23 @@ def test_flow_helpers_on_a_translating_pattern() -> None:
     assert np.allclose(sample_image(np.arange(12.0).reshape(3, 4), np.array([[1.5, 1.0]])), 5.5)
 
 
+def test_feature_motions_follow_a_translating_texture() -> None:
+    """A random texture shifted by (3, 1) px per frame: every kept corner moves by that shift, starts
+    inside its frame's mask, and carries its frame index; a still pair of frames yields no motion."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.integers(0, 255, (H + 20, W + 20)).astype(np.uint8), (0, 0), 1.5)
+    shifts = [(0, 0), (3, 1), (6, 2), (6, 2)]  # frames 2 -> 3 stand still
+    frames = np.stack([np.repeat(texture[10 - dy: 10 - dy + H, 10 - dx: 10 - dx + W, None], 3, -1)
+                       for dx, dy in shifts])
+    masks = np.zeros((4, H, W), bool)
+    masks[:, 20:70, 30:100] = True
+    motions = feature_motions(frames, masks)
+    assert len(motions) > 40 and set(np.unique(motions.frame)) == {0, 1}
+    assert np.allclose(motions.end - motions.start, [3.0, 1.0], atol=0.1)
+    # pixel k covers [k, k + 1): a corner found in the mask starts inside its cells
+    assert np.all((motions.start >= [30, 20]) & (motions.start <= [100, 70]))
+
+
 def test_background_model_finds_the_moving_object() -> None:
     frames = np.full((7, H, W, 3), 40, np.uint8)
     for t in range(7):
@@ -96,6 +115,8 @@ def test_config_errors() -> None:
         build("recon", {"type": "video", "silhouette_hypotheses": 2, "silhouette_hypothesis_cells": 1})
     with pytest.raises(ConfigError, match="silhouette_flow_cap=0"):
         build("recon", {"type": "video", "silhouette_flow_cap": 0})
+    with pytest.raises(ConfigError, match="silhouette_restarts=0"):
+        build("recon", {"type": "video", "silhouette_restarts": 0})
     with pytest.raises(ConfigError, match="own or candidate"):
         build("recon", {"type": "video", "silhouette_relabel_surface": "mine"})
 
@@ -106,7 +127,9 @@ def test_config_errors() -> None:
     # the opt-in flow-scored search: flow term, fresh tilt/hinge hypotheses, candidate-surface relabelling
     {"silhouette_flow_weight": 0.5, "silhouette_hypotheses": 1, "silhouette_hypothesis_cells": 2,
      "silhouette_relabel_surface": "candidate"},
-], ids=["default", "flow_hypotheses"])
+    # two starts of the clustering and silhouette stage, ranked by the corners' motions
+    {"silhouette_restarts": 2},
+], ids=["default", "flow_hypotheses", "restarts"])
 def test_two_plate_hinge_is_recovered(options: dict) -> None:
     clip, labels, angles = hinge_video()
     camera = Camera(K=K, world_to_cam=np.eye(4), width=W, height=H)
@@ -137,6 +160,12 @@ def test_two_plate_hinge_is_recovered(options: dict) -> None:
     from sync4d.recon._video_silhouette import downsample_mask
 
     assert recon.last_fit_report["gaussians"] == int(downsample_mask(clip.masks[0], 2).sum())
+    starts = recon.last_fit_report["silhouette_starts"]
+    assert len(starts) == options.get("silhouette_restarts", 0)
+    if starts:  # the chosen start predicts the corners best
+        chosen = recon.last_fit_report["silhouette_start"]
+        assert starts[chosen]["corners"] >= 20
+        assert starts[chosen]["corner_residual_px"] == min(s["corner_residual_px"] for s in starts)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -466,10 +495,10 @@ def test_flow_penalty_against_a_uniform_flow() -> None:
     assert np.allclose(vsil.sequence_ious(scene, art, params), 1.0)
 
 
-def test_relabel_judges_a_point_on_the_candidate_part_surface() -> None:
-    """A lid hinged along y = 0 on a root plane z = 1 leans 40 deg back and swings 120 deg forward. Lid
-    points mislabelled as root sit on the root's plane; judged there, the lid's motion would move them
-    along the wrong arc. Judged on the lid's plane, they follow the lid and all return to it."""
+def _leaning_lid(angles_deg: tuple[float, ...]) -> dict:
+    """A lid hinged along y = 0 on a root plane z = 1 (identity camera, f = 60 px, 64 x 64 px), leaning
+    40 deg back and swinging forward (over the root) by ``angles_deg`` [deg] in its frames. Returns the
+    scene (masks of the true motion), the true articulation, its (T, 7) parameters and the lid's points."""
     K_small = np.array([[60.0, 0, 32], [0, 60.0, 40], [0, 0, 1]])
     h, w = 64, 64
     lean = np.radians(40.0)
@@ -484,7 +513,7 @@ def test_relabel_judges_a_point_on_the_candidate_part_surface() -> None:
     uv0 = pts @ K_small.T
     uv0 = uv0[:, :2] / uv0[:, 2:]
     rays = vsil.pixel_rays(uv0, K_small, np.eye(3))
-    angles = np.radians([0.0, -60.0, -120.0])  # forward: over the root
+    angles = np.radians(np.asarray(angles_deg, float))
     axis = np.array([1.0, 0, 0])
     pivot = np.array([0, 0, 1.0])
     masks = []
@@ -503,21 +532,68 @@ def test_relabel_judges_a_point_on_the_candidate_part_surface() -> None:
     scene = vsil.SilhouetteScene(uv0=uv0, rays=rays, cam_center=np.zeros(3), cam_rot=np.eye(3), K=K_small,
                                  world_to_cam=np.eye(4), masks=np.stack(masks), stride=1, image_shape=(h, w),
                                  base_depth=1.0 / rays[:, 2], width=0.5)
+    art = vsil.Articulation(labels=truth, parent=np.array([-1, 0]), pivots=np.array([pivot, pivot]),
+                            tilts=np.array([[0.0, 0.0], tilt]), axes=np.array([[np.nan] * 3, axis]))
+    assert np.allclose(vsil.canonical_points(scene, art)[truth == 1], lid, atol=1e-9)  # the tilt fits
+    params = np.zeros((len(angles), int(vsil.param_offsets(art)[-1])))
+    params[:, 6] = angles
+    return {"scene": scene, "art": art, "params": params, "lid": lid, "axis": axis, "pivot": pivot, "K": K_small}
+
+
+def test_relabel_judges_a_point_on_the_candidate_part_surface() -> None:
+    """A lid leaning 40 deg back swings 120 deg forward. Lid points mislabelled as root sit on the root's
+    plane; judged there, the lid's motion would move them along the wrong arc. Judged on the lid's plane,
+    they follow the lid and all return to it."""
+    case = _leaning_lid((0.0, -60.0, -120.0))
+    scene, true_art, params = case["scene"], case["art"], case["params"]
+    truth = true_art.labels
     labels = truth.copy()
     wrong = (truth == 1) & (np.arange(len(truth)) % 3 == 0)  # a third of the lid's points start as root
     labels[wrong] = 0
-    art = vsil.Articulation(labels=labels, parent=np.array([-1, 0]), pivots=np.array([pivot, pivot]),
-                            tilts=np.array([[0.0, 0.0], tilt]), axes=np.array([[np.nan] * 3, axis]))
-    true_art = vsil.Articulation(labels=truth, parent=art.parent, pivots=art.pivots, tilts=art.tilts, axes=art.axes)
-    assert np.allclose(vsil.canonical_points(scene, true_art)[truth == 1], lid, atol=1e-9)  # the tilt fits
-    params = np.zeros((3, int(vsil.param_offsets(art)[-1])))
-    params[:, 6] = angles
+    art = vsil.Articulation(labels=labels, parent=true_art.parent, pivots=true_art.pivots, tilts=true_art.tilts,
+                            axes=true_art.axes)
     cost = vsil.relabel_costs(scene, art, params)
     assert np.all(cost[wrong, 1] == 0.0)  # on the lid's plane, the lid's motion keeps them in every mask
     assert np.all(cost[wrong, 0] > 0.5)  # left behind by the root, they fall out of the later masks
     new = vsil.relabel(scene, art, params, margin=0.05, tie_part=0, min_points=0, smooth_px=1)
     assert np.all(new[wrong] == 1)
     assert np.all(new[truth == 0] == 0)
+
+
+def test_motion_residual_scores_the_lid_corners_against_the_true_swing() -> None:
+    """Corners on the lid, moved by the true swing between frames, are predicted exactly by the true
+    articulation; a 20 % smaller swing misses them; each miss is capped; corners moving where only the
+    static root projects (shadows) are not scored."""
+    case = _leaning_lid((0.0, -10.0, -20.0))
+    scene, art, params, lid, axis, pivot, K_small = (case[k] for k in ("scene", "art", "params", "lid", "axis",
+                                                                         "pivot", "K"))
+
+    def image(points: np.ndarray, angle: float) -> np.ndarray:
+        moved = (points - pivot) @ vsil.rotvec_to_matrix(axis * angle).T + pivot
+        proj = moved @ K_small.T
+        return proj[:, :2] / proj[:, 2:]
+
+    corners = lid[::7]
+    frame = np.concatenate([np.full(len(corners), t) for t in range(2)])
+    start = np.concatenate([image(corners, params[t, 6]) for t in range(2)])
+    end = np.concatenate([image(corners, params[t + 1, 6]) for t in range(2)])
+    value, count = vsil.motion_residual(scene, art, params, frame, start, end)
+    assert count == len(frame)  # the lid stands clear of the root's image in frames 0 and 1
+    assert value == pytest.approx(0.0, abs=1e-9)
+    # a shadow moving 3 px on the root, away from the lid: not scored
+    shadow = np.array([[32.0, 40.0 + 60.0 * 0.15]])
+    assert not scene.render_parts([lid], np.eye(4)[None])[int(shadow[0, 1]), int(shadow[0, 0])]
+    value2, count2 = vsil.motion_residual(scene, art, params, np.append(frame, 0), np.vstack([start, shadow]),
+                                          np.vstack([end, shadow + [3.0, 0.0]]))
+    assert (value2, count2) == (pytest.approx(0.0, abs=1e-9), count)
+    smaller = params.copy()
+    smaller[:, 6] *= 0.8
+    value3, count3 = vsil.motion_residual(scene, art, smaller, frame, start, end)
+    assert count3 > 0 and 0.05 < value3 <= 2.0
+    value4, _ = vsil.motion_residual(scene, art, params, frame, start, end + 50.0, cap_px=1.5)
+    assert value4 == pytest.approx(1.5)
+    assert vsil.motion_residual(scene, art, params, frame[:0], start[:0], end[:0]) == (pytest.approx(float("nan"),
+                                                                                                  nan_ok=True), 0)
 
 
 def test_tilt_grid_ranks_cells_and_leaves_the_articulation() -> None:

@@ -499,6 +499,73 @@ def flow_penalty(scene: SilhouetteScene, art: Articulation, points: np.ndarray, 
     return float(np.minimum(miss, scene.flow_cap).sum()) / max(len(points), 1)
 
 
+def part_surface_planes(scene: SilhouetteScene, art: Articulation) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 3) points and (B, 3) unit normals of each part's canonical surface plane (world) [m]: the
+    least-squares plane of its canonical points, which lie on one plane in this model (a moving part's
+    tilted plane through its joint, the root's stand-in plane); NaN for a part with under 3 points."""
+    points = canonical_points(scene, art)
+    centres = np.full((art.n_parts, 3), np.nan)
+    normals = np.full((art.n_parts, 3), np.nan)
+    for b in range(art.n_parts):
+        own = points[art.labels == b]
+        if len(own) >= 3:
+            centres[b] = own.mean(0)
+            normals[b] = np.linalg.svd(own - centres[b], full_matrices=False)[2][2]
+    return centres, normals
+
+
+def motion_residual(scene: SilhouetteScene, art: Articulation, params: np.ndarray, frame: np.ndarray,
+                    start: np.ndarray, end: np.ndarray, *, cap_px: float = 2.0) -> tuple[float, int]:
+    """How well the articulation predicts image corner motions, over the moving (non-root) parts.
+
+    A corner moving from ``start`` (P, 2) in frame ``frame`` (P,) to ``end`` (P, 2) [px] is scored when it
+    starts where exactly one part projects in that frame and that part is not the root: it is put on the
+    part's posed surface plane along its viewing ray, moved by the part's frame-to-frame motion and
+    projected; its residual is the distance to ``end``, capped at ``cap_px`` [px] (occlusion, corners
+    sliding along edges). The root's moving corners are left out: with a static root they are shadows and
+    reflections of the moving parts.
+
+    Why: silhouettes cannot tell a lid's first-frame tilt from how far it swings (docs/results.md); the
+    motion of its texture can, where it has texture.
+
+    Returns:
+        (mean residual [px], number of corners scored); (nan, 0) when none is scored.
+    """
+    centres, normals = part_surface_planes(scene, art)
+    points = canonical_points(scene, art)
+    points_by_part = [points[art.labels == b] for b in range(art.n_parts)]
+    c2w = np.linalg.inv(scene.world_to_cam)
+    h, w = scene.masks.shape[1:]
+    residuals = []
+    for t in np.unique(frame):
+        if t + 1 >= len(params):
+            continue
+        here = np.flatnonzero(frame == t)
+        tf_t, tf_next = pose_transforms(params[t], art, scene.width), pose_transforms(params[t + 1], art, scene.width)
+        coverage = np.stack([scene.render_parts([points_by_part[b]], tf_t[b: b + 1]) for b in range(art.n_parts)])
+        cell = np.floor(start[here] / scene.stride).astype(int)
+        inside = (cell[:, 0] >= 0) & (cell[:, 0] < w) & (cell[:, 1] >= 0) & (cell[:, 1] < h)
+        cu, cv = np.clip(cell[:, 0], 0, w - 1), np.clip(cell[:, 1], 0, h - 1)
+        covered = coverage[:, cv, cu] & inside  # (B, P_t)
+        for b in range(art.n_parts):
+            if art.parent[b] < 0 or not np.isfinite(normals[b]).all():
+                continue
+            sel = here[covered[b] & (covered.sum(0) == 1)]
+            if len(sel) == 0:
+                continue
+            centre = tf_t[b, :3, :3] @ centres[b] + tf_t[b, :3, 3]
+            normal = tf_t[b, :3, :3] @ normals[b]
+            rays = pixel_rays(start[sel], scene.K, c2w[:3, :3])
+            depth = ray_plane_depths(rays, scene.cam_center, centre, normal)
+            ok = np.isfinite(depth) & (depth > 0)
+            moved = scene.project(scene.cam_center + depth[ok, None] * rays[ok], tf_next[b] @ np.linalg.inv(tf_t[b]))
+            residuals.append(np.minimum(np.linalg.norm(moved - end[sel][ok], axis=1), cap_px))
+    if not residuals or sum(len(r) for r in residuals) == 0:
+        return float("nan"), 0
+    all_res = np.concatenate(residuals)
+    return float(all_res.mean()), len(all_res)
+
+
 def relabel_costs(scene: SilhouetteScene, art: Articulation, params: np.ndarray, *,
                   tracks: np.ndarray | None = None, track_ok: np.ndarray | None = None, flow_weight: float = 1.0,
                   flow_cap: float = 2.0, candidate_surface: bool = True) -> np.ndarray:

@@ -141,6 +141,57 @@ def trusted_tracks(uv0: np.ndarray, fwd: np.ndarray, valid_flow: np.ndarray, mas
     return tracks, ok
 
 
+@dataclass
+class FeatureMotions:
+    """Frame-to-frame motions of tracked image corners.
+
+    Attributes:
+        frame: (P,) int frame t of each motion.
+        start: (P, 2) the corner's pixel (u, v) in frame t [px] (pixel k covers [k, k + 1), as the rasters).
+        end: (P, 2) its pixel in frame t + 1 [px].
+    """
+
+    frame: np.ndarray
+    start: np.ndarray
+    end: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+
+def feature_motions(frames: np.ndarray, masks: np.ndarray, *, max_corners: int = 500, check_px: float = 0.3,
+                    min_move_px: float = 0.5) -> FeatureMotions:
+    """Corner motions between consecutive frames: Shi-Tomasi corners inside each mask, pyramidal
+    Lucas-Kanade to the next frame and back; kept where the round trip returns within ``check_px`` [px]
+    and the corner moved more than ``min_move_px`` [px] (only moving texture tells one motion from another).
+
+    Args:
+        frames: (T, H, W, 3) uint8 RGB.
+        masks: (T, H, W) bool foreground.
+    """
+    grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
+    lk = dict(winSize=(15, 15), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    frame, start, end = [], [], []
+    for t in range(len(frames) - 1):
+        corners = cv2.goodFeaturesToTrack(grey[t], maxCorners=max_corners, qualityLevel=0.01, minDistance=3,
+                                          mask=masks[t].astype(np.uint8) * 255)
+        if corners is None:
+            continue
+        nxt, found, _ = cv2.calcOpticalFlowPyrLK(grey[t], grey[t + 1], corners, None, **lk)
+        back, found_back, _ = cv2.calcOpticalFlowPyrLK(grey[t + 1], grey[t], nxt, None, **lk)
+        # OpenCV puts pixel k's centre at k; the rasters and the projection put it at k + 0.5
+        a, b = corners.reshape(-1, 2).astype(np.float64) + 0.5, nxt.reshape(-1, 2).astype(np.float64) + 0.5
+        keep = (found.ravel() == 1) & (found_back.ravel() == 1)
+        keep &= np.linalg.norm(back.reshape(-1, 2) + 0.5 - a, axis=1) < check_px
+        keep &= np.linalg.norm(b - a, axis=1) > min_move_px
+        frame.append(np.full(int(keep.sum()), t))
+        start.append(a[keep])
+        end.append(b[keep])
+    if not frame:
+        return FeatureMotions(np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 2)))
+    return FeatureMotions(np.concatenate(frame), np.concatenate(start), np.concatenate(end))
+
+
 def refine_motion_labels(
     uv0: np.ndarray, tracks: np.ndarray, ok: np.ndarray, labels: np.ndarray, *, iterations: int = 8,
     compactness: float = 0.1,
@@ -427,6 +478,13 @@ class VideoReconstructor:
         # joint searched, compete with the rounds' result by score (0 = off)
         silhouette_hypotheses: int = 0
         silhouette_hypothesis_cells: int = 6  # grid cells screened by one whole-sequence tracking each
+        # independent starts of the part clustering and silhouette stage: start 0 from ``seed``, start r from
+        # Gaussians re-sampled with the seed (seed, r); the start whose moving parts best predict the motions
+        # of image corners (:func:`._video_silhouette.motion_residual`) wins. Why: which basin the silhouette
+        # stage ends in depends on the first labels, and the silhouettes cannot rank the basins (a wrong lid
+        # tilt can score the higher IoU) while the corners' motions can (docs/results.md). 1 = one start.
+        silhouette_restarts: int = 1
+        silhouette_restart_min_corners: int = 20  # a start scoring fewer corners is ranked by IoU after the rest
 
         def validate(self) -> None:
             if isinstance(self.bones, str) and self.bones.strip().isdigit():
@@ -459,6 +517,11 @@ class VideoReconstructor:
             if self.silhouette_flow_weight < 0 or self.silhouette_flow_cap <= 0:
                 raise ConfigError(f"recon.silhouette_flow_weight={self.silhouette_flow_weight} and "
                                   f"silhouette_flow_cap={self.silhouette_flow_cap}: need >= 0 and > 0")
+            if self.silhouette_restarts < 1:
+                raise ConfigError(f"recon.silhouette_restarts={self.silhouette_restarts}: needs >= 1 (1 = one start)")
+            if self.silhouette_restart_min_corners < 1:
+                raise ConfigError(f"recon.silhouette_restart_min_corners={self.silhouette_restart_min_corners}: "
+                                  "needs >= 1")
             if self.silhouette_hypotheses < 0 or self.silhouette_hypothesis_cells < self.silhouette_hypotheses:
                 raise ConfigError(f"recon.silhouette_hypotheses={self.silhouette_hypotheses} and "
                                   f"silhouette_hypothesis_cells={self.silhouette_hypothesis_cells}: need 0 <= "
@@ -567,12 +630,46 @@ class VideoReconstructor:
         return {"uv0": uv0, "points": points, "sigma": sigma, "depth": depth, "width": width_m,
                 "tracks": tracks, "track_ok": ok, "labels": labels, "flow": fwd, "flow_valid": valid_flow}
 
+    def _silhouette_starts(self, frames: np.ndarray, masks: np.ndarray, camera: Camera, fwd: np.ndarray,
+                           valid: np.ndarray, init: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any]]:
+        """The silhouette stage from ``silhouette_restarts`` starts (``init`` first, then Gaussians re-sampled
+        with the seed (seed, r)): the (T, B, 4, 4) transforms and the updated ``init`` of the start whose
+        moving parts best predict the image corners' motions; starts scoring under
+        ``silhouette_restart_min_corners`` corners rank after the others, by mean IoU."""
+        cfg = self.cfg
+        if cfg.silhouette_restarts == 1:
+            return self._silhouette_stage(masks, camera, init, frames), init
+        motions = feature_motions(frames, masks)
+        log.info("recon=video: %d moving image corners score %d silhouette-stage starts", len(motions),
+                 cfg.silhouette_restarts)
+        starts = []
+        for r in range(cfg.silhouette_restarts):
+            start = init if r == 0 else self._init_shape(frames, masks, camera, fwd, valid,
+                                                         np.random.default_rng([cfg.seed, r]))
+            transforms = self._silhouette_stage(masks, camera, start, frames, motions)
+            residual, count = start["silhouette_motion_residual"]
+            iou = float(np.mean(start["silhouette_iou"]))
+            log.info("recon=video: start %d: corner-motion residual %.3f px over %d corners, mean IoU %.4f",
+                     r, residual, count, iou)
+            scored = count >= cfg.silhouette_restart_min_corners
+            starts.append(((0 if scored else 1, residual if scored else -iou), r, transforms, start))
+        summary = [{"start": r, "corner_residual_px": round(float(s["silhouette_motion_residual"][0]), 4),
+                    "corners": int(s["silhouette_motion_residual"][1]),
+                    "mean_iou": round(float(np.mean(s["silhouette_iou"])), 4)} for _, r, _, s in starts]
+        _, best, transforms, chosen = min(starts, key=lambda s: (s[0], s[1]))
+        log.info("recon=video: start %d chosen", best)
+        chosen["silhouette_start"] = best
+        chosen["silhouette_starts"] = summary
+        return transforms, chosen
+
     def _silhouette_stage(self, masks: np.ndarray, camera: Camera, init: dict[str, Any],
-                          frames: np.ndarray | None = None) -> np.ndarray:
+                          frames: np.ndarray | None = None, motions: FeatureMotions | None = None) -> np.ndarray:
         """Labels, shape and per-frame bone transforms by silhouette tracking (:mod:`._video_silhouette`).
 
         Updates ``init["points"]`` (canonical Gaussian means on their first-frame rays) and
-        ``init["labels"]`` in place and returns the (T, B, 4, 4) world-frame bone transforms.
+        ``init["labels"]`` in place and returns the (T, B, 4, 4) world-frame bone transforms. With
+        ``motions``, also ``init["silhouette_motion_residual"]``: (mean residual [px], corners scored) of
+        the final articulation (:func:`._video_silhouette.motion_residual`).
         """
         cfg = self.cfg
         n_bones = cfg.bones
@@ -650,6 +747,9 @@ class VideoReconstructor:
                                       rot_step_deg=2.0)
             art = ball
             log.info("recon=video: ball-joint pass: mean IoU %.4f, min %.4f", ious.mean(), ious.min())
+        if motions is not None:
+            init["silhouette_motion_residual"] = vsil.motion_residual(scene, art, params, motions.frame,
+                                                                      motions.start, motions.end)
         return self._silhouette_finish(scene, art, params, ious, root, root_motion, camera, init, frames)
 
     def _silhouette_finish(self, scene: Any, art: Any, params: np.ndarray, ious: np.ndarray, root: int,
@@ -770,7 +870,7 @@ class VideoReconstructor:
         init = self._init_shape(frames, masks, camera, fwd, valid, rng)
         silhouette_j = None
         if cfg.silhouette_rounds > 0 and cfg.bones > 1:
-            silhouette_j = self._silhouette_stage(masks, camera, init, frames)
+            silhouette_j, init = self._silhouette_starts(frames, masks, camera, fwd, valid, init)
         scale = init["width"]
         centre = init["points"].mean(0)
         n_bones = cfg.bones
@@ -1018,7 +1118,9 @@ class VideoReconstructor:
         out["masks"] = masks
         out["report"] = {"history": history, "init_depth_m": init["depth"], "object_width_m": scale,
                          "gaussians": int(len(means_n)), "bones": n_bones,
-                         "init_labels_count": np.bincount(init["labels"], minlength=n_bones).tolist()}
+                         "init_labels_count": np.bincount(init["labels"], minlength=n_bones).tolist(),
+                         "silhouette_start": init.get("silhouette_start", 0),
+                         "silhouette_starts": init.get("silhouette_starts", [])}
         return out
 
     def _reference(self, fit: dict[str, Any], clip: VideoClip, camera: Camera, source: ReferenceInput) -> Reference:
