@@ -10,7 +10,10 @@ known static camera, a dense first-frame point cloud is tracked by derivative-fr
 silhouette IoU (root 6 DoF or static when its flow tracks do not move; other parts about joints at their
 part boundary, turned into 1-DoF hinges when their rotations share an axis); each round re-estimates the
 non-root parts' plane tilts (grid), the joint positions and tilts (whole-sequence search) and the labels
-(silhouette and flow-track consistency over all frames). Options, measured mixed and so off by default:
+(silhouette and flow-track consistency over all frames). The stage runs from ``silhouette_restarts``
+starts (other samples for the first clustering), and the start whose moving parts best predict the
+motions of image corners wins: silhouettes cannot rank the basins the stage ends in, corner motions can.
+Options, measured mixed and so off by default:
 a sequence's score minus a frame-to-frame optical-flow term (``silhouette_flow_weight``: the texture's
 motion judges what the silhouettes leave open, a hinged part's tilt against its swing), fresh tilt-grid
 hypotheses with re-detected hinges after the rounds (``silhouette_hypotheses``), and relabelling that
@@ -482,8 +485,10 @@ class VideoReconstructor:
         # Gaussians re-sampled with the seed (seed, r); the start whose moving parts best predict the motions
         # of image corners (:func:`._video_silhouette.motion_residual`) wins. Why: which basin the silhouette
         # stage ends in depends on the first labels, and the silhouettes cannot rank the basins (a wrong lid
-        # tilt can score the higher IoU) while the corners' motions can (docs/results.md). 1 = one start.
-        silhouette_restarts: int = 1
+        # tilt can score the higher IoU) while the corners' motions can. Measured (docs/results.md), seeds
+        # 0/1/2: hinge renders 2.04/2.37/8.3 deg with 3 starts against 2.04/12.06/9.84 with 1, filmed laptop
+        # 1.84/1.76/2.72 against 1.84/10.86/2.72; the stage takes 3x as long. 1 = one start.
+        silhouette_restarts: int = 3
         silhouette_restart_min_corners: int = 20  # a start scoring fewer corners is ranked by IoU after the rest
 
         def validate(self) -> None:
