@@ -453,6 +453,23 @@ def test_render_parts_matches_posing_then_rendering() -> None:
     assert np.array_equal(got, expected)
 
 
+def test_pose_search_shortcuts_give_the_plain_results() -> None:
+    """The pose search's shortcuts change nothing: a precomputed pose layout gives the same transforms,
+    and cells drawn beforehand (a static part's) plus the other points give the raster of all points."""
+    rng = np.random.default_rng(5)
+    art = vsil.Articulation(labels=np.zeros(1, int), parent=np.array([-1, 0, 1]), pivots=rng.normal(0, 0.1, (3, 3)),
+                            tilts=np.zeros((3, 2)), axes=np.array([[np.nan] * 3, [0.0, 0.6, 0.8], [np.nan] * 3]))
+    params = rng.normal(0.0, 0.3, int(vsil.param_offsets(art)[-1]))
+    layout = vsil.pose_layout(art)
+    assert layout.hinge.tolist() == [False, True, False] and layout.offsets.tolist() == [0, 6, 7, 10]
+    assert np.array_equal(vsil.pose_transforms(params, art, 0.5, layout), vsil.pose_transforms(params, art, 0.5))
+    uv = rng.uniform(-5, 70, (400, 2))
+    cells = vsil.raster_points(uv[:150], (48, 64), 2, grow=0).astype(np.uint8)
+    together = vsil.raster_points(uv, (48, 64), 2)
+    assert together.any() and np.array_equal(vsil.raster_points(uv[150:], (48, 64), 2, cells=cells), together)
+    assert cells.sum() == vsil.raster_points(uv[:150], (48, 64), 2, grow=0).sum()  # the copy left it alone
+
+
 def _fronto_square_scene(n_frames: int, *, stride: int = 1) -> vsil.SilhouetteScene:
     """A 24 x 24 px square of points on the plane z = 1 (identity camera, f = 40 px), static masks."""
     h, w = 40, 40

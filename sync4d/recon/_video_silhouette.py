@@ -48,17 +48,20 @@ def about_pivot(rot: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     return out
 
 
-def raster_points(uv: np.ndarray, shape: tuple[int, int], stride: int, *, grow: int = 1) -> np.ndarray:
+def raster_points(uv: np.ndarray, shape: tuple[int, int], stride: int, *, grow: int = 1,
+                  cells: np.ndarray | None = None) -> np.ndarray:
     """(H // stride, W // stride) bool image of pixel points (N, 2) (u, v) [px], closed over ``grow`` cells.
 
     A dense point cloud rasterised at a coarse stride approximates the object's silhouette; a
     morphological closing fills the gaps between neighbouring points without growing the outline.
+    ``cells``: (H // stride, W // stride) uint8 cells of other points, already drawn (``grow=0`` output as
+    uint8): the pose search draws a static part once, not at every evaluation.
     """
     h, w = shape[0] // stride, shape[1] // stride
     iu = np.floor(uv[:, 0] / stride).astype(np.int64)
     iv = np.floor(uv[:, 1] / stride).astype(np.int64)
     keep = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
-    img = np.zeros((h, w), np.uint8)
+    img = np.zeros((h, w), np.uint8) if cells is None else cells.copy()
     img[iv[keep], iu[keep]] = 1
     if grow > 0:
         # constant zero border: the erosion must not treat the outside of the image as foreground
@@ -262,7 +265,10 @@ class SilhouetteScene:
         m = self.world_to_cam if motion is None else self.world_to_cam @ motion
         pc = points @ m[:3, :3].T + m[:3, 3]
         z = np.maximum(pc[:, 2], 1e-6)
-        return np.stack([self.K[0, 0] * pc[:, 0] / z + self.K[0, 2], self.K[1, 1] * pc[:, 1] / z + self.K[1, 2]], 1)
+        uv = np.empty((len(points), 2))
+        uv[:, 0] = self.K[0, 0] * pc[:, 0] / z + self.K[0, 2]
+        uv[:, 1] = self.K[1, 1] * pc[:, 1] / z + self.K[1, 2]
+        return uv
 
     def render(self, points: np.ndarray) -> np.ndarray:
         """(h, w) bool silhouette of world points at the scene's stride."""
@@ -353,14 +359,43 @@ def horizontal_root_depths(scene: SilhouetteScene, art: Articulation, root: int,
     return np.clip(np.where(depth > 0, depth, 2.0 * pivot_depth), 0.5 * pivot_depth, 2.0 * pivot_depth)
 
 
-def pose_transforms(params: np.ndarray, art: Articulation, width: float) -> np.ndarray:
+_EYE4 = np.eye(4)
+
+
+@dataclass(frozen=True)
+class PoseLayout:
+    """How an articulation's flat pose vector is read (see :func:`pose_layout`): computed once per search
+    instead of once per evaluation (the pose search evaluates hundreds of thousands of poses per fit).
+
+    Attributes:
+        offsets: (B + 1,) start of each part's parameters.
+        order: parts, root first, each after its parent.
+        hinge: (B,) bool, part is a 1-DoF hinge.
+    """
+
+    offsets: np.ndarray
+    order: tuple[int, ...]
+    hinge: np.ndarray
+
+
+def pose_layout(art: Articulation) -> PoseLayout:
+    """The articulation's :class:`PoseLayout` (valid until its parents, axes or ``free`` change)."""
+    assert art.axes is not None
+    return PoseLayout(offsets=param_offsets(art), order=tuple(art.order()), hinge=np.isfinite(art.axes).all(1))
+
+
+def pose_transforms(params: np.ndarray, art: Articulation, width: float,
+                    layout: PoseLayout | None = None) -> np.ndarray:
     """(B, 4, 4) bone transforms from parameters: root (6,) = rotation vector [rad] about its pivot and
     translation [object widths]; a ball-jointed part (3,) = rotation vector about its joint, which its
-    parent carries; a hinged part (1,) = angle [rad] about its axis (canonical frame) through its joint."""
-    out = np.tile(np.eye(4), (art.n_parts, 1, 1))
-    offsets = param_offsets(art)
+    parent carries; a hinged part (1,) = angle [rad] about its axis (canonical frame) through its joint.
+    ``layout``: the articulation's :func:`pose_layout`, when the caller has it."""
+    layout = pose_layout(art) if layout is None else layout
+    offsets = layout.offsets
+    out = np.empty((art.n_parts, 4, 4))
+    out[:] = _EYE4
     assert art.axes is not None
-    for b in art.order():
+    for b in layout.order:
         p = params[offsets[b]: offsets[b + 1]]
         if art.parent[b] < 0 or art.free:
             out[b] = about_pivot(rotvec_to_matrix(p[:3]), art.pivots[b])
@@ -368,7 +403,7 @@ def pose_transforms(params: np.ndarray, art: Articulation, width: float) -> np.n
             if art.parent[b] >= 0:
                 out[b] = out[art.parent[b]] @ out[b]
         else:
-            rv = art.axes[b] * p[0] if art.is_hinge(b) else p[:3]
+            rv = art.axes[b] * p[0] if layout.hinge[b] else p[:3]
             out[b] = out[art.parent[b]] @ about_pivot(rotvec_to_matrix(rv), art.pivots[b])
     return out
 
@@ -431,9 +466,19 @@ def fit_frame(scene: SilhouetteScene, art: Articulation, points: np.ndarray, t: 
             steps[offsets[b]: offsets[b] + 6] = 0.0
 
     groups = [points[art.labels == b] for b in range(art.n_parts)]
+    layout = pose_layout(art)
+    # a static root keeps x0's parameters, so its projection is the same at every evaluation
+    fixed = [] if root_motion else [b for b in range(art.n_parts) if art.parent[b] < 0 and len(groups[b])]
+    moving = [b for b in range(art.n_parts) if b not in fixed and len(groups[b])]
+    tf0 = pose_transforms(x0, art, scene.width, layout)
+    fixed_uv = [scene.project(groups[b], tf0[b]) for b in fixed] or [np.zeros((0, 2))]
+    fixed_cells = raster_points(np.concatenate(fixed_uv), scene.image_shape, scene.stride, grow=0).astype(np.uint8)
 
     def score(x: np.ndarray) -> float:
-        return mask_iou(scene.render_parts(groups, pose_transforms(x, art, scene.width)), scene.masks[t])
+        tf = pose_transforms(x, art, scene.width, layout)
+        uv = [scene.project(groups[b], tf[b]) for b in moving] or [np.zeros((0, 2))]
+        silhouette = raster_points(np.concatenate(uv), scene.image_shape, scene.stride, cells=fixed_cells)
+        return mask_iou(silhouette, scene.masks[t])
 
     return pattern_search(score, x0, steps, max_evals=max_evals)
 
