@@ -226,7 +226,7 @@ class RunFolderInUse(ConfigError):
 
 
 #: Top-level keys that do not change a run's results (excluded from the resume fingerprint).
-NOT_RESULTS = ("resume", "name", "cache", "render", "logger", "hydra")
+NOT_RESULTS = ("resume", "name", "cache", "cache_dir", "render", "logger", "hydra")
 #: Files whose presence marks a folder as another run's.
 RUN_MARKERS = ("metrics.json", "checkpoint.pt")
 
@@ -288,7 +288,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     seed_everything(int(cfg.seed))
     atomic_write_json(run_dir / "env.json", environment_record(str(cfg.device)))
     logger = build("logger", group_cfg(cfg, "logger"), run_dir=run_dir)
-    ctx = RunContext(cfg=cfg, run_dir=run_dir, cache_root=ROOT / "outputs" / "cache", logger=logger)
+    cache_root = Path(cfg.cache_dir) if cfg.get("cache_dir") else ROOT / "outputs" / "cache"
+    ctx = RunContext(cfg=cfg, run_dir=run_dir, cache_root=cache_root, logger=logger)
     started = time.perf_counter()
     try:
         return _run_stages(ctx, started)
@@ -310,6 +311,9 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
         log.warning("no feature extractor is registered yet: the run ends after loading the target")
         return {}
     part_map = stage_match(ctx, reference, recon_key, target, source)
+    # the reconstruction draws from the global RNGs when it runs and not when its cache is reused; seeding
+    # again here keeps what follows (the velocity field's initial weights) the same either way
+    seed_everything(int(cfg.seed))
     report_figures.save_match_figure(reference, target, part_map, ctx.run_dir / "match.png", logger=ctx.logger)
 
     points, faces = target_surface(target, source)

@@ -21,3 +21,19 @@ def test_same_seed_same_run(tmp_path: Path) -> None:
         assert proc.returncode == 0, proc.stderr[-3000:]
     assert len(list((first / "frames").glob("*.ply"))) == 4
     assert_same_run(first, second)
+
+
+def test_a_cached_reconstruction_gives_the_same_run(tmp_path: Path) -> None:
+    """The second run reuses the first one's cached reconstruction and matching: its frames and metrics are
+    those of the run that computed them (the reconstruction draws from the global random generators, and a
+    cache hit skips those draws)."""
+    cache = tmp_path / "cache"
+    fresh, reused = tmp_path / "fresh", tmp_path / "reused"
+    logs = []
+    for run_dir in (fresh, reused):
+        proc = run_train(run_dir, "frames=3", "seed=0", "cache=true", f"cache_dir={cache}")
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        logs.append(proc.stdout + proc.stderr)
+    assert "recon: reusing cache" not in logs[0] and "recon: reusing cache" in logs[1]
+    assert "match: reusing cache" in logs[1]
+    assert_same_run(fresh, reused)
