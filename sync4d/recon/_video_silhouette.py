@@ -544,11 +544,11 @@ def flow_penalty(scene: SilhouetteScene, art: Articulation, points: np.ndarray, 
     return float(np.minimum(miss, scene.flow_cap).sum()) / max(len(points), 1)
 
 
-def part_surface_planes(scene: SilhouetteScene, art: Articulation) -> tuple[np.ndarray, np.ndarray]:
+def part_surface_planes(points: np.ndarray, art: Articulation) -> tuple[np.ndarray, np.ndarray]:
     """(B, 3) points and (B, 3) unit normals of each part's canonical surface plane (world) [m]: the
-    least-squares plane of its canonical points, which lie on one plane in this model (a moving part's
-    tilted plane through its joint, the root's stand-in plane); NaN for a part with under 3 points."""
-    points = canonical_points(scene, art)
+    least-squares plane of its canonical points (M, 3) (:func:`canonical_points`), which lie on one plane in
+    this model (a moving part's tilted plane through its joint, the root's stand-in plane); NaN for a part
+    with under 3 points."""
     centres = np.full((art.n_parts, 3), np.nan)
     normals = np.full((art.n_parts, 3), np.nan)
     for b in range(art.n_parts):
@@ -576,8 +576,8 @@ def motion_residual(scene: SilhouetteScene, art: Articulation, params: np.ndarra
     Returns:
         (mean residual [px], number of corners scored); (nan, 0) when none is scored.
     """
-    centres, normals = part_surface_planes(scene, art)
     points = canonical_points(scene, art)
+    centres, normals = part_surface_planes(points, art)
     points_by_part = [points[art.labels == b] for b in range(art.n_parts)]
     c2w = np.linalg.inv(scene.world_to_cam)
     h, w = scene.masks.shape[1:]
