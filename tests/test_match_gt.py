@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sync4d.evaluate.match_gt import (
+from sync4d_tools.evaluate.match_gt import (
     body_reference,
     grouped_body,
     rescale_skeleton,
@@ -55,7 +55,7 @@ def pipeline_match_options() -> dict:
 
 @pytest.fixture(scope="module")
 def geometric_extractor():
-    from sync4d.evaluate.match_gt import load_features_config
+    from sync4d_tools.evaluate.match_gt import load_features_config
     from sync4d.registry import build
 
     return build("features", load_features_config("geometric"), device="cpu")
@@ -63,7 +63,7 @@ def geometric_extractor():
 
 def test_laptop_of_other_proportions_meets_the_accuracy_goal(geometric_extractor) -> None:
     """Issue goal (b): >= 95% part-label accuracy with the pipeline defaults (no shared data needed)."""
-    from sync4d.evaluate.match_gt import pair_laptop_proportions
+    from sync4d_tools.evaluate.match_gt import pair_laptop_proportions
 
     pair = pair_laptop_proportions(geometric_extractor, pipeline_match_options(), n_points=1500)
     assert pair.accuracy >= 0.95
@@ -72,7 +72,7 @@ def test_laptop_of_other_proportions_meets_the_accuracy_goal(geometric_extractor
 def test_human_self_copy_meets_the_accuracy_goal(geometric_extractor) -> None:
     """Issue goal (a): a resampled, rescaled, rotated, jittered copy of the CMU capsule body, >= 95%."""
     from sync4d.errors import DataMissingError
-    from sync4d.evaluate.match_gt import pair_self_copy
+    from sync4d_tools.evaluate.match_gt import pair_self_copy
 
     try:
         pair = pair_self_copy(geometric_extractor, pipeline_match_options(), n_points=2000)

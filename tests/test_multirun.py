@@ -44,7 +44,7 @@ def test_ablate_bones_sweep_and_report(tmp_path: Path) -> None:
     assert metrics["recon.bones=0"]["status"] == "failed"
     assert "ConfigError" in metrics["recon.bones=0"]["error"]
 
-    report = subprocess.run([sys.executable, "-m", "sync4d.report", str(sweep), "--out", str(tmp_path / "report")],
+    report = subprocess.run([sys.executable, "-m", "sync4d_tools.report", str(sweep), "--out", str(tmp_path / "report")],
                             cwd=ROOT, env=env, capture_output=True, text=True, timeout=300, check=False)
     assert report.returncode == 0, report.stderr[-3000:]
     out = tmp_path / "report"

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
-from sync4d import report as R
+from sync4d_tools import report as R
 
 
 def make_run(root: Path, name: str, overrides: list[str], metrics: dict[str, Any] | None,

@@ -1,4 +1,4 @@
-"""``python -m sync4d.report <multirun folder> [--out DIR]``: a sweep's runs as a table and charts.
+"""``python -m sync4d_tools.report <multirun folder> [--out DIR]``: a sweep's runs as a table and charts.
 
 Walks the folder for run sub-folders (each holds ``metrics.json`` with ``status`` ok or failed, and
 Hydra's ``.hydra/overrides.yaml``; a job folder with overrides but no ``metrics.json`` is reported as
@@ -556,14 +556,14 @@ def make_report(root: Path, out: Path | None = None) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m sync4d.report", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m sync4d_tools.report", description=__doc__.split("\n")[0])
     parser.add_argument("folder", type=Path, help="a multirun folder (hydra.sweep.dir)")
     parser.add_argument("--out", type=Path, default=None, help="where to write the report (default: the folder)")
     args = parser.parse_args(argv)
     try:
         result = make_report(args.folder, args.out)
     except FileNotFoundError as err:
-        print(f"sync4d.report: {err}", file=sys.stderr)
+        print(f"sync4d_tools.report: {err}", file=sys.stderr)
         return 2
     out = args.out or args.folder
     print(f"{len(result['rows'])} runs -> {out / 'report.md'}, {out / 'report.csv'}, charts: {', '.join(result['charts']) or 'none'}")

@@ -1,0 +1,1 @@
+"""Evaluation, reporting and benchmark tools around the sync4d library (which never imports them)."""
