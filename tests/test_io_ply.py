@@ -115,3 +115,70 @@ def test_errors_name_the_file_and_problem(tmp_path):
     empty.write_bytes(_header([n for n, _ in cols], 0))
     with pytest.raises(InputError, match=r"empty\.ply: contains zero Gaussians"):
         read_gaussians_ply(empty)
+
+
+def _write_raw(path, g: TargetGaussians) -> None:
+    """Write ``g`` without validation (to produce files holding bad values)."""
+    from sync4d.io.ply import gaussians_table
+
+    data = gaussians_table(g)
+    path.write_bytes(_header(list(data.dtype.names), g.num) + data.tobytes())
+
+
+@pytest.mark.parametrize(
+    ("field", "index", "value", "prop"),
+    [
+        ("log_scales", (3, 1), 200.0, "scale_1"),      # exp(200) overflows float32 to inf
+        ("log_scales", (0, 0), -120.0, "scale_0"),     # exp(-120) underflows to zero
+        ("opacity_logits", (2,), 1e9, "opacity"),
+        ("means", (4, 2), 3e9, "z"),                   # 3 million km away
+    ],
+)
+def test_absurd_values_are_refused_naming_file_property_and_gaussian(tmp_path, field, index, value, prop):
+    g = random_gaussians(6, 1, False)
+    getattr(g, field)[index] = value
+    path = tmp_path / "absurd.ply"
+    _write_raw(path, g)
+    with pytest.raises(InputError, match=rf"absurd\.ply: property '{prop}' of Gaussian {index[0]} is ") as info:
+        read_gaussians_ply(path)
+    assert "\n" not in str(info.value)
+
+
+def test_inf_scale_is_refused(tmp_path):
+    g = random_gaussians(6, 0, False)
+    g.log_scales[5, 2] = np.inf
+    path = tmp_path / "inf.ply"
+    _write_raw(path, g)
+    with pytest.raises(InputError, match=r"inf\.ply: property 'scale_2' holds 1 inf value\(s\) \(first at Gaussian 5\)"):
+        read_gaussians_ply(path)
+
+
+def test_ascii_and_other_layouts_read_like_binary(tmp_path):
+    """plyfile reads ASCII, big-endian and files whose vertex element is not first."""
+    import plyfile
+
+    from sync4d.io.ply import gaussians_table
+
+    g = random_gaussians(7, 2, True)
+    table = gaussians_table(g)
+    faces = np.empty(1, dtype=[("vertex_indices", "O")])
+    faces["vertex_indices"][0] = np.array([0, 1, 2], dtype=np.int32)
+    elements = [plyfile.PlyElement.describe(faces, "face"), plyfile.PlyElement.describe(table, "vertex")]
+    for text, order in ((True, "="), (False, ">")):
+        path = tmp_path / f"layout_{text}.ply"
+        plyfile.PlyData(elements, text=text, byte_order=order).write(str(path))
+        back = read_gaussians_ply(path)
+        assert back.sh_degree == 2
+        np.testing.assert_allclose(back.sh, g.sh, rtol=1e-6)
+        np.testing.assert_allclose(back.means, g.means, rtol=1e-6)
+
+
+def test_list_property_and_bad_header_are_one_line_errors(tmp_path):
+    path = tmp_path / "list.ply"
+    path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar int idx\nend_header\n1 0\n")
+    with pytest.raises(InputError, match=r"list\.ply: list property 'idx'"):
+        read_gaussians_ply(path)
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty flot x\nend_header\n")
+    with pytest.raises(InputError, match=r"bad\.ply: malformed PLY header"):
+        read_gaussians_ply(bad)
