@@ -16,8 +16,11 @@ the typed ``Config`` so an unknown key or a wrong type fails at start-up naming 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import types
+import typing
 from collections.abc import Callable, Mapping
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
@@ -113,21 +116,77 @@ def make_config(
     cls = lookup(group, str(name))
     if shrink:
         values.update(applicable_shrink(cls, values, shrink))
-    schema = OmegaConf.structured(cls.Config)
-    try:
-        merged = OmegaConf.merge(schema, values)
-    except ConfigKeyError as err:
-        known = ", ".join(f.name for f in dataclasses.fields(cls.Config))
-        raise ConfigError(f"{group}.{err.key}: unknown key for {group}={name}; known keys: {known}") from None
-    except ValidationError as err:
-        raise ConfigError(f"{group}.{err.key}: {err.msg.splitlines()[0]} (for {group}={name})") from None
-    except OmegaConfBaseException as err:
-        raise ConfigError(f"{group}={name}: {str(err).splitlines()[0]}") from None
-    typed = OmegaConf.to_object(merged)
+    typed = typed_config(cls.Config, values, where=f"{group}", label=f"{group}={name}")
     check = getattr(typed, "validate", None)
     if callable(check):
         check()
     return cls, typed
+
+
+def typed_config(config: type, values: Mapping[str, Any], *, where: str, label: str) -> Any:
+    """Merge plain ``values`` into the dataclass ``config``: unknown keys, wrong types and values outside a
+    ``Literal[...]`` option set fail with one line naming ``<where>.<key>``.
+
+    OmegaConf checks the types but knows no ``Literal``; it sees such a field as its values' type and the
+    allowed set is checked here.
+    """
+    schema = OmegaConf.structured(omegaconf_schema(config))
+    try:
+        merged = OmegaConf.merge(schema, dict(values))
+    except ConfigKeyError as err:
+        known = ", ".join(f.name for f in dataclasses.fields(config))
+        raise ConfigError(f"{where}.{err.full_key or err.key}: unknown key for {label}; known keys: {known}") from None
+    except ValidationError as err:
+        raise ConfigError(f"{where}.{err.full_key or err.key}: {err.msg.splitlines()[0]} (for {label})") from None
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"{label}: {str(err).splitlines()[0]}") from None
+    plain = OmegaConf.to_container(merged, resolve=True)
+    assert isinstance(plain, dict)
+    hints = typing.get_type_hints(config)
+    for key, value in plain.items():
+        if dataclasses.is_dataclass(hints[key]) and isinstance(value, dict):
+            plain[key] = typed_config(hints[key], value, where=f"{where}.{key}", label=label)
+            continue
+        allowed = literal_options(hints[key])
+        if allowed is not None and value not in allowed:
+            raise ConfigError(f"{where}.{key}={value!r}: must be one of {', '.join(map(str, allowed))} (for {label})")
+    return config(**plain)
+
+
+def literal_options(hint: Any) -> tuple[Any, ...] | None:
+    """The allowed values of a ``Literal[...]`` (or ``Literal[...] | None``) hint, else None."""
+    if typing.get_origin(hint) is Literal:
+        return typing.get_args(hint)
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        literals = [a for a in args if typing.get_origin(a) is Literal]
+        if literals and type(None) in args:
+            return (*typing.get_args(literals[0]), None)
+    return None
+
+
+@functools.cache
+def omegaconf_schema(config: type) -> type:
+    """``config`` as a dataclass OmegaConf can type-check: each ``Literal`` becomes the type of its values."""
+    hints = typing.get_type_hints(config)
+    fields = []
+    for f in dataclasses.fields(config):
+        hint = hints[f.name]
+        options = literal_options(hint)
+        if dataclasses.is_dataclass(hint):
+            hint = omegaconf_schema(hint)
+        elif options is not None:
+            kinds = {type(o) for o in options if o is not None}
+            base = kinds.pop() if len(kinds) == 1 else Any
+            hint = base | None if None in options and base is not Any else base
+        if dataclasses.is_dataclass(hints[f.name]):  # a nested block: its own schema's defaults
+            fields.append((f.name, hint, dataclasses.field(default_factory=hint)))
+            continue
+        default: Any = dataclasses.field(default=f.default) if f.default is not dataclasses.MISSING else (
+            dataclasses.field(default_factory=f.default_factory)  # type: ignore[misc]
+            if f.default_factory is not dataclasses.MISSING else dataclasses.field())  # type: ignore[misc]
+        fields.append((f.name, hint, default))
+    return dataclasses.make_dataclass(f"{config.__qualname__.replace('.', '_')}Schema", fields)
 
 
 def effective_config(group: str, cfg: Mapping[str, Any] | DictConfig, shrink: Mapping[str, Any] | None) -> dict:

@@ -23,8 +23,8 @@ class ConcatFeatures:
     @dataclass
     class Config:
         # Sub-configs, each with its own ``type`` (e.g. [{type: diff3f}, {type: geometric}]).
-        parts: list[Any] = field(default_factory=lambda: [{"type": "diff3f"}, {"type": "geometric"}])
-        weights: list[float] = field(default_factory=list)  # one per part; empty = all 1
+        parts: list[Any] = field(default_factory=lambda: [{"type": "diff3f", "backbone": "shading_fourier"}, {"type": "geometric"}])
+        weights: list[float] = field(default_factory=lambda: [0.5, 1.0])  # one per part; empty = all 1
 
         def validate(self) -> None:
             if not self.parts:

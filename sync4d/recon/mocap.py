@@ -222,7 +222,7 @@ class MocapReconstructor:
         joint_unit_scale: float = 1.0
         parents: list[int] = field(default_factory=list)
         root: int = 0
-        target_fps: float = 0.0
+        target_fps: float = 30.0
         rest_frame: int = 0
         global_motion: str = "root"
         radius_scale: float = 0.18

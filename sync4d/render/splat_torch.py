@@ -383,7 +383,7 @@ class SplatTorch:
         tile_size: int = 4  # pixels per tile side: each (Gaussian, tile) pair evaluates tile_size^2 pixels
         max_pairs: int = 1_000_000  # (Gaussian, pixel) evaluations per band: bounds memory (~60 B each), speed
         dtype: str = "float32"  # compute dtype for numpy inputs (torch inputs keep theirs)
-        num_threads: int = 0  # torch CPU threads while rendering; 0 = leave torch's setting
+        num_threads: int = 1  # torch CPU threads while rendering; 0 = torch's setting (1: contended cores stall 2 threads)
         fps: float = 0.0  # video frame rate [1/s]; 0 = the reference's
         turntable_frames: int = 0  # frames of an optional turntable of the last frame (0 = none)
 

@@ -177,7 +177,7 @@ class LaptopReference:
         period_frames: int = 24        # frames per open-close cycle
         fps: float = 12.0              # [1/s]
         subdivisions: int = 3          # mesh density (vertices grow 4x per step)
-        video: bool = False            # also film the laptop (static camera, textured) for recon=video (conf/reference/laptop.yaml: on, as the default run reconstructs from it)
+        video: bool = True             # also film the laptop (static camera, textured) for recon=video, as the default run reconstructs from the film
         video_width: int = 160         # [px]
         video_height: int = 120        # [px]
         video_gaussians: int = 6000    # surface Gaussians rendered

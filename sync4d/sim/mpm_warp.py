@@ -430,11 +430,11 @@ class MPMWarp:
         wall_cells: int = 3
         boundary: str = "slip"
         fixed_box: list[float] | None = None
-        frame_time: float = 0.04
+        frame_time: float = 0.02
         substeps: int = 20
         auto_substep: bool = True
         cfl_safety: float = 0.3
-        control_grid: int | None = None
+        control_grid: int | None = 20
         gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
         checkpoint_every: int | None = None
         checkpoint_budget_mb: float = 512.0

@@ -48,8 +48,8 @@ class TriplaneField(nn.Module):
         tv_weight: float = 1e-4    # weight of the total-variation loss on the planes
         velocity_scale: float = 1.0  # multiplies the reference velocities (kept 1 when training)
         lr: float = 1e-2           # Adam learning rate
-        iterations: int = 40       # max optimisation steps per frame pair
-        patience: int = 8          # early stop after this many steps without improvement
+        iterations: int = 12       # max optimisation steps per frame pair
+        patience: int = 4          # early stop after this many steps without improvement
         min_improvement: float = 1e-3  # relative loss improvement that counts
         reset_each_frame: bool = False  # re-initialise the field at every frame pair (else warm start)
 
@@ -101,8 +101,8 @@ class PerPartField(nn.Module):
     class Config:
         velocity_scale: float = 1.0
         lr: float = 5e-2
-        iterations: int = 40
-        patience: int = 8
+        iterations: int = 12
+        patience: int = 4
         min_improvement: float = 1e-3
         reset_each_frame: bool = False
 
