@@ -452,3 +452,73 @@ def test_hand_written_stress_adjoint_matches_warp_autodiff():
     # derivative: they agree closely where Newton converged (most), loosely where the SVD took over.
     assert np.median(rel) < 1e-4
     assert np.quantile(rel, 0.9) < 1e-2
+
+
+def _bspline_1d(f: float) -> np.ndarray:
+    """Quadratic B-spline weights of the three nodes base, base+1, base+2 for offset f in cells from base."""
+    return np.array([0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2])
+
+
+def _one_particle_grid(F: np.ndarray, *, scale: float = 1.0):
+    """Grid (nx, ny, nz, 4) after one P2G of a single resting particle with deformation gradient F."""
+    import dataclasses
+
+    import warp as wp
+
+    from sync4d.sim import _kernels as K
+    from sync4d.sim import mpm_warp as mw
+
+    sim = make_sim(n_grid=16)
+    model = sim.prepare(np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.1]]))
+    xp = np.array([[0.0437, 0.0512, 0.0581]])  # off-centre in its cell: asymmetric weights
+    model = dataclasses.replace(model, rest_points=xp, mass=np.array([0.7]), volume=np.array([2e-4]),
+                                mu=model.mu * scale, lam=model.lam * scale)
+    dt = 1e-3
+    launch = mw._Launch(model=model, ws=sim._workspace(1, model.grid.dims),
+                        mass=wp.array(np.array([0.7], np.float32), dtype=float, device="cpu"),
+                        volume=wp.array(np.array([2e-4], np.float32), dtype=float, device="cpu"), dt=dt, mass_eps=1e-12)
+    t = torch.as_tensor
+    mw._load(launch.ws.ping, t(xp, dtype=torch.float32), torch.zeros(1, 3), t(F[None], dtype=torch.float32),
+             torch.zeros(1, 3, 3))
+    launch.ws.grid.zero_()
+    i, o = launch.p2g_args(launch.ws.ping, 0)
+    wp.launch(K.p2g, dim=1, inputs=i, outputs=o, device="cpu")
+    return launch.ws.grid.numpy().astype(np.float64), model, xp[0], dt
+
+
+def _axis_rotation(axis, angle):
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    K_ = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K_ + (1 - np.cos(angle)) * K_ @ K_
+
+
+def test_p2g_momentum_of_a_large_deformation_matches_the_analytic_stress():
+    """One particle at rest with F = R diag(1.5, 0.8, 1.1): node momenta are -w_i dt V (4/dx^2) tau (x_i - x_p)
+    with tau = 2 mu (F - R) F^T + lam (J - 1) J I, written out here from the definition (drop F^T and this fails)."""
+    R = _axis_rotation([0.3, -0.5, 0.8], 0.7)
+    F = R @ np.diag([1.5, 0.8, 1.1])
+    grid, model, xp, dt = _one_particle_grid(F)
+    J = np.linalg.det(F)
+    tau = 2 * model.mu * (F - R) @ F.T + model.lam * (J - 1) * J * np.eye(3)
+    g = model.grid
+    gp = (xp - g.origin) / g.dx
+    base = np.floor(gp - 0.5).astype(int)
+    fx = gp - base
+    w = [_bspline_1d(f) for f in fx]
+    expected = np.zeros_like(grid)
+    k = dt * 2e-4 * 4.0 / g.dx**2
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                wi = w[0][a] * w[1][b] * w[2][c]
+                node = base + (a, b, c)
+                rel = g.origin + node * g.dx - xp
+                expected[tuple(node)][:3] = -wi * k * tau @ rel
+                expected[tuple(node)][3] = wi * 0.7
+    scale = np.abs(expected[..., :3]).max()
+    assert scale > 0
+    np.testing.assert_allclose(grid[..., :3], expected[..., :3], atol=2e-5 * scale)
+    np.testing.assert_allclose(grid[..., 3], expected[..., 3], atol=1e-6)
+    # the stress really is what moves the momentum: x4 gives four times the node momenta
+    grid4, *_ = _one_particle_grid(F, scale=4.0)
+    np.testing.assert_allclose(grid4[..., :3], 4 * expected[..., :3], atol=8e-5 * scale)

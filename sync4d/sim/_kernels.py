@@ -82,11 +82,21 @@ def rotation_part(F: wp.mat33) -> wp.mat33:
 
 
 @wp.func
-def kirchhoff_fixed_corotated(F: wp.mat33, mu: float, lam: float) -> wp.mat33:
-    """Fixed-corotated Kirchhoff stress tau = 2 mu (F - R) F^T + lam (J - 1) J I  [Pa]."""
-    R = rotation_part(F)
+def kirchhoff_stress_of(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """THE fixed-corotated Kirchhoff stress tau = 2 mu (F - R) F^T + lam (J - 1) J I  [Pa].
+
+    The one place the constitutive law is written: P2G, P2G's adjoint (which rebuilds tau from the stored
+    rotation) and the test kernel :func:`kirchhoff_stress` all call it, so a test of this function is a
+    test of what the simulator integrates. ``R`` is the polar rotation of ``F`` (:func:`rotation_part`).
+    """
     J = wp.determinant(F)
     return 2.0 * mu * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
+
+
+@wp.func
+def kirchhoff_fixed_corotated(F: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """:func:`kirchhoff_stress_of` with the polar rotation computed from ``F`` [Pa]."""
+    return kirchhoff_stress_of(F, rotation_part(F), mu, lam)
 
 
 @wp.func
@@ -218,8 +228,7 @@ def p2g(
     R = rotation_part(Fp)
     if store_rotation != 0:
         rotation[p] = R
-    J = wp.determinant(Fp)
-    tau = 2.0 * mu * (Fp - R) * wp.transpose(Fp) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
+    tau = kirchhoff_stress_of(Fp, R, mu, lam)
     A = m * C[p] - (dt * volume[p] * 4.0 * inv_dx * inv_dx) * tau
     # (x_i - x_p) = dx (node - fx): split so the loop only adds columns of A.
     mom0 = m * v[p] - dx * (A * fx)
@@ -464,8 +473,7 @@ def p2g_adjoint(
     m = mass[p]
     Fp = F[p]
     R = rotation[p]  # stored by the P2G that rebuilt this substep's grid (same F)
-    J = wp.determinant(Fp)
-    tau = 2.0 * mu * (Fp - R) * wp.transpose(Fp) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
+    tau = kirchhoff_stress_of(Fp, R, mu, lam)
     k_tau = dt * volume[p] * 4.0 * inv_dx * inv_dx
     A = m * C[p] - k_tau * tau
     mom0 = m * v[p] - dx * (A * fx)
