@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import resource
 import sys
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -108,3 +109,200 @@ def skinned_positions(rest: np.ndarray, skinning: np.ndarray, transforms: np.nda
     """(N, 3) linear blend skinning of rest points [m] with (N, B) weights and (B, 4, 4) transforms."""
     blended = np.einsum("nb,bij->nij", skinning, transforms)
     return np.einsum("nij,nj->ni", blended[:, :3, :3], rest) + blended[:, :3, 3]
+
+
+# ----------------------------------------------------------------------------------------------------
+# Shape integrity: does the target stay whole? (rest neighbour pairs, fragments, part volumes)
+# ----------------------------------------------------------------------------------------------------
+
+#: relative length change of a rest neighbour pair beyond which it counts as torn (stretched or compressed)
+TORN_STRAIN = 0.10
+
+
+def rest_neighbour_pairs(rest: np.ndarray, k: int = 8) -> np.ndarray:
+    """(M, 2) unique pairs (i < j) of each rest point with its ``k`` nearest neighbours.
+
+    Args:
+        rest: (N, 3) rest positions [m].
+        k: neighbours per point.
+    """
+    from scipy.spatial import cKDTree
+
+    rest = np.asarray(rest, dtype=np.float64)
+    kk = min(k + 1, len(rest))
+    _, idx = cKDTree(rest).query(rest, k=kk)
+    i = np.repeat(np.arange(len(rest)), kk - 1)
+    j = idx[:, 1:].reshape(-1)
+    pairs = np.sort(np.stack([i, j], axis=1), axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    return np.unique(pairs, axis=0)
+
+
+def pair_strain(rest: np.ndarray, x: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(M,) relative length change |l_t / l_0 - 1| of each pair from ``rest`` (N, 3) to ``x`` (N, 3)."""
+    l0 = np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1)
+    lt = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1)
+    return np.abs(lt / np.maximum(l0, 1e-12) - 1.0)
+
+
+def torn_pairs_pct(strain: np.ndarray, mask: np.ndarray | None = None, threshold: float = TORN_STRAIN) -> float:
+    """Share [%] of pairs (optionally only those in ``mask``) strained beyond ``threshold``; 0 without pairs."""
+    s = strain if mask is None else strain[mask]
+    return float((s > threshold).mean() * 100.0) if len(s) else 0.0
+
+
+def strain_p99_pct(strain: np.ndarray) -> float:
+    """99th percentile of the pair strain [%]."""
+    return float(np.percentile(strain, 99) * 100.0) if len(strain) else 0.0
+
+
+def seam_pairs(pairs: np.ndarray, parts: np.ndarray) -> np.ndarray:
+    """(M,) bool: the pair joins two different parts (a seam)."""
+    return parts[pairs[:, 0]] != parts[pairs[:, 1]]
+
+
+def count_fragments(
+    x: np.ndarray, pairs: np.ndarray, strain: np.ndarray, gap: float, threshold: float = TORN_STRAIN
+) -> int:
+    """Pieces of the rest neighbour graph, cut at torn pairs, lying more than ``gap`` from the rest of the body.
+
+    The graph's largest component after cutting is the body; every other component whose nearest point
+    is farther than ``gap`` [m] from every point outside it has come off. A torn but touching seam is
+    not a fragment; a limb or a few scattered Gaussians floating free are.
+
+    Args:
+        x: (N, 3) positions at frame t [m].
+        pairs: (M, 2) rest neighbour pairs; strain: (M,) their strain at t.
+        gap: distance [m] (two grid cells of the simulator).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(x)
+    keep = strain <= threshold
+    a, b = pairs[keep, 0], pairs[keep, 1]
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n))
+    n_comp, label = connected_components(graph, directed=False)
+    if n_comp <= 1:
+        return 0
+    sizes = np.bincount(label, minlength=n_comp)
+    count = 0
+    order = np.argsort(label, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    main = int(np.argmax(sizes))
+    for c in range(n_comp):
+        if c == main:
+            continue
+        inside = order[starts[c]: starts[c + 1]]
+        others = np.ones(n, dtype=bool)
+        others[inside] = False
+        d, _ = cKDTree(x[others]).query(x[inside], k=1, distance_upper_bound=gap)
+        if np.all(~np.isfinite(d)):
+            count += 1
+    return count
+
+
+def part_volumes(x: np.ndarray, parts: np.ndarray, num_parts: int) -> np.ndarray:
+    """(B,) convex-hull volume [m^3] of each part's points (NaN for parts with < 4 points or flat ones).
+
+    Measured from positions alone, so methods that carry no deformation gradient (or a wrong one) are
+    judged alike; a rigid motion keeps it exactly, a shrunk or collapsed part loses volume.
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    out = np.full(num_parts, np.nan)
+    for b in range(num_parts):
+        pts = x[parts == b]
+        if len(pts) >= 4:
+            try:
+                out[b] = ConvexHull(pts).volume
+            except (QhullError, ValueError):
+                pass
+    return out
+
+
+def part_volume_change_pct(volume: np.ndarray, rest_volume: np.ndarray) -> np.ndarray:
+    """(B,) relative change of each part's volume from rest [%] (NaN where the rest volume is unknown)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (volume / rest_volume - 1.0) * 100.0
+
+
+@dataclass(frozen=True)
+class IntegrityFrame:
+    """Shape integrity of one frame (see :func:`integrity_frame`).
+
+    Attributes:
+        torn_pairs_pct: rest k-NN pairs strained > 10% [% of pairs].
+        torn_seam_pairs_pct: the same among pairs that join two parts [%].
+        strain_p99_pct: 99th percentile pair strain [%].
+        volume_change_pct: (B,) per-part convex-hull volume change from rest [%].
+        fragments: pieces more than ``gap`` from the rest of the body.
+    """
+
+    torn_pairs_pct: float
+    torn_seam_pairs_pct: float
+    strain_p99_pct: float
+    volume_change_pct: np.ndarray
+    fragments: int
+
+
+@dataclass(frozen=True)
+class IntegrityModel:
+    """What integrity is measured against: the rest shape, its neighbour graph, parts and the fragment gap.
+
+    Attributes:
+        rest: (N, 3) rest positions [m]; parts: (N,) part labels; num_parts: B.
+        pairs: (M, 2) rest k-NN pairs; seam: (M,) bool pairs joining two parts.
+        rest_volume: (B,) rest convex-hull volume per part [m^3]; gap: fragment distance [m].
+    """
+
+    rest: np.ndarray
+    parts: np.ndarray
+    num_parts: int
+    pairs: np.ndarray
+    seam: np.ndarray
+    rest_volume: np.ndarray
+    gap: float
+
+
+def integrity_model(rest: np.ndarray, parts: np.ndarray, num_parts: int, *, gap: float, k: int = 8) -> IntegrityModel:
+    """Build the rest neighbour graph once per run (k = 8 nearest neighbours, ``gap`` [m])."""
+    rest = np.asarray(rest, dtype=np.float64)
+    parts = np.asarray(parts)
+    pairs = rest_neighbour_pairs(rest, k)
+    return IntegrityModel(rest, parts, int(num_parts), pairs, seam_pairs(pairs, parts),
+                          part_volumes(rest, parts, num_parts), float(gap))
+
+
+def integrity_frame(model: IntegrityModel, x: np.ndarray) -> IntegrityFrame:
+    """All shape-integrity metrics of positions ``x`` (N, 3) [m] against ``model``."""
+    strain = pair_strain(model.rest, x, model.pairs)
+    return IntegrityFrame(
+        torn_pairs_pct=torn_pairs_pct(strain),
+        torn_seam_pairs_pct=torn_pairs_pct(strain, model.seam),
+        strain_p99_pct=strain_p99_pct(strain),
+        volume_change_pct=part_volume_change_pct(part_volumes(x, model.parts, model.num_parts), model.rest_volume),
+        fragments=count_fragments(x, model.pairs, strain, model.gap),
+    )
+
+
+def integrity_summary(frames: list[IntegrityFrame]) -> dict[str, float | int | list[float]]:
+    """Overall integrity over frames 1..T (frame 0 is the rest shape and stays out of every mean).
+
+    Returns ``torn_pairs_pct`` / ``torn_seam_pairs_pct`` / ``strain_p99_pct`` (means over frames),
+    ``strain_p99_max_pct`` (worst frame), ``volume_change_pct`` (mean over frames of the part with the
+    largest |change|, signed), ``volume_change_per_part_pct`` (B,), ``fragments`` (most in any frame).
+    """
+    use = frames[1:] if len(frames) > 1 else frames
+    vol = np.stack([f.volume_change_pct for f in use])  # (T, B)
+    worst = np.take_along_axis(vol, np.nanargmax(np.abs(np.nan_to_num(vol)), axis=1)[:, None], axis=1)[:, 0]
+    return {
+        "torn_pairs_pct": float(np.mean([f.torn_pairs_pct for f in use])),
+        "torn_seam_pairs_pct": float(np.mean([f.torn_seam_pairs_pct for f in use])),
+        "strain_p99_pct": float(np.mean([f.strain_p99_pct for f in use])),
+        "strain_p99_max_pct": float(np.max([f.strain_p99_pct for f in use])),
+        "volume_change_pct": float(np.mean(worst)),
+        "volume_change_per_part_pct": [float(v) for v in np.nanmean(vol, axis=0)],
+        "fragments": int(max(f.fragments for f in use)),
+    }

@@ -150,6 +150,8 @@ class FrameWriter:
             trajectory, self.target, part_map, self.motion, reference,
             self_transfer=bool(cfg.get("self_transfer", False)),
             frame_seconds=self.frame_seconds,
+            loop=bool(cfg.get("loop_reference", True)),
+            dx=next((row["sim/dx"] for row in self.frame_stats if "sim/dx" in row), None),
         )
         result["wall_seconds"] = wall_seconds
         result["status"] = "ok"
@@ -242,6 +244,39 @@ def check_same_config(saved: dict[str, Any] | None, current: dict[str, Any] | No
         raise ConfigError(f"resume={resume}: that run used {shown}{more}; resume with the same overrides")
 
 
+def fragment_gap(rest: np.ndarray, dx: float | None) -> float:
+    """Distance [m] beyond which a piece counts as detached: two cells of the run's grid.
+
+    Runs without a grid (``sim=lbs``, ``sim=kinematic``) use the cell of the default MPM grid fitted to
+    the same rest shape, so every method is judged with the same length.
+    """
+    if dx is None:
+        from sync4d.sim import physics
+        from sync4d.sim.mpm_warp import MPMWarp
+
+        d = MPMWarp.Config()
+        dx = physics.fit_grid(rest, n_grid=d.n_grid, padding=d.grid_padding, wall=d.wall_cells).dx
+    return 2.0 * float(dx)
+
+
+def self_transfer_truth(reference: Reference, rest: np.ndarray, num_frames: int, *, loop: bool) -> np.ndarray:
+    """(T, N, 3) the truth of a self-transfer: ``rest`` points posed by the reference's own bones and skinning.
+
+    Each point takes the blend weights of its nearest reference rest vertex and moves by
+    ``reference.bone_transforms[t] @ inv(bone_transforms[0])`` (articulation only; G_t is applied after
+    the simulation). Neither the part map nor the driving motion enters, so an error in either shows.
+    """
+    from scipy.spatial import cKDTree
+
+    from sync4d.motion import frame_indices
+
+    _, nearest = cKDTree(reference.rest_vertices).query(rest)
+    weights = reference.skinning[nearest]
+    idx = frame_indices(reference.num_frames, num_frames, loop=loop)
+    bones = reference.bone_transforms[idx] @ np.linalg.inv(reference.bone_transforms[idx[0]])[None]
+    return np.stack([M.skinned_positions(rest, weights, bones[t]) for t in range(num_frames)])
+
+
 def compute_metrics(
     trajectory: Trajectory,
     target: TargetGaussians,
@@ -251,23 +286,27 @@ def compute_metrics(
     *,
     self_transfer: bool,
     frame_seconds: list[float],
+    truth: np.ndarray | None = None,
+    loop: bool = True,
+    dx: float | None = None,
 ) -> dict[str, Any]:
-    """All metrics of a run, overall and per frame (see :mod:`sync4d.metrics`)."""
+    """All metrics of a run, overall (frames 1..T) and per frame (see :mod:`sync4d.metrics`).
+
+    Args:
+        truth: (T, N, 3) independent ground-truth positions, or None; with ``self_transfer`` and no
+            ``truth`` it is :func:`self_transfer_truth`.
+        loop: the driving motion loops the reference (for the self-transfer truth's frame indices).
+        dx: the simulator's grid cell [m] (sets the fragment gap; None: the default grid's).
+    """
     x = trajectory.x
     T = len(x)
     parts, B = part_map.tgt_part, part_map.num_parts
     diagonal = M.bbox_diagonal(target.means)
     accumulated = np.concatenate([np.zeros((1, B, 3)), np.cumsum(motion.part_displacements[: T - 1], axis=0)])
-
-    truth = None
-    if self_transfer:
-        # Ground truth: each Gaussian skinned with the weights of its nearest reference rest vertex.
-        from scipy.spatial import cKDTree
-
-        _, nearest = cKDTree(reference.rest_vertices).query(x[0])
-        weights = reference.skinning[nearest]
-        truth = [M.skinned_positions(x[0], weights, motion.part_transforms[t] @ np.linalg.inv(motion.part_transforms[0]))
-                 for t in range(T)]
+    if truth is None and self_transfer:
+        truth = self_transfer_truth(reference, x[0], T, loop=loop)
+    integrity = M.integrity_model(x[0], parts, B, gap=fragment_gap(x[0], dx))
+    frames = [M.integrity_frame(integrity, x[t]) for t in range(T)]
 
     per_frame = []
     for t in range(T):
@@ -278,24 +317,35 @@ def compute_metrics(
             "rigidity_residual_pct": M.rigidity_residual(x[0], x[t], parts, B, diagonal),
             "det_f_deviation": M.det_f_deviation(None if trajectory.F is None else trajectory.F[t]),
             "pose_error_pct": None if truth is None else M.pose_error(x[t], truth[t], diagonal),
+            "torn_pairs_pct": frames[t].torn_pairs_pct,
+            "torn_seam_pairs_pct": frames[t].torn_seam_pairs_pct,
+            "strain_p99_pct": frames[t].strain_p99_pct,
+            "volume_change_pct": float(np.nanmax(np.abs(np.nan_to_num(frames[t].volume_change_pct)))),
+            "fragments": float(frames[t].fragments),
             "seconds": frame_seconds[t] if t < len(frame_seconds) else None,
         }
         per_frame.append(row)
 
     def mean(key: str) -> float | None:
-        values = [r[key] for r in per_frame if r[key] is not None]
+        # frame 0 is the rest pose, exact by construction: it stays out of every mean
+        values = [r[key] for r in per_frame[1:] if r[key] is not None]
         return float(np.mean(values)) if values else None
 
-    ref_seq = np.stack([reference.posed_vertices(t % reference.num_frames) for t in range(T)])
+    if truth is not None:
+        jitter = M.jitter_ratio(x, truth, 1.0)
+    else:
+        ref_seq = np.stack([reference.posed_vertices(t % reference.num_frames) for t in range(T)])
+        jitter = M.jitter_ratio(x, ref_seq, motion.coverage_ratio)
     return {
         "pose_error_pct": mean("pose_error_pct"),
-        "pose_error_max_pct": None if truth is None else float(max(r["pose_error_pct"] for r in per_frame)),
+        "pose_error_max_pct": None if truth is None else float(max(r["pose_error_pct"] for r in per_frame[1:] or per_frame)),
         "displacement_error_pct": mean("displacement_error_pct"),
         "drift_pct": mean("drift_pct"),
         "drift_final_pct": per_frame[-1]["drift_pct"],
         "rigidity_residual_pct": mean("rigidity_residual_pct"),
         "det_f_deviation": mean("det_f_deviation"),
-        "jitter_ratio": M.jitter_ratio(x, ref_seq, motion.coverage_ratio),
+        **M.integrity_summary(frames),
+        "jitter_ratio": jitter,
         "seconds_per_frame": float(np.mean(frame_seconds[1:])) if len(frame_seconds) > 1 else float(np.mean(frame_seconds or [0.0])),
         "peak_memory_mb": M.peak_memory_mb(),
         "frames": T,
