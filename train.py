@@ -13,6 +13,7 @@ import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
 from sync4d.cli import check_command_line  # noqa: E402
+from sync4d.config_schemas import register_schemas  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path=str(ROOT / "conf"), config_name="config")
@@ -24,5 +25,6 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
+    register_schemas()
     check_command_line(sys.argv[1:], ROOT / "conf")
     main()

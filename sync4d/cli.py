@@ -65,6 +65,9 @@ def check_overrides(argv: list[str], conf_dir: Path) -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     overrides = [arg for arg in argv if not arg.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    from sync4d.config_schemas import register_schemas
+
+    register_schemas()
     try:
         with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
             compose(config_name="config", overrides=overrides)

@@ -247,6 +247,42 @@ def check_run_config(cfg: DictConfig) -> None:
         raise ConfigError(f"resume={resume!r}: must be the folder of an interrupted run")
 
 
+#: Top-level run options whose value must be one of a fixed set.
+RUN_CHOICES = {"pivot": ("part_centroid", "bone"), "budget": ("off", "auto")}
+
+
+def check_components(cfg: DictConfig) -> dict[str, Any]:
+    """Build every component's typed Config before any stage runs; returns them by group.
+
+    A bad value of any group (``sim.E=0``, ``sim.n_grid=1``, an unknown option) fails here, in
+    milliseconds, with the key's name, instead of after reconstruction and matching have run.
+    """
+    from sync4d.registry import GROUPS, make_config
+
+    check_device(str(cfg.device))
+    for key, allowed in RUN_CHOICES.items():
+        if str(cfg.get(key)) not in allowed:
+            raise ConfigError(f"{key}={cfg.get(key)!r}: must be one of {', '.join(allowed)}")
+    shrink = cfg.get("shrink") or {}
+    return {group: make_config(group, cfg[group], shrink=shrink.get(group))[1] for group in GROUPS if group in cfg}
+
+
+def check_device(device: str) -> None:
+    """Refuse a ``device`` that is not ``cpu``, ``cuda`` or ``cuda:N``, or a CUDA device this machine lacks."""
+    import re
+
+    if device == "cpu":
+        return
+    if not re.fullmatch(r"cuda(:\d+)?", device):
+        raise ConfigError(f"device={device}: unknown device; use device=cpu, or device=cuda / cuda:N on a CUDA machine")
+    import torch
+
+    index = int(device.partition(":")[2] or 0)
+    if not torch.cuda.is_available() or index >= torch.cuda.device_count():
+        found = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        raise ConfigError(f"device={device}: this machine has {found} CUDA device(s); use device=cpu")
+
+
 def claim_run_dir(run_dir: Path, resume: str | None) -> None:
     """Refuse a run folder that holds another run's outputs, or that is the folder being resumed.
 
@@ -282,6 +318,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     load_all()
     check_run_config(cfg)
+    check_components(cfg)
     run_dir = run_dir_of(cfg)
     claim_run_dir(run_dir, cfg.get("resume"))
     run_dir.mkdir(parents=True, exist_ok=True)

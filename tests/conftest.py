@@ -13,6 +13,11 @@ os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".warp_cache"))
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from sync4d.config_schemas import register_schemas  # noqa: E402
+
+# the components' Configs are the schemas of their YAML options: Hydra must know them before composing
+register_schemas()
+
 SHARED_DATA = Path(os.environ.get("SYNC4D_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
 

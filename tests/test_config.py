@@ -98,3 +98,17 @@ def test_no_experiment_repeats_a_default(experiment):
             defaults = lookup(group, cfg[group].type).Config()
             repeated += [f"{group}.{k}" for k in _repeats(values[group], defaults)]
     assert not repeated, f"experiment={experiment} repeats defaults {repeated}: delete them"
+
+
+@pytest.mark.parametrize(("group", "option"), [(g, o) for g, o in OPTIONS if g in GROUPS])
+def test_every_config_key_is_overridable(group, option):
+    """Each option's composed node holds every field of its Config (its schema), so ``group.key=value`` works
+    for keys the YAML does not mention."""
+    import dataclasses
+
+    from sync4d.registry import lookup
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"{group}={option}"])
+    fields = {f.name for f in dataclasses.fields(lookup(group, cfg[group].type).Config)}
+    assert fields <= set(cfg[group].keys()), f"{group}={option} lacks {sorted(fields - set(cfg[group].keys()))}"
