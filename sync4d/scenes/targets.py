@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from sync4d.errors import ConfigError, DataMissingError
+from sync4d.floaters import FloaterConfig, FloaterReport, remove_floaters
 from sync4d.io.mesh import load_mesh, mesh_to_gaussians
 from sync4d.io.ply import read_gaussians_ply
 from sync4d.registry import register
@@ -106,25 +107,38 @@ class MeshTarget:
 
 @register("target", "ply")
 class PlyTarget:
-    """A trained 3D Gaussian Splatting ``.ply`` (Inria layout), used as is."""
+    """A trained or generated 3D Gaussian Splatting ``.ply`` (Inria layout), floaters removed.
+
+    :meth:`load_checked` also returns what floater removal did (:class:`sync4d.floaters.FloaterReport`),
+    for the run's log and metrics.
+    """
 
     @dataclass
     class Config:
         path: str = "???"        # .ply file
         max_gaussians: int | None = None  # keep a random subset of this size (None keeps all)
+        floaters: FloaterConfig = field(default_factory=FloaterConfig)  # statistical outlier removal
 
     def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
         self.cfg, self.seed = cfg, seed
+        cfg.floaters.validate()
 
     def surface(self) -> None:
         return None
 
-    def load(self) -> TargetGaussians:
+    def load_checked(self) -> tuple[TargetGaussians, FloaterReport | None]:
+        """The splat without its floaters, and the removal's report (None when removal is off)."""
         path = resolve_data_path(self.cfg.path)
         if not path.is_file():
             raise DataMissingError(f"target.path={self.cfg.path}: .ply file not found (looked at {path})")
         gaussians = read_gaussians_ply(path)
+        keep, report = remove_floaters(gaussians.means, self.cfg.floaters, source=str(path))
+        if not keep.all():
+            gaussians = gaussians.subset(keep)
         if self.cfg.max_gaussians is not None and gaussians.num > self.cfg.max_gaussians:
             keep = np.sort(np.random.default_rng(self.seed).choice(gaussians.num, self.cfg.max_gaussians, replace=False))
             gaussians = gaussians.subset(keep)
-        return gaussians
+        return gaussians, report
+
+    def load(self) -> TargetGaussians:
+        return self.load_checked()[0]
