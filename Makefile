@@ -7,12 +7,29 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export WARP_CACHE_PATH := $(CURDIR)/.warp_cache
 
-.PHONY: venv train test bench clean
+.PHONY: venv train test bench clean browser models
 
 venv: $(STAMP)
 
+# MediaPipe's legacy BlazePose models (Apache-2.0), taken from the mediapipe 0.10.14 wheel (later releases
+# download their models instead); recon=body_video runs them under ai-edge-litert. No network at run time.
+MODEL_DIR := models/mediapipe
+POSE_MODELS := $(MODEL_DIR)/pose_landmark_full.tflite  # the detector and the licence come with it
+models: $(POSE_MODELS)
+
+$(POSE_MODELS):
+	mkdir -p $(MODEL_DIR)/wheel
+	$(PYTHON) -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.11 \
+		--platform manylinux2014_x86_64 mediapipe==0.10.14 -d $(MODEL_DIR)/wheel
+	$(PYTHON) -c "import glob, sys, zipfile; z = zipfile.ZipFile(glob.glob('$(MODEL_DIR)/wheel/mediapipe-0.10.14-*.whl')[0]); \
+	[open('$(MODEL_DIR)/' + dst, 'wb').write(z.read(src)) for src, dst in [ \
+	('mediapipe/modules/pose_detection/pose_detection.tflite', 'pose_detection.tflite'), \
+	('mediapipe/modules/pose_landmark/pose_landmark_full.tflite', 'pose_landmark_full.tflite'), \
+	('mediapipe-0.10.14.dist-info/LICENSE', 'LICENSE.mediapipe')]]"
+	rm -rf $(MODEL_DIR)/wheel
+
 # torch first, pinned to the CPU wheel this machine provides; a bare `torch` would pull a CUDA build.
-$(STAMP): requirements.txt
+$(STAMP): requirements.txt $(POSE_MODELS)
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
@@ -25,6 +42,12 @@ train: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# The browser and glTF tests' tools: Debian's chromium (as root, through apt) and, from npm, playwright-core
+# (drives that chromium; it downloads no browser), the Khronos glTF validator and three.js (tests/js/).
+browser:
+	command -v chromium >/dev/null || { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; }
+	cd tests/js && npm ci --no-audit --no-fund --silent
 
 bench: $(STAMP)
 	$(PY) benchmarks/mpm.py --json benchmarks/results/mpm.json

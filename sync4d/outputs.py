@@ -170,7 +170,8 @@ class FrameWriter:
         if cfg.get("render_video", True):
             from sync4d.render_outputs import render_run_outputs
 
-            render_run_outputs(self.run_dir, cfg, self.target, trajectory, self.motion, reference, logger=self.logger)
+            render_run_outputs(self.run_dir, cfg, self.target, trajectory, self.motion, reference, part_map=part_map,
+                               logger=self.logger)
         log.info("metrics: %s", {k: v for k, v in result.items() if k.endswith(("_pct", "_ratio", "deviation", "per_frame_s"))})
         return result
 

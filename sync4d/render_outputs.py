@@ -1,5 +1,14 @@
-"""The pictures and files a finished run leaves: ``render.mp4``, ``compare.mp4``, a GIF in TensorBoard,
-an animated USD and a ``.npz`` of the Gaussian sequence."""
+"""The pictures and files a finished run leaves.
+
+* ``render.mp4``: the target; ``compare.mp4`` and ``compare.gif`` (also in TensorBoard): the input video
+  (when the reference came from one) | the reconstructed reference | the target, frame-aligned. Both
+  objects are framed upright (the renderer's ``up``) from the side their own motion is best seen
+  (:func:`sync4d.render.camera.motion_view_direction`), so each is seen alike relative to its own motion.
+* ``input.mp4``: the input video itself; ``sequence.s4d`` / ``reference.s4d``: the target's and the
+  reconstructed reference's Gaussians over time with their part labels, compact (:mod:`sync4d.io.seq4d`);
+  together with ``trajectory.npz`` these are what ``python -m sync4d.view`` shows.
+* ``sequence.glb`` (animated glTF points), ``sequence.usda`` and ``sequence.npz`` (:mod:`sync4d.io.export`).
+"""
 
 from __future__ import annotations
 
@@ -13,7 +22,7 @@ from omegaconf import DictConfig
 from sync4d.io.mesh import mesh_to_gaussians
 from sync4d.metrics import skinned_positions
 from sync4d.registry import build, effective_config
-from sync4d.types import DrivingMotion, Reference, TargetGaussians, Trajectory
+from sync4d.types import Camera, DrivingMotion, PartMap, Reference, TargetGaussians, Trajectory, VideoClip
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +43,6 @@ def reference_gaussians(reference: Reference, num_frames: int, *, count: int = 3
     Returns:
         The rest Gaussians, world means (T, N, 3) and covariances (T, N, 3, 3).
     """
-    from scipy.spatial import cKDTree
-
     if reference.rest_faces is not None and len(reference.rest_faces):
         rest = mesh_to_gaussians(reference.rest_vertices, reference.rest_faces, num_surface=count,
                                  vertex_colors=reference.vertex_colors, name=reference.name)
@@ -50,8 +57,7 @@ def reference_gaussians(reference: Reference, num_frames: int, *, count: int = 3
             log_scales=np.full((n, 3), np.log(size), np.float32), opacity_logits=np.full(n, 2.0, np.float32),
             sh=((colors - 0.5) / 0.28209479177387814)[:, None, :].astype(np.float32),
         )
-    _, nearest = cKDTree(reference.rest_vertices).query(rest.means)
-    weights = reference.skinning[nearest]
+    weights = reference.skinning[reference_nearest(reference, rest.means)]
     means, covs = [], []
     rest_cov = rest.covariances()
     for t in range(num_frames):
@@ -65,6 +71,53 @@ def reference_gaussians(reference: Reference, num_frames: int, *, count: int = 3
     return rest, np.stack(means), np.stack(covs)
 
 
+def reference_nearest(reference: Reference, points: np.ndarray) -> np.ndarray:
+    """(M,) index of the nearest reference rest vertex of each of (M, 3) rest points [m]."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(reference.rest_vertices).query(points)[1]
+
+
+def input_video(cfg: DictConfig) -> VideoClip | None:
+    """The reference's input video, when its source has one (re-read from the source, which is cheap next to
+    the reconstruction it fed), else None."""
+    source = build("reference", group_config(cfg, "reference"), device=cfg.device, seed=cfg.seed)
+    return source.load().video
+
+
+def group_config(cfg: DictConfig, group: str) -> dict[str, Any]:
+    """A group's config with the ``shrink`` values (``debug=smoke``) its component knows."""
+    return effective_config(group, cfg[group], (cfg.get("shrink") or {}).get(group))
+
+
+def motion_camera(sequence: np.ndarray, rc: Any) -> Camera:
+    """A fixed camera framing a (T, N, 3) sequence [m] upright from the side its motion is best seen.
+
+    ``rc`` is the renderer's config (``up``, ``view_direction`` picking the side, ``fov_deg``, size, ``margin``).
+    """
+    from sync4d.render.camera import frame_object, motion_view_direction
+
+    direction = motion_view_direction(sequence, up=rc.up, prefer=rc.view_direction)
+    return frame_object(sequence.reshape(-1, 3), direction=direction, up=rc.up, fov_deg=rc.fov_deg,
+                        width=rc.width, height=rc.height, margin=rc.margin)
+
+
+def write_videos(run_dir: Path, panels: list[tuple[str, np.ndarray]], fps: float, *, logger: Any) -> dict[str, Path]:
+    """``render.mp4`` of the last panel, ``compare.mp4`` / ``compare.gif`` (and TensorBoard) of all of them."""
+    from sync4d.render.video import log_gif_tensorboard, side_by_side, write_gif, write_mp4
+
+    files = {"render.mp4": write_mp4(run_dir / "render.mp4", panels[-1][1], fps)}
+    side = side_by_side([frames for _, frames in panels], labels=[name for name, _ in panels])
+    files["compare.mp4"] = write_mp4(run_dir / "compare.mp4", side, fps)
+    writer = getattr(logger, "writer", None)
+    if writer is not None:
+        log_gif_tensorboard(writer, "video/compare", side, 0, fps=fps, gif_path=run_dir / "compare.gif")
+    else:
+        write_gif(run_dir / "compare.gif", side, fps)
+    files["compare.gif"] = run_dir / "compare.gif"
+    return files
+
+
 def render_run_outputs(
     run_dir: Path,
     cfg: DictConfig,
@@ -73,45 +126,74 @@ def render_run_outputs(
     motion: DrivingMotion,
     reference: Reference,
     *,
+    part_map: PartMap | None = None,
     logger: Any = None,
 ) -> dict[str, Path]:
-    """Render and export a finished run. Returns the written files by name."""
-    from sync4d.io.export import export_npz, export_usd
-    from sync4d.render.camera import frame_object
-    from sync4d.render.video import compare, log_gif_tensorboard, render_sequence, write_mp4
+    """Render and export a finished run (files listed in the module docstring). Returns them by name."""
+    from sync4d.io.seq4d import Seq4DConfig, write_seq4d
+    from sync4d.render.video import render_sequence, write_mp4
 
-    shrink = (cfg.get("shrink") or {}).get("render")
-    render_cfg = effective_config("render", cfg.render, shrink)
-    renderer = build("render", render_cfg, device=cfg.device)
+    renderer = build("render", group_config(cfg, "render"), device=cfg.device)
     rc = renderer.cfg
     fps = rc.fps or motion.fps
-    globals_ = motion.global_transforms[: trajectory.num_frames]
+    num = trajectory.num_frames
+    globals_ = motion.global_transforms[:num]
     means, covs = sequence_gaussians(target, trajectory, globals_)
-    opac = target.opacities
-    camera = frame_object(means.reshape(-1, 3), direction=rc.view_direction, up=rc.up, fov_deg=rc.fov_deg,
-                          width=rc.width, height=rc.height, margin=rc.margin)
-    frames = render_sequence(renderer, means, covs, target.sh, opac, camera, desc="render target")
-    files = {"render.mp4": write_mp4(run_dir / "render.mp4", frames, fps)}
+    frames = render_sequence(renderer, means, covs, target.sh, target.opacities, motion_camera(means, rc),
+                             desc="render target")
+    ref_rest, ref_means, ref_covs = reference_gaussians(reference, num)
+    ref_frames = render_sequence(renderer, ref_means, ref_covs, ref_rest.sh, ref_rest.opacities,
+                                 motion_camera(ref_means, rc), desc="render reference")
+    panels = [("reference", ref_frames), ("target", frames)]
+    files: dict[str, Path] = {}
+    clip = input_video(cfg)
+    if clip is not None:
+        panels.insert(0, ("video", clip.frames))
+        files["input.mp4"] = write_mp4(run_dir / "input.mp4", clip.frames, clip.fps)
+    files.update(write_videos(run_dir, panels, fps, logger=logger))
+    if rc.turntable_frames:
+        files["turntable.mp4"] = write_turntable(run_dir / "turntable.mp4", renderer, means[-1], covs[-1], target, fps)
+    store = Seq4DConfig()
+    files["sequence.s4d"] = write_seq4d(run_dir / "sequence.s4d", means, covs, target.colors(), target.opacities,
+                                        fps=motion.fps, cfg=store, sh=target.sh,
+                                        parts=None if part_map is None else part_map.tgt_part)
+    files["reference.s4d"] = write_seq4d(
+        run_dir / "reference.s4d", ref_means, ref_covs, ref_rest.colors(), ref_rest.opacities, fps=motion.fps,
+        cfg=store, parts=reference.part_labels()[reference_nearest(reference, ref_rest.means)])
+    files.update(write_exports(run_dir, means, covs, target, reference, globals_, fps=motion.fps))
+    log.info("wrote %s", ", ".join(files))
+    return files
 
-    ref_rest, ref_means, ref_covs = reference_gaussians(reference, trajectory.num_frames)
-    ref_camera = frame_object(ref_means.reshape(-1, 3), direction=rc.view_direction, up=rc.up, fov_deg=rc.fov_deg,
-                              width=rc.width, height=rc.height, margin=rc.margin)
-    ref_frames = render_sequence(renderer, ref_means, ref_covs, ref_rest.sh, ref_rest.opacities, ref_camera,
-                                 desc="render reference")
-    side = compare(ref_frames, frames, labels=("reference", "target"))
-    files["compare.mp4"] = write_mp4(run_dir / "compare.mp4", side, fps)
-    writer = getattr(logger, "writer", None)
-    if writer is not None:
-        log_gif_tensorboard(writer, "video/compare", side, 0, fps=fps, gif_path=run_dir / "compare.gif")
+
+def write_turntable(path: Path, renderer: Any, means: np.ndarray, covs: np.ndarray, target: TargetGaussians,
+                    fps: float) -> Path:
+    """A turntable of one frame's (N, 3) means [m] and (N, 3, 3) covariances [m^2] about the renderer's ``up``."""
+    from sync4d.render.camera import orbit
+    from sync4d.render.video import render_sequence, write_mp4
+
+    rc = renderer.cfg
+    cams = orbit(means, int(rc.turntable_frames), up=rc.up, fov_deg=rc.fov_deg, width=rc.width, height=rc.height,
+                 margin=rc.margin)
+    spin = render_sequence(renderer, np.repeat(means[None], len(cams), 0), covs, target.sh, target.opacities, cams,
+                           desc="turntable")
+    return write_mp4(path, spin, fps)
+
+
+def write_exports(run_dir: Path, means: np.ndarray, covs: np.ndarray, target: TargetGaussians, reference: Reference,
+                  globals_: np.ndarray, *, fps: float) -> dict[str, Path]:
+    """``sequence.glb``, ``sequence.usda`` and ``sequence.npz`` of (T, N, 3) means and (T, N, 3, 3) covariances."""
+    from sync4d.io.export import export_glb, export_npz, export_usd
+
+    num = len(means)
+    files = {"sequence.glb": export_glb(run_dir / "sequence.glb", means, fps=fps, colors=target.colors())}
     files["sequence.usda"] = export_usd(
-        run_dir / "sequence.usda", means, colors=target.colors(), widths=2.0 * target.scales.max(axis=1), fps=motion.fps,
-        opacities=opac, up_axis="Y",
+        run_dir / "sequence.usda", means, colors=target.colors(), widths=2.0 * target.scales.max(axis=1), fps=fps,
+        opacities=target.opacities, up_axis="Y",
         mesh_vertices=np.stack([reference.posed_vertices(t % reference.num_frames, apply_global=True)
-                                for t in range(trajectory.num_frames)]) if reference.rest_faces is not None else None,
+                                for t in range(num)]) if reference.rest_faces is not None else None,
         mesh_faces=reference.rest_faces,
     )
-    files["sequence.npz"] = export_npz(run_dir / "sequence.npz", means, fps=motion.fps, covariances=covs,
-                                       colors=target.colors(), sh=target.sh, opacities=opac,
+    files["sequence.npz"] = export_npz(run_dir / "sequence.npz", means, fps=fps, covariances=covs,
+                                       colors=target.colors(), sh=target.sh, opacities=target.opacities,
                                        global_transforms=globals_)
-    log.info("wrote %s", ", ".join(files))
     return files

@@ -103,29 +103,39 @@ def test_render_sequence_moves_with_the_means() -> None:
     assert to_uint8(np.array([[[0.5, 1.2, -1.0]]])).tolist() == [[[128, 255, 0]]]
 
 
-def test_write_run_videos_writes_render_compare_turntable_and_tensorboard(tmp_path: Path) -> None:
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-    from torch.utils.tensorboard import SummaryWriter
+def test_side_by_side_puts_video_reference_and_target_in_one_frame() -> None:
+    from sync4d.render.video import side_by_side
 
-    from sync4d.render.video import write_run_videos
+    video, ref, tgt = ramp_frames(4, 30, 40), ramp_frames(2, 60, 60), np.full((5, 30, 20, 3), 7, np.uint8)
+    out = side_by_side([video, ref, tgt], gap=3)
+    assert out.shape == (5, 30, 40 + 3 + 30 + 3 + 20, 3)
+    np.testing.assert_array_equal(out[4, :, :40], video[0])          # looped: frame 4 of 5 shows video frame 0
+    np.testing.assert_array_equal(out[3, :, 43:73], ref[1, ::2, ::2])
+    np.testing.assert_array_equal(out[2, :, 76:], tgt[2])
+    with pytest.raises(Exception, match="labels"):
+        side_by_side([video, tgt], labels=["one"])
 
-    n, t = 60, 4
-    rng = np.random.default_rng(2)
-    seq = np.stack([rng.uniform(-0.3, 0.3, (n, 3)) * (1 + 0.1 * k) for k in range(t)])
-    covs = np.repeat((0.03**2 * np.eye(3))[None], n, 0)
-    rnd = SplatTorch(SplatTorch.Config(width=40, height=30))
-    writer = SummaryWriter(str(tmp_path / "tb"))
-    files = write_run_videos(tmp_path, rnd, seq, covs, rng.uniform(0, 1, (n, 3)), np.full(n, 0.8), fps=8,
-                             reference_frames=ramp_frames(2, 60, 60), writer=writer, turntable_frames=3,
-                             progress=False)
-    writer.close()
-    assert read_video(files["render"]).shape == (t, 30, 40, 3)
-    assert read_video(files["compare"]).shape == (t, 30, 30 + 4 + 40, 3)
-    assert read_video(files["turntable"]).shape[0] == 3
-    acc = EventAccumulator(str(tmp_path / "tb"))
-    acc.Reload()
-    assert {"video/render", "video/compare"} <= set(acc.Tags()["images"])
-    # The whole motion stays inside the fixed camera's view: nothing touches the image border.
-    frames = read_video(files["render"])
-    border = np.concatenate([frames[:, 0], frames[:, -1], frames[:, :, 0], frames[:, :, -1]], axis=1)
-    assert border.min() > 200
+
+def test_motion_view_looks_at_the_plane_of_motion_upright() -> None:
+    from sync4d.render.camera import motion_view_direction
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(-0.1, 0.1, (50, 3))
+    # A lid swinging about the x axis: its points move in the y-z plane, so it is best seen along x.
+    angles = np.linspace(0.0, 1.2, 8)
+    seq = np.stack([base @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]).T
+                    + [0, 0.2, 0] for a in angles])
+    d = motion_view_direction(seq, up=(0, 1, 0), elevation_deg=0.0, azimuth_offset_deg=0.0, prefer=(1, 1, 1))
+    np.testing.assert_allclose(d, [1, 0, 0], atol=1e-6)
+    # The same motion turned 90 degrees about the up axis is seen from the turned side (same view in its frame).
+    turn = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0.0]])
+    d_turned = motion_view_direction(seq @ turn.T, up=(0, 1, 0), elevation_deg=0.0, azimuth_offset_deg=0.0,
+                                     prefer=(-1, 1, 1))
+    np.testing.assert_allclose(np.abs(d_turned), [0, 0, 1], atol=1e-6)
+    # Elevation raises the camera above the horizon; the side follows ``prefer``.
+    raised = motion_view_direction(seq, up=(0, 1, 0), elevation_deg=20.0, azimuth_offset_deg=0.0, prefer=(-1, 0, 0))
+    assert raised[1] == pytest.approx(np.sin(np.radians(20.0))) and raised[0] < 0
+    # Z-up scenes: the camera stays upright about z.
+    dz = motion_view_direction(seq[..., [0, 2, 1]], up=(0, 0, 1), elevation_deg=0.0, azimuth_offset_deg=0.0,
+                               prefer=(1, 1, 0))
+    np.testing.assert_allclose(dz, [1, 0, 0], atol=1e-6)

@@ -1,4 +1,4 @@
-"""Exports of an animated result: one animated USD and one ``.npz`` of the whole Gaussian sequence.
+"""Exports of an animated result: an animated USD, an animated glTF binary and a ``.npz`` of the sequence.
 
 No standard Gaussian-sequence format exists; viewers (SuperSplat, GaussianSplats3D) open one 3DGS
 ``.ply`` per frame (written by :mod:`sync4d.io.ply`). Beside those, a run writes:
@@ -269,3 +269,133 @@ def load_npz(path: str | Path) -> dict[str, Any]:
     out["fps"] = float(out["fps"])
     out["format_version"] = int(out.get("format_version", 0))
     return out
+
+
+def _pad4(data: bytes, fill: bytes) -> bytes:
+    return data + fill * (-len(data) % 4)
+
+
+def _glb_bytes(gltf: dict[str, Any], binary: bytes) -> bytes:
+    """A GLB container: 12-byte header, a JSON chunk (space padded), a BIN chunk (zero padded)."""
+    import json
+    import struct
+
+    js = _pad4(json.dumps(gltf, separators=(",", ":")).encode(), b" ")
+    bn = _pad4(binary, b"\x00")
+    total = 12 + 8 + len(js) + 8 + len(bn)
+    return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(js), b"JSON") + js
+            + struct.pack("<I4s", len(bn), b"BIN\x00") + bn)
+
+
+class _GltfBuffer:
+    """Collects arrays into one binary buffer with a bufferView and an accessor each."""
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+        self.views: list[dict[str, Any]] = []
+        self.accessors: list[dict[str, Any]] = []
+
+    def add(self, array: np.ndarray, kind: str, *, target: int | None = None, min_max: bool = False) -> int:
+        """Append ``array`` (float32 rows of ``kind`` "SCALAR"/"VEC3"/"VEC4"); returns its accessor index."""
+        arr = np.ascontiguousarray(array, dtype=np.float32)
+        self.data += b"\x00" * (-len(self.data) % 4)
+        view: dict[str, Any] = {"buffer": 0, "byteOffset": len(self.data), "byteLength": arr.nbytes}
+        if target is not None:
+            view["target"] = target
+        self.data += arr.tobytes()
+        self.views.append(view)
+        rows = arr.reshape(len(arr), -1)
+        accessor: dict[str, Any] = {"bufferView": len(self.views) - 1, "componentType": 5126, "count": len(arr),
+                                    "type": kind}
+        if min_max:
+            accessor["min"] = rows.min(axis=0).tolist()
+            accessor["max"] = rows.max(axis=0).tolist()
+        self.accessors.append(accessor)
+        return len(self.accessors) - 1
+
+
+def export_glb(
+    path: str | Path,
+    frames_means: np.ndarray,
+    *,
+    fps: float,
+    colors: np.ndarray | None = None,
+    name: str = "sync4d_target",
+) -> Path:
+    """Write the Gaussian centres as an animated glTF 2.0 binary: a point cloud with one morph target a frame.
+
+    The mesh holds one POINTS primitive at frame 0's positions (with ``COLOR_0`` when colours are
+    given) and T - 1 morph targets, target k being the displacement of frame k + 1 from frame 0. One
+    animation ("sequence") drives the morph weights: at time t / fps the weights are one-hot on frame t
+    (linear interpolation between frames), so every frame shows exactly the exported positions. Y is
+    up and one unit is one metre (glTF's convention, and the project's scenes'). Blender imports the
+    targets as shape keys; three.js's GLTFLoader plays it with an AnimationMixer.
+
+    Args:
+        path: output ``.glb``.
+        frames_means: (T, N, 3) centres per frame [m].
+        fps: frame rate [1/s].
+        colors: (N, 3) RGB in [0, 1], or None.
+        name: the node and mesh name.
+
+    Returns:
+        The path written.
+    """
+    means = np.asarray(frames_means, dtype=np.float32)
+    num_frames, num = _check_sequence(means)
+    if colors is not None and np.shape(colors) != (num, 3):
+        raise InputError(f"export_glb: colors must be ({num}, 3), got {np.shape(colors)}")
+    if not fps > 0:
+        raise InputError(f"export_glb: fps must be > 0, got {fps}")
+    buf = _GltfBuffer()
+    attributes = {"POSITION": buf.add(means[0], "VEC3", target=34962, min_max=True)}
+    if colors is not None:
+        # glTF vertex colours are linear; the run's colours are display (sRGB) values.
+        linear = np.clip(np.asarray(colors, dtype=np.float64), 0, 1) ** 2.2
+        attributes["COLOR_0"] = buf.add(linear, "VEC3", target=34962)
+    targets = [{"POSITION": buf.add(means[k] - means[0], "VEC3", target=34962, min_max=True)}
+               for k in range(1, num_frames)]
+    primitive: dict[str, Any] = {"attributes": attributes, "mode": 0, "material": 0}
+    mesh: dict[str, Any] = {"name": name, "primitives": [primitive]}
+    gltf: dict[str, Any] = {
+        "asset": {"version": "2.0", "generator": "sync4d"},
+        "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"name": name, "mesh": 0}],
+        "materials": [{"name": "points", "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1],
+                                                                  "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
+        "meshes": [mesh],
+    }
+    if targets:
+        primitive["targets"] = targets
+        mesh["weights"] = [0.0] * len(targets)
+        mesh["extras"] = {"targetNames": [f"frame_{k:04d}" for k in range(1, num_frames)]}
+        times = buf.add(np.arange(num_frames, dtype=np.float32) / float(fps), "SCALAR", min_max=True)
+        # Row t: the weights at frame t, one-hot on target t - 1 (all zero at frame 0).
+        weights = np.zeros((num_frames, num_frames - 1), np.float32)
+        weights[np.arange(1, num_frames), np.arange(num_frames - 1)] = 1.0
+        out = buf.add(weights.reshape(-1), "SCALAR")
+        gltf["animations"] = [{"name": "sequence", "samplers": [{"input": times, "output": out,
+                                                                 "interpolation": "LINEAR"}],
+                               "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}]
+    gltf["accessors"], gltf["bufferViews"] = buf.accessors, buf.views
+    gltf["buffers"] = [{"byteLength": len(buf.data) + (-len(buf.data) % 4)}]
+    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(_glb_bytes(gltf, bytes(buf.data))))
+
+
+def read_glb(path: str | Path) -> tuple[dict[str, Any], bytes]:
+    """The JSON and BIN chunks of a ``.glb`` (for checks). Raises :class:`InputError` if it is not one."""
+    import json
+    import struct
+
+    data = Path(path).read_bytes()
+    if len(data) < 20 or data[:4] != b"glTF":
+        raise InputError(f"{path}: not a glTF binary (no 'glTF' magic)")
+    _, _, total = struct.unpack_from("<4sII", data, 0)
+    js_len, _ = struct.unpack_from("<I4s", data, 12)
+    gltf = json.loads(data[20 : 20 + js_len])
+    off = 20 + js_len
+    binary = b""
+    if off + 8 <= total:
+        bn_len, _ = struct.unpack_from("<I4s", data, off)
+        binary = data[off + 8 : off + 8 + bn_len]
+    return gltf, binary

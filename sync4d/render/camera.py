@@ -176,3 +176,61 @@ def project_points(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.n
     xc = pts @ camera.world_to_cam[:3, :3].T + camera.world_to_cam[:3, 3]
     uvw = xc @ np.asarray(camera.K, dtype=np.float64).T
     return uvw[:, :2] / uvw[:, 2:3], xc[:, 2]
+
+
+def motion_view_direction(
+    sequence: np.ndarray,
+    *,
+    up: ArrayLike3 = (0.0, 1.0, 0.0),
+    elevation_deg: float = 15.0,
+    azimuth_offset_deg: float = 30.0,
+    prefer: ArrayLike3 = (0.9, 1.1, 1.6),
+) -> np.ndarray:
+    """A viewing direction that keeps ``up`` up and faces the plane in which a point sequence moves most.
+
+    The motion's principal plane is found from the covariance of every point's displacement from its
+    own mean position over time; its normal (the direction of least motion), laid horizontal
+    (perpendicular to ``up``), is the side from which the motion is best seen. The camera is then raised
+    by ``elevation_deg`` and turned by ``azimuth_offset_deg`` about ``up`` (so the object still reads as
+    solid rather than as a flat silhouette). Of the two sides, the one nearer ``prefer`` is taken, so
+    objects moving alike are seen from alike sides. Without motion (or motion along ``up`` only) the
+    horizontal part of ``prefer`` is used.
+
+    Args:
+        sequence: (T, N, 3) positions per frame [m].
+        up: (3,) world up.
+        elevation_deg: angle above the horizontal plane [deg].
+        azimuth_offset_deg: turn about ``up`` away from the plane's normal [deg], towards ``prefer``.
+        prefer: (3,) direction that picks the side.
+
+    Returns:
+        (3,) unit direction from the object's centre towards the camera.
+    """
+    seq = np.asarray(sequence, dtype=np.float64)
+    if seq.ndim != 3 or seq.shape[-1] != 3 or seq.shape[0] == 0:
+        raise InputError(f"motion_view_direction: sequence must be (T, N, 3), got {seq.shape}")
+    up_a = np.asarray(up, dtype=np.float64)
+    up_a = up_a / np.linalg.norm(up_a)
+    pref = np.asarray(prefer, dtype=np.float64)
+    pref_h = pref - up_a * (pref @ up_a)
+    if np.linalg.norm(pref_h) < 1e-9:
+        pref_h = np.eye(3)[int(np.argmin(np.abs(up_a)))] - up_a * up_a[int(np.argmin(np.abs(up_a)))]
+    pref_h /= np.linalg.norm(pref_h)
+    disp = (seq - seq.mean(axis=0, keepdims=True)).reshape(-1, 3)
+    # Horizontal basis (e1, e2); the normal sought minimises the motion variance among horizontal directions.
+    e1 = pref_h
+    e2 = np.cross(up_a, e1)
+    h = disp @ np.stack([e1, e2], axis=1)
+    cov = h.T @ h
+    lam, vec = np.linalg.eigh(cov)
+    if lam[1] <= 1e-12 * max(len(disp), 1) or lam[1] - lam[0] <= 1e-3 * lam[1]:
+        normal = e1  # no horizontal motion, or no preferred horizontal direction of it
+    else:
+        normal = vec[0, 0] * e1 + vec[1, 0] * e2
+        normal *= np.sign(normal @ pref_h) or 1.0
+    side = np.cross(up_a, normal)
+    side *= np.sign(side @ pref_h) or 1.0
+    az, el = math.radians(azimuth_offset_deg), math.radians(elevation_deg)
+    horizontal = math.cos(az) * normal + math.sin(az) * side
+    d = math.cos(el) * horizontal + math.sin(el) * up_a
+    return d / np.linalg.norm(d)

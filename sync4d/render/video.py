@@ -128,6 +128,47 @@ def _draw_label(frame: np.ndarray, text: str) -> np.ndarray:
     return np.asarray(img)
 
 
+def side_by_side(
+    videos: Sequence[Any],
+    *,
+    labels: Sequence[str] | None = None,
+    loop: bool = True,
+    gap: int = 4,
+    gap_color: Sequence[int] = (255, 255, 255),
+) -> np.ndarray:
+    """Panels side by side, frame-aligned with the last panel, each resized to its height.
+
+    Frame t of the output shows frame t of every panel; a shorter panel is looped (or held at its last
+    frame when ``loop`` is False), as the pipeline loops the reference motion.
+
+    Args:
+        videos: panels, each (T_i, H_i, W_i, 3) frames (float in [0, 1] or uint8); the last one sets T and H.
+        labels: one caption per panel drawn in its top-left corner, or None.
+        loop: loop shorter panels, else hold their last frame.
+        gap: pixels between panels.
+        gap_color: RGB of the gaps.
+
+    Returns:
+        (T, H, sum of resized widths + gaps, 3) uint8.
+    """
+    panels = [to_uint8(v) for v in videos]
+    if not panels or any(p.ndim != 4 or len(p) == 0 for p in panels):
+        raise InputError(f"side_by_side: expected (T, H, W, 3) frames, got {[p.shape for p in panels]}")
+    if labels is not None and len(labels) != len(panels):
+        raise InputError(f"side_by_side: {len(labels)} labels for {len(panels)} panels")
+    num, height = len(panels[-1]), panels[-1].shape[1]
+    sep = np.empty((height, gap, 3), dtype=np.uint8)
+    sep[:] = np.asarray(gap_color, dtype=np.uint8)
+    out = []
+    for t in range(num):
+        row = []
+        for k, panel in enumerate(panels):
+            frame = _resize_height(panel[t % len(panel) if loop else min(t, len(panel) - 1)], height)
+            row += [_draw_label(frame, labels[k]) if labels is not None else frame, sep]
+        out.append(np.concatenate(row[:-1], axis=1))
+    return np.stack(out)
+
+
 def compare(
     reference: Any,
     target: Any,
@@ -137,38 +178,12 @@ def compare(
     gap_color: Sequence[int] = (255, 255, 255),
     labels: tuple[str, str] | None = None,
 ) -> np.ndarray:
-    """Side-by-side frames: reference on the left, target on the right, frame-aligned.
-
-    Frame t of the output shows reference frame t (looped, or held at its last frame when
-    ``loop_reference`` is False, if the reference is shorter) beside target frame t. The reference is
-    resized to the target's height, keeping its aspect ratio.
-
-    Args:
-        reference: (T_r, H_r, W_r, 3) frames (float in [0, 1] or uint8).
-        target: (T, H, W, 3) frames.
-        loop_reference: loop a shorter reference (as the pipeline loops its motion) or hold its end.
-        gap: pixels between the two panels.
-        gap_color: RGB of the gap.
-        labels: optional captions (left, right) drawn in the top-left corner of each panel.
+    """Two panels: reference (T_r, H_r, W_r, 3) left, target (T, H, W, 3) right; see :func:`side_by_side`.
 
     Returns:
         (T, H, W_r' + gap + W, 3) uint8.
     """
-    ref, tgt = to_uint8(reference), to_uint8(target)
-    if ref.ndim != 4 or tgt.ndim != 4 or len(ref) == 0 or len(tgt) == 0:
-        raise InputError(f"compare: expected (T, H, W, 3) frames, got {ref.shape} and {tgt.shape}")
-    height = tgt.shape[1]
-    out = []
-    for t in range(len(tgt)):
-        i = t % len(ref) if loop_reference else min(t, len(ref) - 1)
-        left = _resize_height(ref[i], height)
-        right = tgt[t]
-        if labels is not None:
-            left, right = _draw_label(left, labels[0]), _draw_label(right, labels[1])
-        sep = np.empty((height, gap, 3), dtype=np.uint8)
-        sep[:] = np.asarray(gap_color, dtype=np.uint8)
-        out.append(np.concatenate([left, sep, right], axis=1))
-    return np.stack(out)
+    return side_by_side([reference, target], labels=labels, loop=loop_reference, gap=gap, gap_color=gap_color)
 
 
 def frame_strip(frames: Any, *, max_frames: int = 8, columns: int | None = None) -> np.ndarray:
@@ -260,83 +275,3 @@ def render_sequence(
         covs_t = covs_a[t] if covs_a.ndim == 4 else covs_a
         frames.append(to_uint8(renderer.render(means_a[t], covs_t, colors, opacities, cams[t])))
     return np.stack(frames)
-
-
-def write_run_videos(
-    out_dir: str | Path,
-    renderer: Any,
-    means: Any,
-    covariances: Any,
-    colors: Any,
-    opacities: Any,
-    *,
-    fps: float,
-    reference_frames: Any | None = None,
-    camera: Camera | None = None,
-    writer: Any | None = None,
-    step: int = 0,
-    turntable_frames: int | None = None,
-    progress: bool = True,
-) -> dict[str, Path]:
-    """The videos of a run: ``render.mp4``, ``compare.mp4`` (+ GIFs in TensorBoard), optional turntable.
-
-    The camera is fixed for the whole clip and frames every frame's Gaussians (from the renderer's
-    ``view_direction``, ``up``, ``fov_deg``, ``width``, ``height``, ``margin`` settings) unless given.
-
-    Args:
-        out_dir: run folder; files are written into it.
-        renderer: a built ``render`` component.
-        means: (T, N, 3) Gaussian centres per frame [m].
-        covariances: (N, 3, 3) or (T, N, 3, 3) [m^2].
-        colors: (N, 3) RGB or (N, K, 3) SH.
-        opacities: (N,) in [0, 1].
-        fps: frame rate [1/s].
-        reference_frames: (T_r, H, W, 3) reference video (or the reference rendered) for ``compare.mp4``;
-            None skips it.
-        camera: fixed camera; None frames the object.
-        writer: a TensorBoard SummaryWriter; GIFs are logged as ``video/render`` and ``video/compare``.
-        step: TensorBoard step.
-        turntable_frames: frames of a turntable of the last frame (``turntable.mp4``); None uses the
-            renderer's ``turntable_frames`` setting, 0 skips it.
-        progress: show progress bars.
-
-    Returns:
-        Name -> path of every file written (``render``, ``compare``, ``turntable``, GIFs).
-    """
-    from sync4d.render.camera import frame_object, orbit
-
-    out = Path(out_dir)
-    cfg = getattr(renderer, "cfg", None)
-    view = {
-        "up": getattr(cfg, "up", (0.0, 1.0, 0.0)),
-        "fov_deg": getattr(cfg, "fov_deg", 40.0),
-        "width": getattr(cfg, "width", 256),
-        "height": getattr(cfg, "height", 256),
-        "margin": getattr(cfg, "margin", 1.15),
-    }
-    means_a = np.asarray(means)
-    if camera is None:
-        camera = frame_object(means_a.reshape(-1, 3), getattr(cfg, "view_direction", (0.9, 1.1, 1.6)), **view)
-    written: dict[str, Path] = {}
-    frames = render_sequence(renderer, means_a, covariances, colors, opacities, camera, progress=progress)
-    written["render"] = write_mp4(out / "render.mp4", frames, fps)
-    if writer is not None:
-        log_gif_tensorboard(writer, "video/render", frames, step, fps=fps, gif_path=out / "render.gif")
-        written["render_gif"] = out / "render.gif"
-    if reference_frames is not None:
-        side = compare(reference_frames, frames, labels=("reference", "target"))
-        written["compare"] = write_mp4(out / "compare.mp4", side, fps)
-        if writer is not None:
-            log_gif_tensorboard(writer, "video/compare", side, step, fps=fps, gif_path=out / "compare.gif")
-            written["compare_gif"] = out / "compare.gif"
-    turns = getattr(cfg, "turntable_frames", 0) if turntable_frames is None else turntable_frames
-    if turns:
-        covs = np.asarray(covariances)
-        last = means_a[-1]
-        cams = orbit(last, int(turns), **view)
-        spin = render_sequence(
-            renderer, np.repeat(last[None], int(turns), 0), covs[-1] if covs.ndim == 4 else covs, colors, opacities,
-            cams, progress=progress, desc="turntable",
-        )
-        written["turntable"] = write_mp4(out / "turntable.mp4", spin, fps)
-    return written
