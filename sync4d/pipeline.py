@@ -367,6 +367,11 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
 
     writer = FrameWriter(ctx.run_dir, target, motion, logger=ctx.logger, run_config=run_config_record(cfg))
     sim_cfg = apply_budget(ctx, group_cfg(cfg, "sim"), target, motion)
+    from sync4d.budget import check_run_cost
+
+    cost = check_run_cost(sim_cfg, group_cfg(cfg, "velocity"), target, motion, frames=int(cfg.frames))
+    if cost is not None:
+        atomic_write_json(ctx.run_dir / "cost_estimate.json", dataclasses.asdict(cost))
     simulator = build("sim", sim_cfg, device=cfg.device)
     trajectory = simulator.run(
         target, part_map, motion,

@@ -41,3 +41,56 @@ def test_grid_for_cells_gives_that_many_cells_over_the_longest_extent():
     n = grid_for_cells(12, padding=0.25, wall=3)
     spec = physics.fit_grid(points, n_grid=n, padding=0.25, wall=3)
     assert 12.0 <= np.ptp(points, axis=0).max() / spec.dx < 13.0
+
+
+def _laptop_scene():
+    from sync4d.scenes.targets import LaptopTarget
+
+    ref = laptop_reference(6)
+    target = LaptopTarget(LaptopTarget.Config(num_surface=600, num_interior=200)).load()
+    motion = driving_motion(ref, target_points=ref.rest_vertices, target_faces=ref.rest_faces, num_frames=6)
+    return target, motion
+
+
+def test_stiff_material_is_refused_in_seconds_naming_E_and_the_fix():
+    import time
+
+    import pytest
+
+    from sync4d.budget import check_run_cost
+    from sync4d.errors import ConfigError
+
+    import sync4d.sim.mpm_warp  # noqa: F401 - imported (Warp loaded) before the clock starts
+    import sync4d.velocity.fields  # noqa: F401
+
+    target, motion = _laptop_scene()
+    started = time.perf_counter()
+    with pytest.raises(ConfigError, match=r"^sim\.E=1e\+12 Pa: .* substeps per frame exceed sim\.max_substeps=2000 .*"
+                       r"lower sim\.E \(about .* Pa or less fits\)") as info:
+        check_run_cost({"type": "mpm_warp", "E": 1e12}, {"type": "triplane"}, target, motion, frames=24)
+    assert time.perf_counter() - started < 5.0  # milliseconds here; the bound leaves room for a busy machine
+    assert "\n" not in str(info.value)
+
+
+def test_cost_estimate_follows_the_cfl_model_and_scales_with_stiffness():
+    from sync4d.budget import SimSettings, estimate_cost
+    from sync4d.sim.mpm_warp import MPMWarp
+
+    target, motion = _laptop_scene()
+    cfg = MPMWarp.Config(control_grid=None)
+    soft = estimate_cost(target.means, motion, SimSettings.of(cfg), frames=24, iterations=12)
+    stiff = estimate_cost(target.means, motion, SimSettings.of(MPMWarp.Config(E=1e6, control_grid=None)), frames=24,
+                          iterations=12)
+    frame_time = 1.0 / motion.fps
+    # the substep meets the CFL bound used by the simulator (with the transfer's speed headroom)
+    assert soft.dt <= physics.cfl_dt(soft.dx, cfg.E, cfg.nu, cfg.density, v_max=soft.v_max, safety=cfg.cfl_safety)
+    assert soft.substeps * soft.dt == pytest_approx(frame_time)
+    assert stiff.cause == "E" and stiff.substeps > 5 * soft.substeps
+    assert stiff.seconds_per_frame > 5 * soft.seconds_per_frame and soft.particles == target.num
+    assert soft.peak_memory_mb > 0 and soft.total_seconds == soft.seconds_per_frame * 23
+
+
+def pytest_approx(value):
+    import pytest
+
+    return pytest.approx(value, rel=1e-9)

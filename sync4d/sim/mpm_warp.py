@@ -409,6 +409,8 @@ class MPMWarp:
             substeps: substeps N per frame (the minimum when auto_substep raises it for stability).
             auto_substep: split substeps that break the CFL bound (logged) instead of raising.
             cfl_safety: CFL number aimed for, dt <= cfl_safety dx / (c + |v|max) (stable to ~0.47 measured).
+            max_substeps: a run whose estimated substeps per frame exceed this is refused before it starts
+                (:func:`sync4d.budget.check_cost`), naming the cause (e.g. E) and the fix.
             control_grid: cells per axis of the control-point lattice (paper: 41), or null to simulate
                 every Gaussian.
             gravity: (3,) acceleration [m/s^2]; off for motion transfer.
@@ -434,6 +436,7 @@ class MPMWarp:
         substeps: int = 20
         auto_substep: bool = True
         cfl_safety: float = 0.3
+        max_substeps: int = 2000
         control_grid: int | None = 20
         gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
         checkpoint_every: int | None = None
@@ -466,6 +469,8 @@ class MPMWarp:
                 raise ConfigError(f"sim.substeps={self.substeps}: must be >= 1")
             if not (0.0 < self.cfl_safety <= 1.0):
                 raise ConfigError(f"sim.cfl_safety={self.cfl_safety}: must be in (0, 1]; 0.3 is safe (stable to ~0.47)")
+            if self.max_substeps < self.substeps:
+                raise ConfigError(f"sim.max_substeps={self.max_substeps}: must be >= sim.substeps={self.substeps}")
             if self.control_grid is not None and self.control_grid < 1:
                 raise ConfigError(f"sim.control_grid={self.control_grid}: must be >= 1, or null to simulate every Gaussian")
             if len(self.gravity) != 3:
