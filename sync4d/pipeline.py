@@ -139,10 +139,13 @@ def stage_target(ctx: RunContext) -> tuple[TargetGaussians, Any]:
 
 
 def target_surface(target: TargetGaussians, source: Any) -> tuple[np.ndarray, np.ndarray | None]:
-    """The target's surface mesh when its source has one, else its Gaussian centres (a point cloud)."""
+    """The target's surface mesh when its source has one, else a bounded, evenly spread sample of its
+    opaque Gaussian centres (at most ``surface_sample.SURFACE_POINTS``, however many Gaussians)."""
+    from sync4d.surface_sample import splat_surface
+
     surface = source.surface() if hasattr(source, "surface") else None
     if surface is None:
-        return target.means.astype(np.float64), None
+        return splat_surface(target.means, target.opacities), None
     return surface
 
 
