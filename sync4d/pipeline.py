@@ -28,7 +28,8 @@ from sync4d import cache
 from sync4d.errors import ConfigError, Sync4DError
 from sync4d.io.atomic import atomic_write_json
 from sync4d.io.ply import write_gaussians_ply
-from sync4d.registry import available, build, effective_config
+from sync4d.registry import available, build, effective_config, lookup
+from sync4d.scenes.targets import check_target_extent
 from sync4d.types import PartMap, Reference, TargetGaussians
 
 log = logging.getLogger("sync4d")
@@ -116,7 +117,8 @@ def stage_reference(ctx: RunContext) -> tuple[Reference, str]:
     cfg = ctx.cfg
     reference_cfg, recon_cfg = group_cfg(cfg, "reference"), group_cfg(cfg, "recon")
     source = build("reference", reference_cfg, device=cfg.device, seed=cfg.seed)
-    key = cache.stage_key("recon", reference_cfg, recon_cfg, cfg.seed)
+    code = cache.code_hash(type(source), lookup("recon", str(recon_cfg["type"])))
+    key = cache.stage_key("recon", reference_cfg, recon_cfg, cfg.seed, code)
 
     def compute() -> Reference:
         reconstructor = build("recon", recon_cfg, device=cfg.device)
@@ -134,8 +136,15 @@ def stage_target(ctx: RunContext) -> tuple[TargetGaussians, Any]:
     """Load the target Gaussians; returns them and the source (which may offer a surface mesh)."""
     source = build("target", group_cfg(ctx.cfg, "target"), device=ctx.cfg.device, seed=ctx.cfg.seed)
     target = source.load().validate()
+    check_target_extent(target.means, target_label(ctx.cfg))
     log.info("target=%s: %d Gaussians (SH degree %d)", ctx.cfg.target.type, target.num, target.sh_degree)
     return target, source
+
+
+def target_label(cfg: DictConfig) -> str:
+    """How an error names the target: its file when it has one, else its component."""
+    path = cfg.target.get("path")
+    return f"target.path={path}" if path else f"target={cfg.target.type}"
 
 
 def target_surface(target: TargetGaussians, source: Any) -> tuple[np.ndarray, np.ndarray | None]:
@@ -160,6 +169,7 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
     key = cache.stage_key(
         "match", recon_key, features_cfg, OmegaConf.to_container(cfg.match, resolve=True),
         group_cfg(cfg, "target"), cfg.seed,
+        cache.code_hash(match_parts, type(source), lookup("features", str(features_cfg["type"]))),
     )
 
     def compute() -> PartMap:
@@ -212,7 +222,7 @@ def apply_budget(ctx: RunContext, sim_cfg: dict[str, Any], target: TargetGaussia
                                                          "wall_cells", "cfl_safety")}, **sim_cfg}
     chosen = choose_budget(
         target.means.astype(np.float64), motion, E=full["E"], nu=full["nu"], density=full["density"],
-        frame_time=full["frame_time"], padding=full["grid_padding"], wall=full["wall_cells"],
+        frame_time=full["frame_time"] or 1.0 / motion.fps, padding=full["grid_padding"], wall=full["wall_cells"],
         cfl_safety=full["cfl_safety"],
     )
     atomic_write_json(ctx.run_dir / "budget.json", dataclasses.asdict(chosen))
@@ -342,8 +352,8 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
     from sync4d.motion import driving_motion
 
     cfg = ctx.cfg
+    target, source = stage_target(ctx)  # before the reconstruction: a bad target file fails in seconds
     reference, recon_key = stage_reference(ctx)
-    target, source = stage_target(ctx)
     write_frame(ctx.run_dir, 0, target)
     report_figures.save_reference_parts(reference, ctx.run_dir / "reference_parts.png", logger=ctx.logger)
 

@@ -48,13 +48,18 @@ class Particles:
         points: (P, 3) rest positions [m].
         part: (P,) part of each particle (majority of its Gaussians).
         gaussian_to_point: (N,) particle of each Gaussian.
-        counts: (P,) Gaussians per particle (volume shares).
+        counts: (P,) Gaussians per particle.
+        volume: (P,) rest volume of each particle [m^3], from geometry: every occupied control cell holds
+            one cell volume (side^3), shared among the cell's per-part particles by their Gaussians; so
+            neighbouring particles weigh the same however unevenly the Gaussians are spread. None when
+            every Gaussian is simulated (the simulator then estimates the volume from occupancy).
     """
 
     points: np.ndarray
     part: np.ndarray
     gaussian_to_point: np.ndarray
     counts: np.ndarray
+    volume: np.ndarray | None = None
 
 
 def make_particles(target: TargetGaussians, part_map: PartMap, control_grid: int | None) -> Particles:
@@ -75,7 +80,12 @@ def make_particles(target: TargetGaussians, part_map: PartMap, control_grid: int
     np.add.at(sums, g2p_split, means)
     part = np.zeros(len(counts_split), dtype=np.int64)
     part[g2p_split] = part_map.tgt_part
-    return Particles(sums / counts_split[:, None], part, g2p_split.astype(np.int64), counts_split.astype(np.int64))
+    cell_of = np.zeros(len(counts_split), dtype=np.int64)
+    cell_of[g2p_split] = g2p
+    side = float(np.ptp(means, axis=0).max()) / int(control_grid)
+    share = counts_split / np.bincount(cell_of, weights=counts_split)[cell_of]
+    return Particles(sums / counts_split[:, None], part, g2p_split.astype(np.int64), counts_split.astype(np.int64),
+                     volume=share * side**3)
 
 
 def anchor_weights(x: np.ndarray, part: np.ndarray, num_parts: int, mode: str) -> list[np.ndarray | None]:
@@ -161,7 +171,7 @@ def run_mpm_transfer(
     )
     particles = make_particles(target, part_map, cfg.control_grid)
     B = part_map.num_parts
-    model = sim.prepare(particles.points, weights=particles.counts)
+    model = sim.prepare(particles.points, volume=particles.volume)
     grid = model.grid
     lo, hi = grid.origin, grid.origin + (np.asarray(grid.dims) - 1) * grid.dx
     field = build("velocity", velocity_cfg, num_parts=B, bounds=(lo, hi))
@@ -231,13 +241,13 @@ def run_mpm_transfer(
             targets = [apply_rigid(relative[b], anchor_points(weights[b], x_np[particles.part == b])) for b in range(B)]
         loss_fn = PartLoss(particles.part, weights, targets)
 
-        frame_time = float(cfg.frame_time)
+        frame_time = sim.frame_time_for(motion.fps)
         v0, C0 = initial_velocity(x_np, particles.part, relative, motion.part_displacements[t], frame_time, options.init)
         v0_t = torch.as_tensor(v0, dtype=torch.float32)
         C0_t = torch.as_tensor(C0, dtype=torch.float32)
         # Headroom for the delta velocities the optimiser may add on top of the reference's.
         v_expected = float(np.linalg.norm(v0, axis=1).max()) * max(abs(field.velocity_scale), 1.0) * 2.0
-        substeps, dt = sim.substeps_for(model, v_expected)
+        substeps, dt = sim.substeps_for(model, v_expected, fps=motion.fps)
 
         if field.trainable and getattr(field.cfg, "reset_each_frame", False):
             field.load_state_dict(initial_field)

@@ -86,7 +86,11 @@ def test_yaml_builds(repo_root):
     from sync4d.registry import build
 
     sim = build("sim", OmegaConf.load(repo_root / "conf/sim/mpm_warp.yaml"), device="cpu")
-    assert isinstance(sim, MPMWarp) and sim.cfg.E == 1e4 and sim.cfg.control_grid == 20
+    assert isinstance(sim, MPMWarp) and sim.cfg.E == 1e4 and sim.cfg.control_grid == MPMWarp.Config().control_grid
+    # the simulated time of a frame is the reference's frame interval unless set
+    assert sim.cfg.frame_time is None and sim.frame_time_for(12.0) == pytest.approx(1 / 12)
+    with pytest.raises(ConfigError, match="sim.frame_time"):
+        sim.frame_time_for(None)
 
 
 def test_prepare_mass_and_volume_from_density_and_share():
@@ -175,7 +179,7 @@ def test_stretched_bar_oscillates_with_longitudinal_wave_period():
     left = torch.as_tensor(rest[:, 0] < 0.1 * L)
     right = torch.as_tensor(rest[:, 0] > 0.9 * L)
     period = 2 * L / math.sqrt(E / rho)
-    n_sub, dt = sim.substeps_for(model)
+    n_sub, dt = sim.substeps_for(model, fps=50.0)
     dt = min(dt, period / 200)
     steps_per_sample = 4
     x, v, C = st["x"], torch.zeros_like(st["x"]), st["C"]

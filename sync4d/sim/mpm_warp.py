@@ -405,7 +405,9 @@ class MPMWarp:
             wall_cells: thickness of the boundary walls at the grid faces [nodes].
             boundary: 'slip' (walls stop the outward velocity) or 'sticky' (walls stop all of it).
             fixed_box: [xlo, ylo, zlo, xhi, yhi, zhi] world box [m] whose grid nodes are held still, or null.
-            frame_time: simulated time of one output frame, N dt [s] (free, it need not be 1/fps).
+            frame_time: simulated time of one output frame, N dt [s]; null (the default) = the reference's
+                frame interval 1 / fps, so that E [Pa] and the elastic waves act over real time (a shorter
+                frame lets waves cross only a few centimetres and the physics has no time to act).
             substeps: substeps N per frame (the minimum when auto_substep raises it for stability).
             auto_substep: split substeps that break the CFL bound (logged) instead of raising.
             cfl_safety: CFL number aimed for, dt <= cfl_safety dx / (c + |v|max) (stable to ~0.47 measured).
@@ -432,7 +434,7 @@ class MPMWarp:
         wall_cells: int = 3
         boundary: str = "slip"
         fixed_box: list[float] | None = None
-        frame_time: float = 0.02
+        frame_time: float | None = None
         substeps: int = 20
         auto_substep: bool = True
         cfl_safety: float = 0.3
@@ -463,8 +465,8 @@ class MPMWarp:
                 box = np.asarray(self.fixed_box, dtype=float)
                 if box.shape != (6,) or not np.all(box[:3] <= box[3:]):
                     raise ConfigError(f"sim.fixed_box={self.fixed_box}: expected [xlo, ylo, zlo, xhi, yhi, zhi] with lo <= hi")
-            if not (self.frame_time > 0 and math.isfinite(self.frame_time)):
-                raise ConfigError(f"sim.frame_time={self.frame_time}: must be > 0 s")
+            if self.frame_time is not None and not (self.frame_time > 0 and math.isfinite(self.frame_time)):
+                raise ConfigError(f"sim.frame_time={self.frame_time}: must be > 0 s, or null for the frame interval")
             if self.substeps < 1:
                 raise ConfigError(f"sim.substeps={self.substeps}: must be >= 1")
             if not (0.0 < self.cfl_safety <= 1.0):
@@ -581,24 +583,35 @@ class MPMWarp:
         """CFL bound cfl_safety dx / (c + v_max) [s] for this model."""
         return physics.cfl_dt(model.grid.dx, model.E, model.nu, model.density, v_max=v_max, safety=self.cfg.cfl_safety)
 
-    def substeps_for(self, model: MPMModel, v_max: float = 0.0) -> tuple[int, float]:
-        """Substeps N and dt [s] for one frame of ``frame_time`` that respect the CFL bound.
+    def frame_time_for(self, fps: float | None) -> float:
+        """Simulated time of one frame [s]: ``sim.frame_time``, or 1 / ``fps`` when it is null."""
+        if self.cfg.frame_time is not None:
+            return float(self.cfg.frame_time)
+        if fps is None or not fps > 0:
+            raise ConfigError("sim.frame_time is null (the reference's frame interval) but no frame rate is known; "
+                              "set sim.frame_time=<seconds>")
+        return 1.0 / float(fps)
+
+    def substeps_for(self, model: MPMModel, v_max: float = 0.0, *, fps: float | None = None) -> tuple[int, float]:
+        """Substeps N and dt [s] for one frame of :meth:`frame_time_for` that respect the CFL bound.
 
         Args:
             model: the prepared model (its dx and material set the bound).
             v_max: the largest particle speed expected in the frame [m/s].
+            fps: the reference's frame rate [1/s] (used when ``sim.frame_time`` is null).
 
         Raises:
             SimulationUnstable: frame_time / substeps breaks the bound and auto_substep is off.
         """
         cfg = self.cfg
         dt_max = self.max_stable_dt(model, v_max)
+        frame_time = self.frame_time_for(fps)
         if cfg.auto_substep:
-            n, dt = physics.substeps_for(cfg.frame_time, dt_max, min_substeps=cfg.substeps)
+            n, dt = physics.substeps_for(frame_time, dt_max, min_substeps=cfg.substeps)
             if n > cfg.substeps:
                 log.info("sim: %d substeps of dt=%.3g s per frame (CFL bound %.3g s; sim.substeps=%d)", n, dt, dt_max, cfg.substeps)
             return n, dt
-        dt = cfg.frame_time / cfg.substeps
+        dt = frame_time / cfg.substeps
         if dt > dt_max:
             raise self._unstable(model, dt, dt_max, v_max, cfg.substeps)
         return cfg.substeps, dt
