@@ -88,3 +88,26 @@ def test_prepare_gaussians_uses_control_points():
     sim_all = MPMWarp(MPMWarp.Config(control_grid=None, n_grid=16), device="cpu")
     model_all, ident = sim_all.prepare_gaussians(means[:500])
     assert model_all.num_particles == 500 and np.array_equal(ident, np.arange(500))
+
+
+def test_carry_frame_moves_every_gaussian_rigidly_with_its_control_point():
+    from scipy.spatial.transform import Rotation
+
+    from sync4d.render.sh import rotate_sh
+    from sync4d.sim.control import carry_frame
+    from sync4d.types import TargetGaussians
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    q = rng.normal(size=(n, 4))
+    g = TargetGaussians(means=rng.random((n, 3)).astype(np.float32),
+                        quats=(q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+                        log_scales=rng.uniform(-5, -3, (n, 3)).astype(np.float32),
+                        opacity_logits=np.zeros(n, np.float32), sh=rng.normal(size=(n, 16, 3)).astype(np.float32))
+    points, g2p, _ = make_control_points(g.means, 6)
+    R = Rotation.from_rotvec([0.3, -0.8, 0.4]).as_matrix()
+    t = np.array([0.1, 0.2, -0.3])
+    frame = carry_frame(g, g2p, points, points @ R.T + t, np.repeat(R[None], len(points), axis=0))
+    np.testing.assert_allclose(frame.means, g.means @ R.T + t, atol=1e-5)
+    np.testing.assert_allclose(frame.covariances(), R @ g.covariances() @ R.T, atol=1e-9)
+    np.testing.assert_allclose(frame.sh, rotate_sh(g.sh, R), atol=1e-5)

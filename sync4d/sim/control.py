@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from sync4d.errors import ConfigError, InputError
-from sync4d.types import quat_to_matrix
+from sync4d.types import TargetGaussians, quat_to_matrix
 
 
 def make_control_points(means: np.ndarray, control_grid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -92,3 +92,37 @@ def carry_gaussians(
     means_t = points_t[gaussian_to_point] + (Fg @ offset[..., None])[..., 0]
     covariances_t = Fg @ covariances0 @ Fg.swapaxes(-1, -2)
     return means_t, covariances_t
+
+
+def carry_frame(
+    target: TargetGaussians,
+    gaussian_to_point: np.ndarray,
+    points0: np.ndarray,
+    points_t: np.ndarray,
+    F_t: np.ndarray,
+    global_transform: np.ndarray | None = None,
+) -> TargetGaussians:
+    """Every Gaussian of one output frame, carried by its control point (one frame at a time, so a run of
+    millions of Gaussians streams its frames to disk instead of holding them).
+
+    Positions follow :func:`carry_gaussians`; covariances F_c Sigma F_c^T and the SH colours turned by the
+    polar rotation of F_c (then the global transform) come from :func:`sync4d.deform.deform_gaussians`,
+    whose rotations are built once per control point.
+
+    Args:
+        target: the rest Gaussians (N).
+        gaussian_to_point: (N,) int control point of each Gaussian.
+        points0: (P, 3) control points at rest [m]; points_t: (P, 3) at time t [m].
+        F_t: (P, 3, 3) their deformation gradients (rest -> t).
+        global_transform: (4, 4) rigid G_t applied last, or None.
+
+    Returns:
+        The frame's Gaussians (float32, world frame).
+    """
+    from sync4d.deform import deform_gaussians
+
+    g2p = np.asarray(gaussian_to_point, dtype=np.int64)
+    F = np.asarray(F_t, dtype=np.float64)
+    offset = target.means.astype(np.float64) - np.asarray(points0, dtype=np.float64)[g2p]
+    means_t = np.asarray(points_t, dtype=np.float64)[g2p] + (F[g2p] @ offset[..., None])[..., 0]
+    return deform_gaussians(target, means_t, F, global_transform, index=g2p)
