@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -74,10 +75,12 @@ def check_overrides(argv: list[str], conf_dir: Path) -> None:
     except (HydraException, OmegaConfBaseException) as err:
         cause = err.__cause__ or err.__context__
         reason = str(cause).splitlines()[0] if cause is not None and str(cause).strip() else ""
-        hint = ""
-        if "not in struct" in reason or "Could not override" in str(err):
-            hint = " (check the spelling; `python train.py --cfg job` prints every key; `+key=value` adds a new one)"
-        _fail(f"bad override: {str(err).splitlines()[0].rstrip('.')}{'; ' + reason if reason else ''}{hint}")
+        unknown = re.search(r"Could not override '([\w.]+)'", str(err))
+        if unknown and ("not in struct" in reason or " not in '" in reason):
+            key = unknown.group(1)
+            _fail(f"bad override {key}: no such key (check the spelling; `python train.py --cfg job` prints every "
+                  "key; `+key=value` adds a new one)")
+        _fail(f"bad override: {str(err).splitlines()[0].rstrip('.')}{'; ' + reason if reason else ''}")
 
 
 def check_run_dir(argv: list[str]) -> None:

@@ -67,3 +67,40 @@ def assert_same_run(a: Path, b: Path) -> None:
     metrics_a, metrics_b = stable_metrics(a), stable_metrics(b)
     keys = [k for k in metrics_a.keys() | metrics_b.keys() if metrics_a.get(k) != metrics_b.get(k)]
     assert not keys, f"metrics differ in {sorted(keys)}: {[(metrics_a.get(k), metrics_b.get(k)) for k in keys]}"
+
+
+def train_in_process(run_dir: Path, *overrides: str) -> tuple[int, str]:
+    """What ``python train.py debug=smoke <overrides> hydra.run.dir=<run_dir>`` would do, in this process.
+
+    The same command-line checks, composition and :func:`sync4d.pipeline.run_guarded`, without paying
+    for a new interpreter (torch, Warp, Hydra: seconds per launch). Returns (exit code, stderr text);
+    log records go elsewhere, as under Hydra they go to the run's log.
+    """
+    import contextlib
+    import io
+    import logging
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import open_dict
+
+    from sync4d.cli import check_command_line
+    from sync4d.pipeline import run_guarded
+
+    argv = ["debug=smoke", *overrides, f"hydra.run.dir={run_dir}"]
+    err = io.StringIO()
+    root = logging.getLogger()
+    quiet = logging.NullHandler()
+    root.addHandler(quiet)
+    try:
+        with contextlib.redirect_stderr(err):
+            check_command_line(argv, ROOT / "conf")
+            with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+                cfg = compose(config_name="config", overrides=[a for a in argv if not a.startswith("hydra.")])
+            with open_dict(cfg):
+                cfg.run_dir = str(run_dir)
+            run_guarded(cfg)
+        return 0, err.getvalue()
+    except SystemExit as stop:
+        return int(stop.code or 0), err.getvalue()
+    finally:
+        root.removeHandler(quiet)

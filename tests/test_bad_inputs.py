@@ -58,6 +58,11 @@ CASES: tuple[Case, ...] = (
     _ply("ply_inf.ply", "property 'scale_1'", "inf"),
     _ply("ply_zero_gaussians.ply", "zero Gaussians"),
     _ply("ply_missing_properties.ply", "missing", "opacity"),
+    _ply("ply_one_gaussian.ply", "1 Gaussian", "at least 4"),
+    Case("mesh_degenerate.obj", ("target=mesh", "target.path={bad}/mesh_degenerate.obj"),
+         ("mesh_degenerate.obj", "no area"), "mesh_degenerate.obj"),
+    Case("device=tpu", ("device=tpu",), ("device=tpu", "device=cpu")),
+    Case("sim.n_grid=1", ("sim.n_grid=1", "shrink.sim.n_grid=1"), ("sim.n_grid=1", ">= 10")),  # debug=smoke would shrink it
     Case("mesh_no_faces.obj", ("target=mesh", "target.path={bad}/mesh_no_faces.obj"),
          ("mesh_no_faces.obj", "no faces"), "mesh_no_faces.obj"),
     Case("video_no_frames",
@@ -79,7 +84,7 @@ CASES: tuple[Case, ...] = (
          ("recon.bones=100000", "vertices")),
     Case("sim=no_such_sim", ("sim=no_such_sim",), ("sim", "no_such_sim", "available")),
     Case("sim.type=no_such_sim", ("sim.type=no_such_sim",), ("no_such_sim", "sim")),
-    Case("sim.nuu=0.3", ("sim.nuu=0.3",), ("sim.nuu", "not in struct", "spelling")),
+    Case("sim.nuu=0.3", ("sim.nuu=0.3",), ("sim.nuu", "no such key", "spelling")),
     Case("target=ply without path", ("target=ply",), ("target.path", "required")),
     Case("frames=abc", ("frames=abc",), ("frames='abc'", "integer")),
 )
@@ -103,19 +108,45 @@ def test_corpus_is_complete() -> None:
     assert used == entries, f"unused corpus entries {entries - used}, missing {used - entries}"
 
 
-@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
-def test_bad_input_gives_one_line(case: Case, tmp_path: Path) -> None:
+#: Cases also run through a real ``train.py`` process: the command-line contract (exit code, stderr) itself.
+SUBPROCESS_CASES = ("ply_nan.ply", "sim.E=0", "sim=no_such_sim", "sim.nuu=0.3")
+#: The longest a bad input may take to be refused: before any expensive stage runs.
+REFUSE_WITHIN_S = 10.0
+
+
+def check_one_line(case: Case, code: int, stderr: str, run_dir: Path) -> None:
     """Exit code 2, one ``sync4d:`` line naming the input and the problem, no traceback, no outputs."""
-    proc = run_train(case.overrides, tmp_path / "run")
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert proc.returncode == 2, f"exit {proc.returncode}; stderr:\n{proc.stderr[-3000:]}"
-    assert "Traceback" not in proc.stderr and "Traceback" not in proc.stdout, proc.stderr[-3000:]
-    assert len(lines) == 1, f"expected one line on stderr, got {len(lines)}:\n{proc.stderr[-3000:]}"
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert code == 2, f"exit {code}; stderr:\n{stderr[-3000:]}"
+    assert "Traceback" not in stderr, stderr[-3000:]
+    assert len(lines) == 1, f"expected one line on stderr, got {len(lines)}:\n{stderr[-3000:]}"
     line = lines[0]
     assert line.startswith("sync4d: "), line
     for word in case.expect:
         assert word.lower() in line.lower(), f"{word!r} not in {line!r}"
-    assert not (tmp_path / "run" / "metrics.json").exists()
+    assert not (run_dir / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_bad_input_gives_one_line(case: Case, tmp_path: Path) -> None:
+    """The pipeline refuses each bad input with one line, in seconds (in this process: no interpreter start)."""
+    import time
+
+    from _runs import train_in_process
+
+    started = time.perf_counter()
+    code, stderr = train_in_process(tmp_path / "run", *(o.replace("{bad}", str(BAD)) for o in case.overrides))
+    elapsed = time.perf_counter() - started
+    check_one_line(case, code, stderr, tmp_path / "run")
+    assert elapsed < REFUSE_WITHIN_S, f"refused after {elapsed:.1f} s: expensive work ran first"
+
+
+@pytest.mark.parametrize("case", [c for c in CASES if c.name in SUBPROCESS_CASES],
+                         ids=[c.name for c in CASES if c.name in SUBPROCESS_CASES])
+def test_bad_input_through_train_py(case: Case, tmp_path: Path) -> None:
+    proc = run_train(case.overrides, tmp_path / "run")
+    assert "Traceback" not in proc.stdout
+    check_one_line(case, proc.returncode, proc.stderr, tmp_path / "run")
 
 
 def test_full_error_shows_traceback(tmp_path: Path) -> None:

@@ -38,13 +38,23 @@ def load_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
     vertices = np.asarray(loaded.vertices, dtype=np.float64)
     if not np.isfinite(vertices).all():
         raise InputError(f"{path}: the mesh has NaN/inf vertex coordinates")
+    faces = np.asarray(loaded.faces, dtype=np.int64)
+    if surface_area(vertices, faces) <= 1e-12 * max(float(np.ptp(vertices, axis=0).max()), 1e-30) ** 2:
+        raise InputError(f"{path}: the mesh's {len(faces)} face(s) have no area (coincident or collinear "
+                         "vertices); give a mesh with a real surface")
     colors = None
     visual = loaded.visual
     if getattr(visual, "kind", None) == "vertex":
         rgba = np.asarray(visual.vertex_colors, dtype=np.float64)
         if rgba.shape[0] == len(vertices) and np.ptp(rgba[:, :3]) > 0:
             colors = rgba[:, :3] / 255.0
-    return vertices, np.asarray(loaded.faces, dtype=np.int64), colors
+    return vertices, faces, colors
+
+
+def surface_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Total area [m^2] of the (F, 3) triangles ``faces`` over (V, 3) ``vertices``."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
 
 def winding_number(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *, chunk: int = 512) -> np.ndarray:

@@ -7,13 +7,30 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.errors import ConfigError, DataMissingError
+from sync4d.errors import ConfigError, DataMissingError, InputError
 from sync4d.floaters import FloaterConfig, FloaterReport, remove_floaters
 from sync4d.io.mesh import load_mesh, mesh_to_gaussians
 from sync4d.io.ply import read_gaussians_ply
 from sync4d.registry import register
 from sync4d.scenes.laptop import laptop_mesh
 from sync4d.types import TargetGaussians
+
+
+#: Fewest Gaussians a target can have: matching aligns shapes by their principal axes and the simulation
+#: needs a body with an extent.
+MIN_TARGET_GAUSSIANS = 4
+
+
+def check_target_extent(means: np.ndarray, label: str) -> None:
+    """Refuse (N, 3) Gaussian centres ``means`` [m] too few to match or simulate, or spanning no surface."""
+    if len(means) < MIN_TARGET_GAUSSIANS:
+        raise InputError(f"{label}: {len(means)} Gaussian(s); a target needs at least {MIN_TARGET_GAUSSIANS} "
+                         "spread over a surface or volume")
+    centred = means.astype(np.float64) - means.mean(axis=0)
+    spread = np.linalg.svd(centred, compute_uv=False)
+    if spread[0] <= 1e-9 * max(float(np.abs(means).max()), 1.0) or spread[1] <= 1e-9 * spread[0]:
+        raise InputError(f"{label}: the {len(means)} Gaussian centres coincide or lie on one line; "
+                         "a target needs a surface or a volume")
 
 
 def resolve_data_path(path: str) -> Path:
@@ -132,6 +149,7 @@ class PlyTarget:
         if not path.is_file():
             raise DataMissingError(f"target.path={self.cfg.path}: .ply file not found (looked at {path})")
         gaussians = read_gaussians_ply(path)
+        check_target_extent(gaussians.means, str(path))
         keep, report = remove_floaters(gaussians.means, self.cfg.floaters, source=str(path))
         if not keep.all():
             gaussians = gaussians.subset(keep)

@@ -66,14 +66,16 @@ def write_plys(folder: Path) -> None:
     (folder / "ply_zero_gaussians.ply").write_bytes(ply_bytes({name: np.zeros(0, np.float32) for name in PLY_PROPS}))
     missing = {k: v for k, v in gaussian_table().items() if k not in ("opacity", "rot_0", "rot_1", "rot_2", "rot_3")}
     (folder / "ply_missing_properties.ply").write_bytes(ply_bytes(missing))
+    (folder / "ply_one_gaussian.ply").write_bytes(ply_bytes(gaussian_table(1)))
 
 
 # ---------------------------------------------------------------------------------------------- mesh
 def write_meshes(folder: Path) -> None:
-    """An OBJ holding vertices but no faces."""
+    """An OBJ holding vertices but no faces, and one whose only face has no area."""
     lines = ["# eight cube corners and no faces"]
     lines += [f"v {x} {y} {z}" for x in (0.0, 0.1) for y in (0.0, 0.1) for z in (0.0, 0.1)]
     (folder / "mesh_no_faces.obj").write_text("\n".join(lines) + "\n")
+    (folder / "mesh_degenerate.obj").write_text("# three coincident vertices\nv 0 0 0\nv 0 0 0\nv 0 0 0\nf 1 2 3\n")
 
 
 # --------------------------------------------------------------------------------------------- video
