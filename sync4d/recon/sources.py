@@ -211,17 +211,19 @@ class VideoSource:
         """Attributes:
         video: video file or folder of frames.
         masks: folder of mask PNGs or a mask video; empty = no masks (``recon=video`` then uses a
-            static-camera background model).
+            static-camera background model); ``auto`` = the ``masks`` folder beside the video if there
+            is one, else none (so ``reference.video=<another video>`` does not pick up the default's masks).
         camera: ``.npz`` with ``K`` and ``cam_pos``/``cam_forward``/``cam_up`` (laptop renders' layout),
-            or with ``K`` and ``world_to_cam`` (4x4); empty = unknown camera.
+            or with ``K`` and ``world_to_cam`` (4x4); empty = unknown camera; ``auto`` = ``gt.npz`` beside
+            the video if there is one, else unknown.
         fps: frame rate [1/s]; 0 = from the video file.
         max_frames: keep at most this many frames (0 = all).
         stride: keep every ``stride``-th frame.
         """
 
         video: str = "../shared/data/rendered/metaworld_laptop_hinge/rgb.mp4"
-        masks: str = "../shared/data/rendered/metaworld_laptop_hinge/masks"
-        camera: str = "../shared/data/rendered/metaworld_laptop_hinge/gt.npz"
+        masks: str = "auto"
+        camera: str = "auto"
         fps: float = 0.0
         max_frames: int = 0
         stride: int = 1
@@ -231,17 +233,26 @@ class VideoSource:
 
     def load(self) -> ReferenceInput:
         video = resolve_path(self.cfg.video, what="reference video")
-        masks = resolve_path(self.cfg.masks, what="mask folder") if self.cfg.masks else None
+        masks = beside(video, self.cfg.masks, "masks", what="mask folder")
+        camera_file = beside(video, self.cfg.camera, "gt.npz", what="camera file")
         clip = read_video_clip(
             video, masks, fps=self.cfg.fps or None, max_frames=self.cfg.max_frames or None, stride=self.cfg.stride
         )
         camera = None
-        if self.cfg.camera:
-            camera = load_camera(resolve_path(self.cfg.camera, what="camera file"), clip.frames.shape[2],
-                                 clip.frames.shape[1])
+        if camera_file is not None:
+            camera = load_camera(camera_file, clip.frames.shape[2], clip.frames.shape[1])
             clip = type(clip)(clip.frames, clip.masks, clip.fps, camera.K, None, clip.source).validate()
         return ReferenceInput(name=video.parent.name if video.is_file() else video.name, fps=clip.fps, video=clip,
                               camera=camera, path=str(video))
+
+
+def beside(video: Path, value: str, name: str, *, what: str) -> Path | None:
+    """A companion file of a video: ``value`` resolved, None when empty; ``auto`` = ``name`` in the video's
+    folder if it exists, else None."""
+    if value == "auto":
+        found = (video.parent if video.is_file() else video) / name
+        return found if found.exists() else None
+    return resolve_path(value, what=what) if value else None
 
 
 def load_camera(path: Path, width: int, height: int) -> Camera:

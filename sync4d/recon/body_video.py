@@ -1,0 +1,202 @@
+"""``recon=body_video``: an articulated reference (bones, capsule body, skinning, motion) from a video of a
+person (``subject: human``) or a four-legged animal (``subject: quadruped``).
+
+* human: BlazePose (MediaPipe's legacy models under LiteRT, :mod:`sync4d.recon.pose.blazepose`) gives 2D
+  landmarks, metric 3D world landmarks and a person mask per frame; a 17-joint skeleton is fitted to
+  them over the clip (:mod:`sync4d.recon.pose.human_fit`: reprojection, world pose, shared bone lengths,
+  joint limits, smoothness).
+* quadruped: a template skeleton (the AI4Animation dog mocap's rest pose, 13 bones by default) fitted to
+  the masks (input, or a static-camera background model) with a silhouette and limb-length prior
+  (:mod:`sync4d.recon.pose.quadruped_fit`).
+
+The fitted joints then go through ``recon=mocap``'s builder (:meth:`MocapReconstructor.from_motion`):
+segments merged to ``bones`` bones, a capsule body, distance skinning, rigid per-bone motion.
+
+The camera: the video's own intrinsics if known, else a pinhole with ``fov_deg`` across the longer image
+side; the world frame is the camera's turned to y-up (x right, y up, z towards the camera) unless the
+reference gives a camera pose. Pictures of the fit over the frames (``recon/body_fit.png`` and ``.mp4``)
+go into the Hydra run folder when the stage runs (not when its cache is reused).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from sync4d.errors import ConfigError, InputError
+from sync4d.io.mocap import SkeletonMotion
+from sync4d.recon.mocap import MocapReconstructor
+from sync4d.recon.pose.human_fit import HumanFitConfig, fit_human
+from sync4d.recon.pose.quadruped_fit import QuadrupedFitConfig, fit_quadruped
+from sync4d.registry import register
+from sync4d.types import Camera, Reference, ReferenceInput, VideoClip
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BONES = {"human": 11, "quadruped": 13}
+# camera (OpenCV: x right, y down, z forward) -> a y-up world when the camera pose is unknown
+CAM_TO_YUP = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class BodyVideoFit:
+    """A skeleton fitted to a video.
+
+    Attributes:
+        joints: (T, J, 3) joint positions in the camera frame (OpenCV axes) [m].
+        names: (J,) joint names.
+        parents: (J,) parent per joint, -1 for the root.
+        camera: the camera used (given, or from the assumed field of view; world_to_cam = identity when
+            the pose is unknown).
+        masks: (T, H, W) bool subject masks used or produced by the fit.
+        landmarks_2d: (T, L, 2) detected image landmarks [px] (humans), or None.
+        seconds: wall time of detection and fit [s].
+    """
+
+    joints: np.ndarray
+    names: tuple[str, ...]
+    parents: np.ndarray
+    camera: Camera
+    masks: np.ndarray
+    landmarks_2d: np.ndarray | None
+    seconds: float
+
+
+def assumed_camera(width: int, height: int, fov_deg: float) -> Camera:
+    """A pinhole with ``fov_deg`` across the longer side, principal point at the centre, identity pose."""
+    f = 0.5 * max(width, height) / math.tan(math.radians(fov_deg) / 2)
+    K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    return Camera(K=K, world_to_cam=np.eye(4), width=width, height=height).validate()
+
+
+def clip_camera(clip: VideoClip, camera: Camera | None, fov_deg: float) -> Camera:
+    """The given camera, else one with the clip's intrinsics, else :func:`assumed_camera`."""
+    if camera is not None:
+        return camera
+    h, w = clip.frames.shape[1:3]
+    if clip.intrinsics is not None:
+        return Camera(K=clip.intrinsics, world_to_cam=np.eye(4), width=w, height=h).validate()
+    return assumed_camera(w, h, fov_deg)
+
+
+@register("recon", "body_video")
+class BodyVideoReconstructor:
+    """A person or a quadruped from a monocular video (``reference=video``)."""
+
+    @dataclass
+    class Config:
+        """``recon=body_video`` options.
+
+        Attributes:
+            subject: ``human`` (learned pose model) or ``quadruped`` (template skeleton on masks).
+            bones: B; 0 = the subject's default (11 human, 13 quadruped), as in the paper.
+            fov_deg: field of view across the longer image side when the video has no intrinsics [deg].
+            model_dir: folder of the pose models; empty = ``$SYNC4D_MODEL_DIR`` or ``<project>/models/mediapipe``.
+            figures: write pictures of the fit over the frames into the run folder.
+            human: the human body fit's weights.
+            quadruped: the quadruped fit's weights and starts.
+        """
+
+        subject: Literal["human", "quadruped"] = "human"
+        bones: int = 0
+        fov_deg: float = 60.0
+        model_dir: str = ""
+        figures: bool = True
+        human: HumanFitConfig = field(default_factory=HumanFitConfig)
+        quadruped: QuadrupedFitConfig = field(default_factory=QuadrupedFitConfig)
+
+        def validate(self) -> None:
+            if self.bones < 0:
+                raise ConfigError(f"recon.bones={self.bones}: use 0 (the subject's default) or a positive B")
+            if not 1.0 < self.fov_deg < 170.0:
+                raise ConfigError(f"recon.fov_deg={self.fov_deg}: the field of view must be in (1, 170) degrees")
+
+    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
+        cfg.validate()
+        self.cfg = cfg
+        self.device = device
+
+    def fit(self, source: ReferenceInput) -> BodyVideoFit:
+        """Detect and fit the subject in ``source.video`` (camera frame)."""
+        if source.video is None:
+            raise InputError(f"recon=body_video needs a video, but reference '{source.name}' has none; "
+                             "use reference=video reference.video=<file>")
+        clip = source.video
+        camera = clip_camera(clip, source.camera, self.cfg.fov_deg)
+        started = time.perf_counter()
+        if self.cfg.subject == "human":
+            from sync4d.recon.pose.blazepose import track_video
+            from sync4d.recon.pose.models import load_models
+
+            detector, landmarks = load_models(self.cfg.model_dir)
+            track = track_video(clip.frames, detector, landmarks, source=clip.source or source.name)
+            fit = fit_human(track, camera.K, self.cfg.human)
+            return BodyVideoFit(fit.joints, fit.names, fit.parents, camera, track.masks, track.landmarks_2d,
+                                time.perf_counter() - started)
+        masks = clip.masks
+        if not masks.any():
+            from sync4d.recon.video import background_masks
+
+            masks = background_masks(clip.frames, threshold=self.cfg.quadruped.background_threshold)
+        qfit = fit_quadruped(masks, camera, self.cfg.quadruped, source=clip.source or source.name,
+                             world_up=source.world_up)
+        return BodyVideoFit(qfit.joints, qfit.names, qfit.parents, camera, masks, None,
+                            time.perf_counter() - started)
+
+    def reconstruct(self, source: ReferenceInput) -> Reference:
+        """The validated :class:`Reference` of the subject in ``source.video``."""
+        fit = self.fit(source)
+        cam_to_world = np.linalg.inv(fit.camera.world_to_cam)
+        if source.camera is None:
+            cam_to_world = CAM_TO_YUP
+        homo = np.concatenate([fit.joints, np.ones(fit.joints.shape[:2] + (1,))], axis=-1)
+        world = (homo @ cam_to_world.T)[..., :3]
+        up = 1
+        if source.world_up is not None:
+            up = int(np.argmax(np.abs(source.world_up)))
+        motion = SkeletonMotion(fit.names, fit.parents, world, None, float(source.fps or source.video.fps),
+                                up_axis=up, source=source.video.source)
+        bones = self.cfg.bones or DEFAULT_BONES[self.cfg.subject]
+        mocap = MocapReconstructor(MocapReconstructor.Config(bones=bones), device=self.device)
+        reference = mocap.from_motion(motion, name=source.name)
+        log.info("body_video %s: %d joints, %d bones, %d frames in %.1f s", self.cfg.subject, len(fit.names),
+                 reference.num_bones, reference.num_frames, fit.seconds)
+        if self.cfg.figures:
+            self._write_figures(source.video, fit, reference, np.linalg.inv(cam_to_world))
+        return reference
+
+    def _write_figures(self, clip: VideoClip, fit: BodyVideoFit, reference: Reference, world_to_cam: np.ndarray) -> None:
+        """Fit pictures into ``<run folder>/recon/`` when running under Hydra."""
+        from hydra.core.hydra_config import HydraConfig
+
+        if not HydraConfig.initialized():
+            return
+        folder = Path(HydraConfig.get().runtime.output_dir) / "recon"
+        paths = write_fit_pictures(folder, clip, fit, reference, world_to_cam)
+        log.info("body_video: pictures of the fit in %s", ", ".join(str(p) for p in paths))
+
+
+def write_fit_pictures(folder: Path, clip: VideoClip, fit: BodyVideoFit, reference: Reference,
+                       world_to_cam: np.ndarray, *, max_points: int = 1500) -> list[Path]:
+    """Draw the fit (mask, parts coloured by bone, skeleton, landmarks) over every frame; write png + mp4."""
+    from sync4d.recon.pose.overlay import draw_fit, write_pictures
+
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(reference.rest_vertices), min(max_points, len(reference.rest_vertices)), replace=False)
+    labels = reference.part_labels()[pick]
+    pictures = []
+    for t in range(min(clip.num_frames, reference.num_frames)):
+        posed = reference.posed_vertices(t, apply_global=True)[pick]
+        cam = posed @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+        pictures.append(draw_fit(
+            clip.frames[t], K=fit.camera.K, joints=fit.joints[t], parents=fit.parents, mask=fit.masks[t],
+            part_points=cam, part_labels=labels,
+            landmarks=None if fit.landmarks_2d is None else fit.landmarks_2d[t],
+        ))
+    return write_pictures(folder, pictures, clip.fps)

@@ -1,0 +1,355 @@
+"""Fit a quadruped template skeleton to the silhouettes of a video with a static camera (torch, CPU).
+
+Template: the rest pose (first frame) of the AI4Animation dog trot (27 joints: hips, spine, neck, head,
+four legs, tail; CC BY-NC 4.0), scaled. Per frame the unknowns are the root's rotation and position and
+every joint's rotation relative to the template (axis-angle); one scale and small per-bone length
+changes are shared by the clip. A body of capsules around the segments is projected and compared with
+the masks as a soft silhouette (binary cross-entropy on a coarse pixel grid) plus a term keeping points
+along the segments inside the mask (the mask's distance transform); priors: limb lengths (per-bone
+changes near zero, left/right equal), joint limits (rotation angle beyond ``joint_limit_deg`` from the
+template), temporal smoothness. Several starts (root headings about the up axis) are tried on a few
+frames; the one with the best silhouette IoU is fitted on the clip.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sync4d.errors import InputError
+from sync4d.types import Camera
+
+log = logging.getLogger(__name__)
+
+DOG_FILE = Path(__file__).resolve().parents[4] / "shared" / "data" / "motion" / "dog_mocap" / "dog_trot_joint_pos.txt"
+DOG_PARENTS = np.array([-1, 0, 1, 2, 3, 4, 2, 6, 7, 8, 9, 2, 11, 12, 13, 14, 0, 16, 17, 18, 0, 20, 21, 22, 0, 24, 25])
+# recon_joints vocabulary -> template joint name (dog facing -x, +z its left)
+VOCABULARY = (
+    ("pelvis", "pelvis"), ("neck", "neck"), ("head", "head"), ("tail_base", "tail_base"),
+    ("fl_upper", "fl_upper"), ("fl_middle", "fl_middle"), ("fl_paw", "fl_paw"),
+    ("fr_upper", "fr_upper"), ("fr_middle", "fr_middle"), ("fr_paw", "fr_paw"),
+    ("hl_upper", "hl_upper"), ("hl_middle", "hl_middle"), ("hl_paw", "hl_paw"),
+    ("hr_upper", "hr_upper"), ("hr_middle", "hr_middle"), ("hr_paw", "hr_paw"),
+)
+DOG_NAMES = (
+    "pelvis", "spine0", "spine1", "neck", "head", "head_end",
+    "fl_scapula", "fl_upper", "fl_middle", "fl_wrist", "fl_paw",
+    "fr_scapula", "fr_upper", "fr_middle", "fr_wrist", "fr_paw",
+    "hl_upper", "hl_middle", "hl_hock", "hl_paw", "hr_upper", "hr_middle", "hr_hock", "hr_paw",
+    "tail_base", "tail1", "tail_end",
+)
+# capsule radius of the segment ending at each joint, as a fraction of the template's body length
+DOG_RADII = np.array([0, .10, .10, .07, .07, .06, .05, .05, .04, .03, .03, .05, .05, .04, .03, .03,
+                      .06, .05, .035, .03, .06, .05, .035, .03, .04, .03, .025])
+
+
+@dataclass
+class QuadrupedFitConfig:
+    """Weights, schedule and starts of the quadruped fit.
+
+    Attributes:
+        template_length: body length (nose to tail root) of the template before scaling [m]; the scale
+            is fitted, this only sets the first guess of the depth.
+        starts: root headings tried (evenly spaced over 360 degrees about the up axis).
+        start_frames: frames used to rank the starts.
+        grid: silhouettes are compared on a grid this many cells across the longer side.
+        start_iterations: Adam steps per start.
+        iterations: Adam steps of the clip fit.
+        lr: Adam step size (radians / template units).
+        silhouette_weight: binary cross-entropy of the soft silhouette.
+        inside_weight: segment points outside the mask (distance transform, in grid cells).
+        length_weight: per-bone log-length changes and left/right differences.
+        limit_weight: joint rotation beyond ``joint_limit_deg``.
+        joint_limit_deg: rotation of a joint from the template allowed without penalty [deg].
+        smooth_weight: squared second differences of the joints (template units).
+        background_threshold: colour distance counted as foreground by the background model (0-255),
+            when the video has no masks.
+    """
+
+    template_length: float = 0.9
+    starts: int = 4
+    start_frames: int = 3
+    grid: int = 64
+    start_iterations: int = 150
+    iterations: int = 300
+    lr: float = 0.03
+    silhouette_weight: float = 1.0
+    inside_weight: float = 0.05
+    length_weight: float = 1.0
+    limit_weight: float = 1.0
+    joint_limit_deg: float = 50.0
+    smooth_weight: float = 5.0
+    background_threshold: float = 30.0
+
+
+@dataclass(frozen=True)
+class QuadrupedFit:
+    """The fitted template motion.
+
+    Attributes:
+        joints: (T, J, 3) joints in the camera frame (OpenCV axes) [m]; the metric scale is the assumed
+            ``template_length`` times the fitted scale only up to the camera's unknown depth.
+        names: (J,) template joint names.
+        parents: (J,) parent per joint.
+        iou: (T,) silhouette IoU of the fitted body against the masks on the fit grid.
+    """
+
+    joints: np.ndarray
+    names: tuple[str, ...]
+    parents: np.ndarray
+    iou: np.ndarray
+
+
+def dog_template() -> np.ndarray:
+    """(27, 3) template joints, centred on the pelvis, body length 1 (template units), facing -x, y up."""
+    from sync4d.io.mocap import read_joint_positions
+
+    if not DOG_FILE.is_file():
+        raise InputError(f"quadruped template {DOG_FILE} not found; it comes with ../shared/data/motion/dog_mocap")
+    pos = read_joint_positions(DOG_FILE)[0]
+    pos = pos - pos[0]
+    return pos / np.linalg.norm(pos[4] - pos[24])
+
+
+def rodrigues(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axis-angle -> (..., 3, 3) rotation matrices (smooth at zero)."""
+    theta = v.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    k = v / theta
+    kx, ky, kz = k.unbind(-1)
+    zero = torch.zeros_like(kx)
+    kmat = torch.stack([zero, -kz, ky, kz, zero, -kx, -ky, kx, zero], -1).reshape(v.shape[:-1] + (3, 3))
+    th = theta[..., None]
+    eye = torch.eye(3, dtype=v.dtype).expand(kmat.shape)
+    return eye + torch.sin(th) * kmat + (1 - torch.cos(th)) * (kmat @ kmat)
+
+
+def forward_kinematics(template: torch.Tensor, parents: np.ndarray, root_rot: torch.Tensor, root_pos: torch.Tensor,
+                       local: torch.Tensor, log_len: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """(T, J, 3) joint positions.
+
+    Args:
+        template: (J, 3) rest joints (template units).
+        parents: (J,) parents (parents precede children).
+        root_rot: (T, 3) root axis-angle; root_pos: (T, 3) root position [m].
+        local: (T, J, 3) joint axis-angles relative to the template (the rotation of joint j turns its
+            children's segments).
+        log_len: (J,) log length change of the segment ending at each joint.
+        scale: () metres per template unit.
+    """
+    rot_local = rodrigues(local)
+    world_rot = [None] * len(parents)
+    pos = [None] * len(parents)
+    r0 = rodrigues(root_rot) @ rot_local[:, 0]
+    world_rot[0], pos[0] = r0, root_pos
+    for j in range(1, len(parents)):
+        p = int(parents[j])
+        off = (template[j] - template[p]) * torch.exp(log_len[j]) * scale
+        pos[j] = pos[p] + (world_rot[p] @ off)
+        world_rot[j] = world_rot[p] @ rot_local[:, j]
+    return torch.stack(pos, 1)
+
+
+def soft_silhouette(joints: torch.Tensor, parents: np.ndarray, radii: torch.Tensor, K: torch.Tensor,
+                    grid_uv: torch.Tensor, tau_px: float) -> torch.Tensor:
+    """(T, P) soft occupancy of capsules around the segments at pixel positions ``grid_uv`` (P, 2).
+
+    Each segment projects to a 2D segment with a radius ``r f / z`` (z at its midpoint); occupancy is the
+    union of ``sigmoid((radius - distance) / tau_px)`` over segments.
+    """
+    seg = np.flatnonzero(parents >= 0)
+    a, b = joints[:, parents[seg]], joints[:, seg]
+    za, zb = a[..., 2:].clamp_min(1e-3), b[..., 2:].clamp_min(1e-3)
+    f = K[0, 0]
+    ua = a[..., :2] / za * f + K[:2, 2]
+    ub = b[..., :2] / zb * f + K[:2, 2]
+    r_px = radii[seg] * f / (0.5 * (za + zb))[..., 0]
+    d = ub - ua  # (T, S, 2)
+    rel = grid_uv[None, None] - ua[:, :, None]  # (T, S, P, 2)
+    s = ((rel * d[:, :, None]).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)[..., None]).clamp(0, 1)
+    dist = (rel - s[..., None] * d[:, :, None]).norm(dim=-1)
+    occ = torch.sigmoid((r_px[..., None] - dist) / tau_px)
+    return 1 - torch.exp(torch.log1p(-occ.clamp(max=1 - 1e-6)).sum(1))
+
+
+def _grid(camera: Camera, cells: int) -> tuple[np.ndarray, int, int]:
+    step = max(camera.width, camera.height) / cells
+    gw, gh = max(1, int(round(camera.width / step))), max(1, int(round(camera.height / step)))
+    us = (np.arange(gw) + 0.5) * camera.width / gw
+    vs = (np.arange(gh) + 0.5) * camera.height / gh
+    uu, vv = np.meshgrid(us, vs)
+    return np.stack([uu.ravel(), vv.ravel()], 1), gw, gh
+
+
+def _coarse_masks(masks: np.ndarray, gw: int, gh: int) -> np.ndarray:
+    import cv2
+
+    return np.stack([cv2.resize(m.astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA) for m in masks])
+
+
+def _outside_distance(coarse: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return np.stack([cv2.distanceTransform((m < 0.5).astype(np.uint8), cv2.DIST_L2, 3) for m in coarse])
+
+
+def _initial_root(mask: np.ndarray, camera: Camera, length: float, world_up: np.ndarray) -> np.ndarray:
+    """(3,) camera-frame root guess: the mask centroid back-projected at the depth its width implies."""
+    ys, xs = np.nonzero(mask)
+    width_px = max(xs.max() - xs.min(), ys.max() - ys.min(), 4)
+    K = camera.K
+    z = K[0, 0] * length / width_px
+    u, v = xs.mean(), ys.mean()
+    return np.array([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
+
+
+def _heading_rotation(up_cam: np.ndarray, angle: float) -> np.ndarray:
+    """Axis-angle (3,) taking the template (y up, facing -x) to the camera frame, turned by ``angle`` about up."""
+    from scipy.spatial.transform import Rotation
+
+    # template y -> camera up; template -x then turned about up by angle
+    up = up_cam / np.linalg.norm(up_cam)
+    fwd = np.cross(up, [0.0, 0.0, 1.0]) if abs(up[2]) < 0.9 else np.cross(up, [1.0, 0.0, 0.0])
+    fwd /= np.linalg.norm(fwd)
+    base = np.stack([-fwd, up, np.cross(-fwd, up)], axis=1)  # columns: images of template x, y, z
+    turn = Rotation.from_rotvec(up * angle).as_matrix()
+    return Rotation.from_matrix(turn @ base).as_rotvec()
+
+
+class _Problem:
+    """The tensors of one fit: coarse masks, distance fields, grid, camera, template."""
+
+    def __init__(self, masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig) -> None:
+        uv, self.gw, self.gh = _grid(camera, cfg.grid)
+        coarse = _coarse_masks(masks, self.gw, self.gh)
+        self.target = torch.tensor(coarse.reshape(len(masks), -1), dtype=torch.float64)
+        self.outside = torch.tensor(_outside_distance(coarse), dtype=torch.float64)
+        self.uv = torch.tensor(uv, dtype=torch.float64)
+        self.K = torch.tensor(camera.K, dtype=torch.float64)
+        self.tau = max(camera.width, camera.height) / cfg.grid * 0.5
+        self.template = torch.tensor(dog_template(), dtype=torch.float64)
+        self.radii = torch.tensor(DOG_RADII, dtype=torch.float64)
+        self.camera = camera
+        self.twin = np.array([_twin(n) for n in DOG_NAMES])
+
+
+def _twin(name: str) -> int:
+    """Index of the left/right twin of a template joint (itself if none)."""
+    for a, b in (("fl_", "fr_"), ("fr_", "fl_"), ("hl_", "hr_"), ("hr_", "hl_")):
+        if name.startswith(a):
+            return DOG_NAMES.index(b + name[3:])
+    return DOG_NAMES.index(name)
+
+
+def _losses(prob: _Problem, frames: np.ndarray, params: dict[str, torch.Tensor], cfg: QuadrupedFitConfig):
+    scale = params["log_scale"].exp()
+    joints = forward_kinematics(prob.template, DOG_PARENTS, params["root_rot"], params["root_pos"], params["local"],
+                                params["log_len"], scale)
+    occ = soft_silhouette(joints, DOG_PARENTS, prob.radii * scale, prob.K, prob.uv, prob.tau)
+    tgt = prob.target[frames]
+    bce = -(tgt * torch.log(occ.clamp(1e-5)) + (1 - tgt) * torch.log((1 - occ).clamp(1e-5))).mean()
+    # points along segments must land inside the mask
+    seg = np.flatnonzero(DOG_PARENTS >= 0)
+    s = torch.linspace(0, 1, 5, dtype=torch.float64)[None, None, :, None]
+    pts = joints[:, DOG_PARENTS[seg]][:, :, None] * (1 - s) + joints[:, seg][:, :, None] * s
+    uv = pts[..., :2] / pts[..., 2:].clamp_min(1e-3) * prob.K[0, 0] + prob.K[:2, 2]
+    gx = uv[..., 0] / prob.camera.width * 2 - 1
+    gy = uv[..., 1] / prob.camera.height * 2 - 1
+    grid = torch.stack([gx, gy], -1).reshape(len(frames), 1, -1, 2)
+    dist = torch.nn.functional.grid_sample(prob.outside[frames][:, None], grid, align_corners=False,
+                                           padding_mode="border")
+    inside = dist.pow(2).mean()
+    ll = params["log_len"]
+    lengths = ll.pow(2).mean() + (ll - ll[prob.twin]).pow(2).mean()
+    limit = torch.relu(params["local"].norm(dim=-1) - math.radians(cfg.joint_limit_deg)).pow(2).mean()
+    rel = (joints - joints[:, :1]) / scale
+    smooth = (rel[2:] - 2 * rel[1:-1] + rel[:-2]).pow(2).sum(-1).mean() if len(frames) > 2 else joints.new_zeros(())
+    total = (cfg.silhouette_weight * bce + cfg.inside_weight * inside + cfg.length_weight * lengths
+             + cfg.limit_weight * limit + cfg.smooth_weight * smooth)
+    return total, joints, occ
+
+
+def _run(prob: _Problem, frames: np.ndarray, params: dict[str, torch.Tensor], cfg: QuadrupedFitConfig, steps: int):
+    opt = torch.optim.Adam(list(params.values()), lr=cfg.lr)
+    for _ in range(steps):
+        opt.zero_grad()
+        loss, _, _ = _losses(prob, frames, params, cfg)
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        _, joints, occ = _losses(prob, frames, params, cfg)
+    pred, tgt = occ > 0.5, prob.target[frames] > 0.5
+    iou = ((pred & tgt).sum(1) / (pred | tgt).sum(1).clamp_min(1)).numpy()
+    return joints.numpy(), iou
+
+
+def fit_quadruped(masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig, *, source: str,
+                  world_up: np.ndarray | None = None) -> QuadrupedFit:
+    """Fit the dog template to (T, H, W) bool masks seen by a static ``camera``.
+
+    Args:
+        masks: (T, H, W) bool subject masks.
+        camera: the camera (intrinsics used; the fit is in its frame).
+        cfg: weights, schedule, starts.
+        source: the video's name, for messages.
+        world_up: (3,) world up direction, used to orient the starts; None = the camera's -y.
+
+    Raises:
+        InputError: a frame's mask is empty.
+    """
+    empty = np.flatnonzero(~masks.any((1, 2)))
+    if len(empty):
+        raise InputError(f"{source}: the subject's mask is empty in {len(empty)} frame(s) (first: {empty[0]}); "
+                         "give masks (reference.masks) or a video with a static camera and a moving subject")
+    n = len(masks)
+    prob = _Problem(masks, camera, cfg)
+    up_cam = np.array([0.0, -1.0, 0.0])
+    if world_up is not None:
+        up_cam = camera.world_to_cam[:3, :3] @ np.asarray(world_up, dtype=np.float64)
+    root0 = _initial_root(masks[0], camera, cfg.template_length, up_cam)
+    dt = torch.float64
+    nj = len(DOG_PARENTS)
+    best = None
+    first = np.arange(min(cfg.start_frames, n))
+    for k in range(cfg.starts):
+        rot = _heading_rotation(up_cam, 2 * math.pi * k / cfg.starts)
+        params = {
+            "root_rot": torch.tensor(np.tile(rot, (len(first), 1)), dtype=dt, requires_grad=True),
+            "root_pos": torch.tensor(np.tile(root0, (len(first), 1)), dtype=dt, requires_grad=True),
+            "local": torch.zeros(len(first), nj, 3, dtype=dt, requires_grad=True),
+            "log_len": torch.zeros(nj, dtype=dt, requires_grad=True),
+            "log_scale": torch.tensor(math.log(cfg.template_length), dtype=dt, requires_grad=True),
+        }
+        _, iou = _run(prob, first, params, cfg, cfg.start_iterations)
+        log.info("quadruped start %d/%d (heading %.0f deg): IoU %.3f", k + 1, cfg.starts, 360 * k / cfg.starts,
+                 iou.mean())
+        if best is None or iou.mean() > best[0]:
+            best = (float(iou.mean()), params)
+    init = best[1]
+    full = {
+        "root_rot": init["root_rot"].detach()[-1:].repeat(n, 1).requires_grad_(True),
+        "root_pos": init["root_pos"].detach()[-1:].repeat(n, 1).requires_grad_(True),
+        "local": init["local"].detach()[-1:].repeat(n, 1, 1).requires_grad_(True),
+        "log_len": init["log_len"].detach().clone().requires_grad_(True),
+        "log_scale": init["log_scale"].detach().clone().requires_grad_(True),
+    }
+    joints, iou = _run(prob, np.arange(n), full, cfg, cfg.iterations)
+    log.info("quadruped fit of %s: %d frames, silhouette IoU %.3f (min %.3f)", source, n, iou.mean(), iou.min())
+    return QuadrupedFit(joints=joints, names=DOG_NAMES, parents=DOG_PARENTS.copy(), iou=iou)
+
+
+def render_silhouettes(joints: np.ndarray, parents: np.ndarray, camera: Camera) -> np.ndarray:
+    """(T, H, W) bool silhouettes of the template's capsules around ``joints`` (camera frame) at full size."""
+    scale = float(np.linalg.norm(joints[0, 4] - joints[0, 24]))
+    uv, gw, gh = _grid(camera, max(camera.width, camera.height))
+    out = []
+    with torch.no_grad():
+        for t in range(len(joints)):  # one frame at a time: (S, P) distances at full resolution
+            occ = soft_silhouette(torch.tensor(joints[t: t + 1]), parents, torch.tensor(DOG_RADII * scale),
+                                  torch.tensor(camera.K), torch.tensor(uv), 0.5)
+            out.append(occ.numpy()[0].reshape(gh, gw) > 0.5)
+    return np.stack(out)

@@ -1,0 +1,220 @@
+"""Rendered clips with exact joint truth for ``recon_joints``: a mannequin posed by motion capture.
+
+A body of shaded capsules (skin, shirt, trousers, shoes; a sphere for the head) is posed per frame by a
+mocap clip (CMU BVH, DeepMimic) and splatted by the project's renderer (``render=splat_torch``) from a
+static look-at camera. Written per clip: ``rgb.mp4``, ``masks/%05d.png`` (rendered opacity > 0.5),
+``camera.npz`` (``K, cam_pos, cam_forward, cam_up``; the laptop renders' layout) and ``gt.npz``
+(``joints`` (T, J, 3) [m] in the world frame, ``names`` (J,) from the ``recon_joints`` vocabulary).
+
+    python -m sync4d_tools.body_clips --out outputs/body_clips --clip cmu --view front
+
+Data (attribution): CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu; created with funding from
+NSF EIA-0196217) via yuki-koyama/bvh11; DeepMimic humanoid walk (MIT) from pybullet_data (zlib).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "motion"
+SKIN, SHIRT, TROUSERS, SHOE = (0.87, 0.68, 0.55), (0.18, 0.33, 0.62), (0.32, 0.27, 0.22), (0.12, 0.12, 0.12)
+
+# truth vocabulary -> joint name in each clip's skeleton ("head" is the head sphere's centre)
+CLIP_JOINTS = {
+    "cmu": {"l_shoulder": "LeftShoulder", "r_shoulder": "RightShoulder", "l_elbow": "LeftElbow",
+            "r_elbow": "RightElbow", "l_wrist": "LeftWrist", "r_wrist": "RightWrist", "l_hip": "LeftHip",
+            "r_hip": "RightHip", "l_knee": "LeftKnee", "r_knee": "RightKnee", "l_ankle": "LeftAnkle",
+            "r_ankle": "RightAnkle", "pelvis": "Hips", "neck": "lowerneck", "l_toe": "LeftToe", "r_toe": "RightToe",
+            "l_hand": "lhand", "r_hand": "rhand", "head_base": "Head", "head_top": "Head_End"},
+    "deepmimic": {"l_shoulder": "left_shoulder", "r_shoulder": "right_shoulder", "l_elbow": "left_elbow",
+                  "r_elbow": "right_elbow", "l_wrist": "left_wrist", "r_wrist": "right_wrist", "l_hip": "left_hip",
+                  "r_hip": "right_hip", "l_knee": "left_knee", "r_knee": "right_knee", "l_ankle": "left_ankle",
+                  "r_ankle": "right_ankle", "pelvis": "root", "neck": "neck", "l_toe": "left_ankle_end",
+                  "r_toe": "right_ankle_end", "l_hand": "left_wrist_end", "r_hand": "right_wrist_end",
+                  "head_base": "neck", "head_top": "neck_end"},
+}
+TRUTH_NAMES = ("head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist", "l_hip", "r_hip",
+               "l_knee", "r_knee", "l_ankle", "r_ankle")
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """One body part: from joint ``a`` to joint ``b`` (same name = a sphere), radius [m], RGB colour."""
+
+    a: str
+    b: str
+    radius: float
+    colour: tuple[float, float, float]
+
+
+MANNEQUIN = (
+    Capsule("pelvis", "neck", 0.12, SHIRT), Capsule("l_hip", "r_hip", 0.09, TROUSERS),
+    Capsule("l_shoulder", "r_shoulder", 0.06, SHIRT), Capsule("neck", "head_base", 0.045, SKIN),
+    Capsule("head", "head", 0.095, SKIN), Capsule("hair", "hair", 0.092, (0.2, 0.12, 0.06)),
+    Capsule("l_eye", "l_eye", 0.016, (0.05, 0.05, 0.05)), Capsule("r_eye", "r_eye", 0.016, (0.05, 0.05, 0.05)),
+    Capsule("nose", "nose", 0.018, (0.8, 0.55, 0.45)), Capsule("mouth_l", "mouth_r", 0.01, (0.6, 0.2, 0.2)),
+    Capsule("l_shoulder", "l_elbow", 0.048, SHIRT), Capsule("r_shoulder", "r_elbow", 0.048, SHIRT),
+    Capsule("l_elbow", "l_wrist", 0.038, SKIN), Capsule("r_elbow", "r_wrist", 0.038, SKIN),
+    Capsule("l_wrist", "l_hand", 0.035, SKIN), Capsule("r_wrist", "r_hand", 0.035, SKIN),
+    Capsule("l_hip", "l_knee", 0.07, TROUSERS), Capsule("r_hip", "r_knee", 0.07, TROUSERS),
+    Capsule("l_knee", "l_ankle", 0.052, TROUSERS), Capsule("r_knee", "r_ankle", 0.052, TROUSERS),
+    Capsule("l_ankle", "l_toe", 0.04, SHOE), Capsule("r_ankle", "r_toe", 0.04, SHOE),
+)
+
+
+def load_clip(clip: str, frames: int, stride: int) -> tuple[dict[str, np.ndarray], float]:
+    """Named joint tracks {name: (T, 3)} [m] (Y up) of a mocap clip and its frame rate [1/s]."""
+    if clip == "cmu":
+        from sync4d.io.mocap import read_bvh
+
+        motion = read_bvh(DATA / "cmu_bvh" / "131_01.bvh")
+    elif clip == "deepmimic":
+        from sync4d.io.deepmimic import read_deepmimic
+
+        motion = read_deepmimic(DATA / "deepmimic" / "humanoid3d_walk.txt", DATA / "deepmimic" / "humanoid.urdf",
+                                urdf_scale=0.25)
+    else:
+        raise SystemExit(f"--clip {clip}: use cmu or deepmimic")
+    motion = motion.subsample(stride)
+    pos = motion.positions[:frames]
+    tracks = {key: pos[:, motion.names.index(name)] for key, name in CLIP_JOINTS[clip].items()}
+    # the head sphere sits over the skull's base, a radius up towards its top
+    up = tracks["head_top"] - tracks["head_base"]
+    up /= np.linalg.norm(up, axis=-1, keepdims=True)
+    tracks["head"] = tracks["head_base"] + 0.09 * up
+    add_face(tracks)
+    return tracks, motion.fps
+
+
+def add_face(tracks: dict[str, np.ndarray]) -> None:
+    """Eyes, nose and a hair cap on the head sphere (a faceless head leaves front and back ambiguous)."""
+    unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
+    left = unit(tracks["l_shoulder"] - tracks["r_shoulder"])
+    up = unit(tracks["neck"] - tracks["pelvis"])
+    fwd = unit(np.cross(left, up))
+    h = tracks["head"]
+    tracks["l_eye"] = h + 0.08 * fwd + 0.035 * left + 0.02 * up
+    tracks["r_eye"] = h + 0.08 * fwd - 0.035 * left + 0.02 * up
+    tracks["nose"] = h + 0.095 * fwd - 0.01 * up
+    tracks["mouth_l"] = h + 0.085 * fwd - 0.045 * up + 0.02 * left
+    tracks["mouth_r"] = h + 0.085 * fwd - 0.045 * up - 0.02 * left
+    tracks["hair"] = h - 0.02 * fwd + 0.02 * up
+
+
+def capsule_gaussians(a: np.ndarray, b: np.ndarray, radius: float, rng: np.random.Generator,
+                      *, density: float = 16000.0) -> tuple[np.ndarray, np.ndarray]:
+    """Points on a capsule's surface (uniform by area, ``density`` per m^2) and their outward normals."""
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    area = 2 * np.pi * radius * length + 4 * np.pi * radius**2
+    n = max(64, int(area * density))
+    z = axis / length if length > 1e-9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    s = rng.uniform(0, 1, n)
+    on_cyl = rng.uniform(0, area, n) < 2 * np.pi * radius * length
+    local = normals.copy()
+    local[on_cyl, 2] = 0.0
+    local /= np.linalg.norm(local, axis=1, keepdims=True)
+    centre = np.where(on_cyl[:, None], s[:, None] * length, (local[:, 2:3] > 0) * length)
+    pts_local = local * radius + np.concatenate([np.zeros((n, 2)), centre], axis=1)[:, [0, 1, 2]]
+    rot = np.stack([x, y, z], axis=1)
+    return a + pts_local @ rot.T, local @ rot.T
+
+
+def render_clip(tracks: dict[str, np.ndarray], camera, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(T, H, W, 3) uint8 frames and (T, H, W) bool masks of the mannequin posed by ``tracks``."""
+    from sync4d.render.splat_torch import SplatTorch
+
+    renderer = SplatTorch(SplatTorch.Config(background=[0.78, 0.78, 0.76], num_threads=1))
+    light = np.array([0.3, 0.8, 0.6])
+    light /= np.linalg.norm(light)
+    rng = np.random.default_rng(seed)
+    frames, masks = [], []
+    for t in range(len(tracks["pelvis"])):
+        pts, cols = [], []
+        for part in MANNEQUIN:
+            p, n = capsule_gaussians(tracks[part.a][t], tracks[part.b][t], part.radius, rng)
+            shade = 0.35 + 0.65 * np.clip(n @ light, 0, None)
+            pts.append(p)
+            cols.append(np.asarray(part.colour)[None] * shade[:, None])
+        means = np.concatenate(pts)
+        sigma = 0.008
+        covs = np.tile(np.eye(3) * sigma**2, (len(means), 1, 1))
+        out = renderer.render_full(means, covs, np.concatenate(cols), np.full(len(means), 0.9), camera)
+        frames.append((np.clip(out["rgb"], 0, 1) * 255).astype(np.uint8))
+        masks.append(out["alpha"] > 0.5)
+    return np.stack(frames), np.stack(masks)
+
+
+def clip_camera(tracks: dict[str, np.ndarray], view: str, width: int, height: int, fov_deg: float):
+    """A static look-at camera framing the whole clip; returns (Camera, K, position, forward, up)."""
+    from sync4d.recon.sources import camera_from_look
+
+    allp = np.concatenate([v for v in tracks.values()])
+    centre = 0.5 * (allp.min(0) + allp.max(0))
+    extent = allp.max(0) - allp.min(0)
+    angle = {"front": 0.0, "side": 90.0, "oblique": 40.0, "back": 180.0}[view]
+    # the clip's facing: from the pelvis towards the average of the toes, else +z
+    facing = (tracks["l_toe"] + tracks["r_toe"]).mean(0) / 2 - tracks["l_ankle"].mean(0) / 2 - tracks["r_ankle"].mean(0) / 2
+    facing[1] = 0.0
+    facing = facing / np.linalg.norm(facing) if np.linalg.norm(facing) > 1e-6 else np.array([0.0, 0.0, 1.0])
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    to_cam = np.array([c * facing[0] + s * facing[2], 0.0, -s * facing[0] + c * facing[2]])
+    f = 0.5 * height / np.tan(np.radians(fov_deg) / 2)
+    dist = 1.25 * max(extent[1], 0.7 * max(extent[0], extent[2])) * f / height + 0.5 * max(extent[0], extent[2])
+    pos = centre + to_cam * dist + np.array([0.0, 0.25, 0.0])
+    fwd = centre - pos
+    up = np.array([0.0, 1.0, 0.0])
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    return camera_from_look(K, pos, fwd, up, width, height), K, pos, fwd, up
+
+
+def write_clip(out: Path, clip: str, view: str, *, frames: int, stride: int, width: int, height: int,
+               fov_deg: float) -> dict:
+    """Render one clip into ``out`` and return a summary."""
+    import imageio.v2 as imageio
+
+    from sync4d.io.video import write_video
+
+    tracks, fps = load_clip(clip, frames, stride)
+    camera, K, pos, fwd, up = clip_camera(tracks, view, width, height, fov_deg)
+    rgb, masks = render_clip(tracks, camera)
+    out.mkdir(parents=True, exist_ok=True)
+    write_video(out / "rgb.mp4", rgb, fps)
+    (out / "masks").mkdir(exist_ok=True)
+    for t, m in enumerate(masks):
+        imageio.imwrite(out / "masks" / f"{t:05d}.png", (m * 255).astype(np.uint8))
+    np.savez(out / "camera.npz", K=K, cam_pos=pos, cam_forward=fwd, cam_up=up)
+    joints = np.stack([tracks[n] for n in TRUTH_NAMES], axis=1)
+    np.savez(out / "gt.npz", joints=joints, names=np.array(TRUTH_NAMES), fps=fps)
+    return {"clip": clip, "view": view, "frames": len(rgb), "fps": fps, "out": str(out)}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--clip", default="cmu", choices=["cmu", "deepmimic"])
+    parser.add_argument("--view", default="front", choices=["front", "side", "oblique", "back"])
+    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--stride", type=int, default=8)
+    parser.add_argument("--width", type=int, default=320)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--fov", type=float, default=50.0, help="vertical field of view [deg]")
+    args = parser.parse_args(argv)
+    result = write_clip(Path(args.out), args.clip, args.view, frames=args.frames, stride=args.stride,
+                        width=args.width, height=args.height, fov_deg=args.fov)
+    print(json.dumps(result))
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,118 @@
+"""``recon_joints``: joint error of ``recon=body_video`` on a clip with exact joint truth.
+
+    python -m sync4d.evaluate recon_joints --video V [--masks DIR] [--camera NPZ] --subject human --gt GT.npz
+
+``GT.npz`` holds ``joints`` (T, J, 3) [m] and ``names`` (J,) from this vocabulary (names not present are
+skipped): human ``head, l_shoulder, r_shoulder, l_elbow, r_elbow, l_wrist, r_wrist, l_hip, r_hip, l_knee,
+r_knee, l_ankle, r_ankle``; quadruped ``head, neck, pelvis, tail_base`` and ``<leg>_upper``, ``<leg>_middle``,
+``<leg>_paw`` for each leg ``fl, fr, hl, hr``. Clips with truth: ``python -m sync4d_tools.body_clips``.
+
+Prints one JSON object on the last line:
+    * ``mpjpe_pct_height``: mean per-joint position error after ONE similarity (rotation, translation,
+      scale) aligning the fitted joints of the whole clip to the truth, in % of the subject's height
+      (the largest extent of the truth joints along the world's y axis over the clip);
+    * ``pck10``: fraction of (frame, joint) pairs within 10% of that height after the same alignment;
+    * ``mask_iou``: mean IoU of the fit's masks against ``--masks`` (humans: the learned segmentation;
+      quadrupeds: the fitted body's silhouette); null without ``--masks``;
+    * ``frames``, ``joints``, ``seconds``, ``height_m``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any
+
+import numpy as np
+
+from sync4d.align import umeyama
+from sync4d.errors import InputError
+from sync4d.recon.body_video import BodyVideoReconstructor
+from sync4d.recon.sources import VideoSource
+
+# recon_joints vocabulary -> joint name in the fitted skeleton
+HUMAN_MAP = {n: n for n in ("head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
+                            "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle")}
+
+
+def quadruped_map() -> dict[str, str]:
+    """Vocabulary -> template joint names of the quadruped fit."""
+    from sync4d.recon.pose.quadruped_fit import VOCABULARY
+
+    return dict(VOCABULARY)
+
+
+def joint_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(T, J) distances [m] after one similarity aligning all of ``pred`` (T, J, 3) to ``truth``."""
+    sim = umeyama(pred.reshape(-1, 3), truth.reshape(-1, 3), with_scale=True)
+    aligned = sim.apply(pred.reshape(-1, 3)).reshape(pred.shape)
+    return np.linalg.norm(aligned - truth, axis=-1)
+
+
+def mask_iou(pred: np.ndarray, truth: np.ndarray) -> float:
+    """Mean over frames of |pred & truth| / |pred | truth| for (T, H, W) bool masks."""
+    inter = (pred & truth).sum((1, 2))
+    union = np.maximum((pred | truth).sum((1, 2)), 1)
+    return float((inter / union).mean())
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(prog="python -m sync4d.evaluate recon_joints", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--video", required=True)
+    parser.add_argument("--masks", default="", help="folder of truth masks (also the quadruped fit's input)")
+    parser.add_argument("--camera", default="", help="camera .npz (K, cam_pos, cam_forward, cam_up); default: unknown")
+    parser.add_argument("--subject", choices=["human", "quadruped"], default="human")
+    parser.add_argument("--gt", required=True, help="GT.npz with joints (T, J, 3) [m] and names (J,)")
+    parser.add_argument("--max-frames", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    start = time.perf_counter()
+    gt = np.load(args.gt)
+    truth_all, names = np.asarray(gt["joints"], dtype=np.float64), [str(n) for n in gt["names"]]
+    source = VideoSource(VideoSource.Config(video=args.video, masks=args.masks, camera=args.camera,
+                                            max_frames=args.max_frames)).load()
+    masks_in = source.video.masks if args.masks else None
+    if args.subject == "human":
+        # the learned model makes its own masks; the truth masks are only for the score
+        source = type(source)(**{**source.__dict__, "video": type(source.video)(
+            source.video.frames, np.zeros_like(source.video.masks), source.video.fps, source.video.intrinsics,
+            None, source.video.source)})
+    recon = BodyVideoReconstructor(BodyVideoReconstructor.Config(subject=args.subject, figures=False))
+    fit = recon.fit(source)
+    mapping = HUMAN_MAP if args.subject == "human" else quadruped_map()
+    pairs = [(i, fit.names.index(mapping[n])) for i, n in enumerate(names) if n in mapping]
+    if not pairs:
+        raise InputError(f"{args.gt}: none of its joint names {names} is in the {args.subject} vocabulary")
+    frames = min(len(truth_all), len(fit.joints))
+    truth = truth_all[:frames, [i for i, _ in pairs]]
+    pred = fit.joints[:frames, [j for _, j in pairs]]
+    height = float((truth[..., 1].max(1) - truth[..., 1].min(1)).max())
+    err = joint_errors(pred, truth)
+    iou = None
+    if masks_in is not None:
+        pm = fit.masks if args.subject == "human" else fit_silhouettes(fit)
+        iou = round(mask_iou(pm[:frames], masks_in[:frames]), 4)
+    out = {
+        "mpjpe_pct_height": round(100.0 * float(err.mean()) / height, 3),
+        "pck10": round(float((err < 0.1 * height).mean()), 4),
+        "mask_iou": iou,
+        "frames": int(frames),
+        "joints": len(pairs),
+        "height_m": round(height, 4),
+        "seconds": round(time.perf_counter() - start, 2),
+    }
+    print(json.dumps(out))
+    return out
+
+
+def fit_silhouettes(fit) -> np.ndarray:
+    """(T, H, W) bool silhouettes of the fitted quadruped body (capsules projected by the fit's camera)."""
+    from sync4d.recon.pose.quadruped_fit import render_silhouettes
+
+    return render_silhouettes(fit.joints, fit.parents, fit.camera)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,147 @@
+"""recon=body_video: BlazePose pre/post-processing, the human and quadruped fits, errors a user can cause."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sync4d.errors import DataMissingError, InputError
+from sync4d.recon.pose import blazepose as bp
+from sync4d.recon.pose.human_fit import HUMAN_SKELETON, JOINT_NAMES, HumanFitConfig, fit_human
+from sync4d.recon.pose.models import DETECTOR_FILE, load_models, model_path
+
+CONF = Path(__file__).resolve().parent.parent / "conf"
+
+
+def test_missing_model_names_what_to_run(tmp_path: Path) -> None:
+    with pytest.raises(DataMissingError, match=r"make models") as err:
+        model_path(DETECTOR_FILE, str(tmp_path))
+    assert "\n" not in str(err.value) and str(tmp_path) in str(err.value)
+
+
+def test_anchors_match_the_detector() -> None:
+    anchors = bp.ssd_anchors()
+    assert anchors.shape == (2254, 2)
+    assert anchors.min() > 0 and anchors.max() < 1
+    # the first anchors sit on the stride-8 grid, two per cell
+    assert np.allclose(anchors[:2], [[0.5 / 28, 0.5 / 28]] * 2)
+
+
+def test_roi_crop_round_trip() -> None:
+    roi = bp.roi_from_points(np.array([100.0, 200.0]), np.array([140.0, 170.0]))
+    # k0 -> k1 points up in the crop: k1 lands straight above the crop centre
+    aff = bp.roi_affine(roi, 256)
+    inv = np.linalg.inv(np.vstack([aff, [0, 0, 1]]))
+    k1_crop = inv @ np.array([140.0 - 0.5, 170.0 - 0.5, 1.0])
+    assert abs(k1_crop[0] + 0.5 - 128) < 1e-6 and k1_crop[1] + 0.5 < 128
+    pts = np.array([[10.0, 20.0], [128.0, 128.0], [250.0, 3.0]])
+    img = bp.crop_to_image(pts, roi, 256)
+    back = (inv @ np.c_[img - 0.5, np.ones(3)].T).T[:, :2] + 0.5
+    assert np.allclose(back, pts, atol=1e-6)
+
+
+def test_decode_detections_keeps_the_best_and_merges_overlaps() -> None:
+    anchors = bp.ssd_anchors()
+    raw = np.zeros((2254, 12))
+    raw[:, 2:4] = 40.0
+    scores = np.full(2254, -10.0)
+    scores[[100, 101]] = [3.0, 2.0]  # the two anchors of one cell: one person
+    scores[2000] = 1.0
+    sc, kps = bp.decode_detections(raw, scores, anchors)
+    assert len(sc) == 2 and sc[0] == pytest.approx(1 / (1 + math.exp(-3.0)))
+    assert np.allclose(kps[0, 0], anchors[100])
+
+
+def synthetic_track(joints_cam: np.ndarray, K: np.ndarray, rng: np.random.Generator, noise_px: float = 1.0):
+    """A PoseTrack whose landmarks are the projections (and pelvis-relative world) of known skeleton joints."""
+    t, j = joints_cam.shape[:2]
+    lm3 = np.repeat(joints_cam[:, :1], 33, axis=1)  # unused landmarks sit on the pelvis
+    for k, (_, _, idx) in enumerate(HUMAN_SKELETON):
+        if len(idx) == 1:
+            lm3[:, idx[0]] = joints_cam[:, k]
+    # pairs averaged into one joint: spread them symmetrically about it
+    for k, (_, _, idx) in enumerate(HUMAN_SKELETON):
+        if len(idx) == 2 and idx != (23, 24) and idx != (11, 12):
+            lm3[:, idx[0]] = joints_cam[:, k] + [0.07, 0, 0]
+            lm3[:, idx[1]] = joints_cam[:, k] - [0.07, 0, 0]
+    uv = lm3[..., :2] / lm3[..., 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, noise_px, (t, 33, 2))
+    world = lm3 - 0.5 * (lm3[:, 23:24] + lm3[:, 24:25])
+    return bp.PoseTrack(landmarks_2d=uv, landmarks_z=lm3[..., 2], world=world, visibility=np.ones((t, 33)),
+                        presence=np.ones(t), masks=np.zeros((t, 4, 4), bool), found=np.ones(t, bool))
+
+
+def standing_body(t: int) -> np.ndarray:
+    """(T, 17, 3) camera-frame joints of a person 3 m away raising the left arm (y down)."""
+    rest = {"pelvis": (0, 0, 0), "l_hip": (0.1, 0, 0), "r_hip": (-0.1, 0, 0), "l_knee": (0.1, 0.42, 0.02),
+            "r_knee": (-0.1, 0.42, 0.02), "l_ankle": (0.1, 0.82, 0), "r_ankle": (-0.1, 0.82, 0),
+            "l_toe": (0.1, 0.88, -0.14), "r_toe": (-0.1, 0.88, -0.14), "neck": (0, -0.52, 0), "head": (0, -0.72, 0),
+            "l_shoulder": (0.18, -0.5, 0), "r_shoulder": (-0.18, -0.5, 0), "l_elbow": (0.2, -0.22, 0),
+            "r_elbow": (-0.2, -0.22, 0), "l_wrist": (0.21, 0.03, 0), "r_wrist": (-0.21, 0.03, 0)}
+    base = np.array([rest[n] for n in JOINT_NAMES], dtype=np.float64)
+    out = np.repeat(base[None], t, axis=0)
+    for i in range(t):
+        a = 1.2 * i / max(t - 1, 1)  # the left arm swings out sideways about the shoulder
+        for j in ("l_elbow", "l_wrist"):
+            k = JOINT_NAMES.index(j)
+            rel = base[k] - base[JOINT_NAMES.index("l_shoulder")]
+            rot = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+            out[i, k] = base[JOINT_NAMES.index("l_shoulder")] + rot.T @ rel
+    return out + np.array([0.2, 0.1, 3.0])
+
+
+def test_human_fit_recovers_known_joints() -> None:
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    truth = standing_body(12)
+    track = synthetic_track(truth, K, np.random.default_rng(0))
+    fit = fit_human(track, K, HumanFitConfig())
+    err = np.linalg.norm(fit.joints - truth, axis=-1)
+    assert fit.reprojection_px.mean() < 2.0
+    assert err.mean() < 0.03, err.mean()  # [m]: metric, no alignment
+    lengths = np.linalg.norm(fit.joints[:, 1:] - fit.joints[:, fit.parents[1:]], axis=-1)
+    assert lengths.std(0).max() < 0.01  # one rigid skeleton over the clip
+
+
+def test_nobody_in_the_video_names_it() -> None:
+    detector, landmarks = load_models()
+    rng = np.random.default_rng(0)
+    frames = np.full((3, 240, 320, 3), 180, np.uint8)
+    frames[:, 100:140] = rng.integers(0, 255, (3, 40, 320, 3), dtype=np.uint8)
+    with pytest.raises(InputError, match=r"empty_room\.mp4: no person found") as err:
+        bp.track_video(frames, detector, landmarks, source="empty_room.mp4")
+    assert "\n" not in str(err.value)
+
+
+def test_fit_on_a_rendered_clip(tmp_path: Path) -> None:
+    """A mannequin posed by the CMU clip, rendered by the project's renderer, known camera: joint error bounded."""
+    from sync4d_tools.body_clips import write_clip
+    from sync4d_tools.evaluate.recon_joints import main
+
+    clip = tmp_path / "cmu"
+    write_clip(clip, "cmu", "front", frames=6, stride=40, width=240, height=360, fov_deg=50.0)
+    out = main(["--video", str(clip / "rgb.mp4"), "--masks", str(clip / "masks"), "--camera", str(clip / "camera.npz"),
+                "--subject", "human", "--gt", str(clip / "gt.npz")])
+    assert out["frames"] == 6 and out["joints"] == 13
+    assert out["mpjpe_pct_height"] < 12.0 and out["pck10"] > 0.6  # measured 7-10 % on 30-frame clips
+    assert out["mask_iou"] > 0.8
+
+
+def test_body_video_reference_and_configs(tmp_path: Path) -> None:
+    from omegaconf import OmegaConf
+
+    from sync4d.registry import build, make_config
+    from sync4d_tools.body_clips import write_clip
+
+    clip = tmp_path / "clip"
+    write_clip(clip, "deepmimic", "oblique", frames=4, stride=6, width=200, height=300, fov_deg=50.0)
+    source = build("reference", {"type": "video", "video": str(clip / "rgb.mp4"), "masks": "", "camera": ""}).load()
+    recon = build("recon", {"type": "body_video", "figures": False})
+    ref = recon.reconstruct(source).validate()
+    assert ref.num_bones == 11 and ref.num_frames == 4
+    assert build("recon", {"type": "body_video", "bones": 6, "figures": False}).reconstruct(source).num_bones == 6
+    for name in ("body_video", "body_video_dog"):
+        cfg = OmegaConf.load(CONF / "recon" / f"{name}.yaml")
+        cfg.pop("defaults", None)
+        make_config("recon", {"type": "body_video", **{k: v for k, v in cfg.items() if k != "type"}})
