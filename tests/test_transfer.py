@@ -80,3 +80,35 @@ def test_anchors_are_affine_combinations(tiny_scene):
     for rows in w:
         assert rows.shape[0] == 7
         np.testing.assert_allclose(rows.sum(axis=1), 1.0)
+
+
+# Tolerances of the reported metrics in the mutation tests: a change larger than these is a real change.
+POSE_TOL_PCT = 0.1      # pose_error_pct, % of the bounding-box diagonal
+STRAIN_TOL_PCT = 1.0    # strain_p99_max_pct, percentage points
+
+
+def _run_with_stress_scale(tiny_scene, scale: float) -> dict:
+    """The default MPM transfer with the stress multiplied by ``scale`` (test-only: mu and lam scaled on the model)."""
+    import dataclasses
+
+    ref, target, part_map, motion = tiny_scene
+    sim = MPMWarp(MPMWarp.Config(n_grid=16, control_grid=12), device="cpu")
+    prepare = sim.prepare
+
+    def scaled(*args, **kwargs):
+        m = prepare(*args, **kwargs)
+        # E (which sets the CFL bound) follows a stiffer material; a stress-free one keeps the same dt
+        return dataclasses.replace(m, mu=m.mu * scale, lam=m.lam * scale, E=m.E * max(scale, 1.0))
+
+    sim.prepare = scaled  # type: ignore[method-assign]
+    traj = sim.run(target, part_map, motion, velocity_cfg={"type": "none"}, num_frames=3)
+    return compute_metrics(traj, target, part_map, motion, ref, self_transfer=True, frame_seconds=[0.0] * 3)
+
+
+def test_stress_mutations_move_reported_metrics(tiny_scene):
+    """Stress x0 lets the shape strain (integrity breaks); stress x4 resists the motion (fidelity drops)."""
+    base = _run_with_stress_scale(tiny_scene, 1.0)
+    off = _run_with_stress_scale(tiny_scene, 0.0)
+    stiff = _run_with_stress_scale(tiny_scene, 4.0)
+    assert off["strain_p99_max_pct"] > base["strain_p99_max_pct"] + STRAIN_TOL_PCT, (off, base)
+    assert stiff["pose_error_pct"] > base["pose_error_pct"] + POSE_TOL_PCT, (stiff, base)

@@ -34,7 +34,7 @@ class Kinematic:
             one velocity per part, which turns no part).
         """
 
-        control_grid: int | None = 32
+        control_grid: int | None = 40
         init: Literal["rigid", "centroid"] = "rigid"
 
         def validate(self) -> None:

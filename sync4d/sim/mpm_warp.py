@@ -414,7 +414,10 @@ class MPMWarp:
             max_substeps: a run whose estimated substeps per frame exceed this is refused before it starts
                 (:func:`sync4d.budget.check_cost`), naming the cause (e.g. E) and the fix.
             control_grid: cells per axis of the control-point lattice (paper: 41), or null to simulate
-                every Gaussian.
+                every Gaussian. 40 against n_grid 32 gives ~2.5 lattice cells per grid cell along the
+                object's longest axis (up to ~15 particles per filled grid cell; 3-6 measured on the
+                transfer_gt bodies, where thin limbs and lids are one or two cells thick); cells that
+                straddle a part boundary are split per part, so seams get more particles.
             gravity: (3,) acceleration [m/s^2]; off for motion transfer.
             checkpoint_every: store every k-th substep state for the backward pass, which recomputes the
                 other (k-1)/k substeps once (memory ~ N/k + k states of 96 bytes per particle); null picks
@@ -439,7 +442,7 @@ class MPMWarp:
         auto_substep: bool = True
         cfl_safety: float = 0.3
         max_substeps: int = 2000
-        control_grid: int | None = 20
+        control_grid: int | None = 40
         gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
         checkpoint_every: int | None = None
         checkpoint_budget_mb: float = 512.0
