@@ -24,12 +24,14 @@ Steps, each a small pure function:
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from sync4d.align import AlignResult, Similarity, align_shapes, normalization
+from sync4d.match_structure import StructureConfig, StructureMatch, match_structure
 from sync4d.errors import ConfigError, InputError
 from sync4d.interfaces import FeatureExtractor
 from sync4d.types import PartMap, Reference, TargetGaussians
@@ -39,6 +41,62 @@ log = logging.getLogger(__name__)
 IN_ONE_BOX, IN_SEVERAL_BOXES, ORPHAN = 0, 1, 2
 BOX_FRAMES: tuple[str, ...] = ("aligned", "pca")
 TIE_BREAKS: tuple[str, ...] = ("centroid", "nearest_vertex")
+METHODS: tuple[str, ...] = ("features", "structure")
+
+
+@dataclass
+class MatchConfig:
+    """Every option of part matching, with its defaults (the single source of them).
+
+    Attributes:
+        method: ``structure`` (curve skeletons matched branch by branch, :mod:`sync4d.match_structure`;
+            shapes given upright along ``up_axis``, facing any way) or ``features`` (the paper's cosine
+            assignment of per-vertex features, then part boxes).
+        up_axis: the up axis shared by the reference and the (aligned) target.
+        align: ``none`` | ``pca`` | ``pca_icp`` | ``upright_icp`` (:func:`sync4d.align.align_shapes`). With
+            ``structure``, ``pca``/``pca_icp`` first bring an arbitrarily turned target into the
+            reference's frame; ``none``/``upright_icp`` trust that both are upright (the turn about the up
+            axis is searched by the structure match itself).
+        icp_iterations: ICP iterations of the alignment.
+        outlier_sigma: (features) robust spreads beyond which a target vertex is an outlier (<= 0 disables).
+        prototypes: (features) ``"1"`` (the paper's part mean), ``"k"`` (k-means prototypes) or ``"all"``.
+        smooth_neighbours: (features) k of the label vote after the cosine assignment (0 = off).
+        tie_break: (features) ``centroid`` | ``nearest_vertex``: the part of a Gaussian in several boxes.
+        box_frame: (features) ``aligned`` | ``pca`` part boxes.
+        box_padding: (features) box growth as a fraction of its size per side.
+        max_target_vertices: Gaussian means used as the surface when the target has no mesh.
+        min_opacity: Gaussians below this opacity are not surface points.
+        structure: options of the structure match.
+    """
+
+    method: Literal["features", "structure"] = "features"
+    up_axis: Literal["x", "y", "z"] = "y"
+    align: Literal["none", "pca", "pca_icp", "upright_icp"] = "upright_icp"
+    icp_iterations: int = 100
+    outlier_sigma: float = 2.5
+    prototypes: str = "all"
+    smooth_neighbours: int = 0
+    tie_break: Literal["centroid", "nearest_vertex"] = "nearest_vertex"
+    box_frame: Literal["aligned", "pca"] = "aligned"
+    box_padding: float = 0.02
+    max_target_vertices: int = 6000
+    min_opacity: float = 0.1
+    structure: StructureConfig = field(default_factory=StructureConfig)
+
+    def validate(self) -> MatchConfig:
+        """Raise ConfigError naming the first bad option."""
+        choices = {"method": METHODS, "up_axis": ("x", "y", "z"), "align": ("none", "pca", "pca_icp", "upright_icp"),
+                   "tie_break": TIE_BREAKS, "box_frame": BOX_FRAMES}
+        for key, allowed in choices.items():
+            if getattr(self, key) not in allowed:
+                raise ConfigError(f"match.{key}={getattr(self, key)!r}: use one of {', '.join(allowed)}")
+        prototype_count(self.prototypes)
+        if self.icp_iterations < 1 or self.max_target_vertices < 16 or self.structure.yaw_steps < 1:
+            raise ConfigError("match.icp_iterations, match.structure.yaw_steps must be >= 1 and "
+                              "match.max_target_vertices >= 16")
+        if self.structure.skeleton.samples < 64 or self.structure.skeleton.neighbours < 3:
+            raise ConfigError("match.structure.skeleton.samples must be >= 64 and .neighbours >= 3")
+        return self
 
 
 @dataclass(frozen=True)
@@ -55,12 +113,17 @@ class MatchDiagnostics:
         vertex_part: (M,) part of highest cosine similarity per target vertex (before outlier removal).
         vertex_margin: (M,) cosine margin best minus second-best part per target vertex.
         kept: (M,) bool, False for removed outliers.
-        similarity: (M, B) cosine similarities of the target vertices to the part means.
-        boxes: (B, 2, 3) per-part box corners (lo, hi) in the box frame (see ``box_rotations``).
-        box_rotations: (B, 3, 3) rotation of each box frame (identity for axis-aligned boxes).
+        similarity: (M, B) cosine similarities of the target vertices to the part means (None with
+            ``method=structure``).
+        boxes: (B, 2, 3) per-part box corners (lo, hi) in the box frame (see ``box_rotations``; None with
+            ``method=structure``).
+        box_rotations: (B, 3, 3) rotation of each box frame (identity for axis-aligned boxes), or None.
         box_valid: (B,) bool, the part kept at least one target vertex.
         centroids: (B, 3) part centroids of the kept target vertices, common frame (NaN if invalid).
-        gaussian_status: (N,) 0 in one box, 1 in several (nearest centroid), 2 orphan (nearest centroid).
+        gaussian_status: (N,) 0 in one box, 1 in several (nearest centroid), 2 orphan (nearest centroid);
+            all 0 with ``method=structure``.
+        structure: the skeleton match with ``method=structure``, else None.
+        reference_labels: (V,) part of each of ``reference_points``.
     """
 
     alignment: AlignResult
@@ -71,12 +134,14 @@ class MatchDiagnostics:
     vertex_part: np.ndarray
     vertex_margin: np.ndarray
     kept: np.ndarray
-    similarity: np.ndarray
-    boxes: np.ndarray
-    box_rotations: np.ndarray
+    similarity: np.ndarray | None
+    boxes: np.ndarray | None
+    box_rotations: np.ndarray | None
     box_valid: np.ndarray
     centroids: np.ndarray
     gaussian_status: np.ndarray
+    structure: StructureMatch | None = None
+    reference_labels: np.ndarray | None = None
 
     @property
     def vertex_part_final(self) -> np.ndarray:
@@ -95,15 +160,27 @@ class MatchDiagnostics:
             "gaussians_in_several_boxes": float((self.gaussian_status == IN_SEVERAL_BOXES).sum() / n),
             "gaussians_orphan": float((self.gaussian_status == ORPHAN).sum() / n),
             "parts_matched": float(self.box_valid.sum()),
+            **({"limbs_matched": float(len(self.structure.pairs)), "limbs_left_over": float(len(self.structure.leftover))}
+               if self.structure is not None else {}),
         }
 
 
 @dataclass(frozen=True)
 class MatchResult:
-    """A part map with its diagnostics."""
+    """A part map with its diagnostics and the alignment it used.
+
+    Attributes:
+        part_map: the parts of the target's Gaussians.
+        diagnostics: what was computed on the way.
+        alignment: similarity taking the target's coordinates [m] into the reference's [m]; its
+            ``rotation.T`` turns reference motion into the target's frame.
+        leftover_parts: reference parts that no target Gaussian received.
+    """
 
     part_map: PartMap
     diagnostics: MatchDiagnostics
+    alignment: Similarity
+    leftover_parts: tuple[int, ...]
 
 
 def part_mean_features(features: np.ndarray, labels: np.ndarray, num_parts: int) -> tuple[np.ndarray, np.ndarray]:
@@ -463,67 +540,151 @@ def target_surface(
     return target.means[index].astype(np.float64), index
 
 
-def match_parts_detailed(
+def _target_points(target: TargetGaussians, cfg: MatchConfig, target_vertices: np.ndarray | None,
+                   target_faces: np.ndarray | None, seed: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Target surface vertices (M, 3) [m], their Gaussian index (or None for a mesh) and faces (or None)."""
+    if target_vertices is None:
+        if target_faces is not None:
+            raise InputError("match_parts: target_faces given without target_vertices")
+        points, index = target_surface(target, max_vertices=cfg.max_target_vertices, min_opacity=cfg.min_opacity,
+                                       seed=seed)
+        return points, index, None
+    faces = None if target_faces is None else np.asarray(target_faces, dtype=np.int64)
+    return np.asarray(target_vertices, dtype=np.float64), None, faces
+
+
+def match_parts(
     reference: Reference,
     target: TargetGaussians,
-    extractor: FeatureExtractor,
+    extractor: FeatureExtractor | None,
+    config: MatchConfig | None = None,
     *,
-    outlier_sigma: float = 2.5,
-    align: str = "pca_icp",
-    icp_iterations: int = 100,
     target_vertices: np.ndarray | None = None,
     target_faces: np.ndarray | None = None,
-    box_frame: str = "aligned",
-    box_padding: float = 0.02,
-    tie_break: str = "centroid",
-    smooth_neighbours: int = 0,
-    prototypes: int | str = 1,
-    max_target_vertices: int = 6000,
-    min_opacity: float = 0.1,
     seed: int = 0,
 ) -> MatchResult:
-    """The paper's part mapping (Sec. 3.3), with alignment first; see the module docstring.
+    """Part map of the target's Gaussians (paper Sec. 3.3), with the alignment it used.
 
     Args:
         reference: articulated reference (rest mesh and skinning).
         target: the static Gaussians to label.
-        extractor: a built ``features`` component.
-        outlier_sigma: robust spreads beyond which a target vertex is an outlier (<= 0 disables).
-        align: ``none`` | ``pca`` | ``pca_icp`` (see :func:`sync4d.align.align_shapes`).
-        icp_iterations: ICP iterations.
-        target_vertices: (M, 3) target surface [m] in the Gaussians' frame, e.g. the mesh the Gaussians
-            came from; None uses the Gaussian means.
+        extractor: a built ``features`` component (needed by ``method=features`` only).
+        config: options (defaults: ``MatchConfig()``).
+        target_vertices: (M, 3) target surface [m] in the Gaussians' frame (e.g. the mesh the Gaussians
+            came from); None uses the Gaussian means.
         target_faces: (F, 3) faces of ``target_vertices``, or None.
-        box_frame: ``aligned`` (axis-aligned boxes in the common frame) or ``pca`` (oriented per part).
-        box_padding: box growth as a fraction of its size per side.
-        tie_break: how a Gaussian in several boxes (or in none) picks its part: ``centroid`` (the paper's
-            reading: nearest part centroid) or ``nearest_vertex`` (the part of the nearest kept target
-            vertex, which follows long limbs that a centroid misrepresents).
-        prototypes: how a part is represented in the cosine assignment: 1 = its mean feature (the
-            paper), k > 1 = k spherical k-means prototypes, ``"all"`` = every reference vertex of the
-            part (nearest-neighbour feature matching); see :func:`part_prototype_features`.
-        smooth_neighbours: after the cosine assignment, each target vertex takes the similarity-weighted
-            majority part of its k nearest target vertices (k = this, 0 = off): parts are contiguous
-            regions, so isolated labels at seams are noise (not in the paper; measured in docs/results.md).
-        max_target_vertices: subsample of Gaussian means used as the surface when there is no mesh.
-        min_opacity: Gaussians below this opacity are not used as surface points.
-        seed: subsampling seed.
+        seed: subsampling / k-means seed.
 
     Returns:
-        MatchResult with the PartMap (tgt_part per Gaussian) and diagnostics.
+        MatchResult: the PartMap (tgt_part per Gaussian), diagnostics, the target -> reference similarity.
     """
+    cfg = (config or MatchConfig()).validate()
+    if cfg.method == "structure":
+        return _match_by_structure(reference, target, cfg, target_vertices, target_faces, seed)
+    if extractor is None:
+        raise ConfigError("match.method=features needs a features component (features=geometric, ...)")
+    return _match_by_features(reference, target, extractor, cfg, target_vertices, target_faces, seed)
+
+
+def match_parts_detailed(reference: Reference, target: TargetGaussians, extractor: FeatureExtractor | None,
+                         config: MatchConfig | None = None, **kwargs: object) -> MatchResult:
+    """Alias of :func:`match_parts` (kept for callers of the earlier name)."""
+    return match_parts(reference, target, extractor, config, **kwargs)  # type: ignore[arg-type]
+
+
+def _finish(reference: Reference, target: TargetGaussians, tgt_part: np.ndarray, confidence: np.ndarray,
+            diagnostics: MatchDiagnostics) -> MatchResult:
+    num_parts = reference.num_bones
+    part_map = PartMap(ref_part=reference.part_labels(), tgt_part=tgt_part, confidence=confidence,
+                       num_parts=num_parts).validate()
+    got = np.bincount(tgt_part, minlength=num_parts) > 0
+    leftover = tuple(int(b) for b in np.flatnonzero(~got))
+    log.info("match: %s", ", ".join(f"{k}={v:.4g}" for k, v in diagnostics.summary().items()))
+    if leftover:
+        names = reference.bone_names or tuple(str(b) for b in range(num_parts))
+        log.info("match: reference parts without a target part: %s", ", ".join(names[b] for b in leftover))
+    alignment = diagnostics.frame.then(normalization(reference.rest_vertices).inverse())
+    return MatchResult(part_map, diagnostics, alignment, leftover)
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int,
+                    rng: np.random.Generator) -> np.ndarray:
+    """(count, 3) area-uniform samples of a mesh, or a random subset of the points when there are no faces."""
+    if faces is None or len(faces) == 0:
+        if len(vertices) <= count:
+            return vertices
+        return vertices[rng.choice(len(vertices), count, replace=False)]
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if area.sum() <= 0:
+        raise InputError("match: the target mesh has zero area")
+    face = rng.choice(len(faces), size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    return np.einsum("sk,skd->sd", bary, tri[face])
+
+
+def label_agreement(points: np.ndarray, labels: np.ndarray, neighbours: int = 8) -> np.ndarray:
+    """(N,) fraction of each point's nearest ``neighbours`` points that share its label (a confidence)."""
+    k = int(min(neighbours, len(points)))
+    _, idx = cKDTree(points).query(points, k=k)
+    return (labels[idx.reshape(len(points), k)] == labels[:, None]).mean(axis=1)
+
+
+def _match_by_structure(reference: Reference, target: TargetGaussians, cfg: MatchConfig,
+                        target_vertices: np.ndarray | None, target_faces: np.ndarray | None,
+                        seed: int) -> MatchResult:
+    """Structure-aware matching (:mod:`sync4d.match_structure`) wrapped into a MatchResult."""
+    rng = np.random.default_rng(seed)
+    tgt_vertices, index, tgt_faces = _target_points(target, cfg, target_vertices, target_faces, seed)
+    if cfg.align in ("pca", "pca_icp"):
+        alignment = align_shapes(tgt_vertices, reference.rest_vertices, method=cfg.align,
+                                 icp_iterations=cfg.icp_iterations, seed=seed)
+    else:
+        alignment = AlignResult(Similarity.identity(), float("nan"), np.zeros(0), "none")
+    n_samples = cfg.structure.skeleton.samples
+    ref_norm = normalization(reference.rest_vertices)
+    ref_samples = surface_samples(reference.rest_vertices, reference.rest_faces, n_samples, rng)
+    _, nearest = cKDTree(reference.rest_vertices).query(ref_samples)
+    ref_labels = reference.part_labels()[nearest]
+    pre = alignment.transform
+    tgt_samples = pre.apply(surface_samples(tgt_vertices, tgt_faces, n_samples, rng))
+    tgt_norm = normalization(tgt_samples)
+    # the structure match works on each shape normalised by itself, then turns the target about the up axis
+    sm = match_structure(ref_norm.apply(ref_samples), ref_labels, reference.num_bones, tgt_norm.apply(tgt_samples),
+                         cfg.structure, up_axis=cfg.up_axis,
+                         part_parents=reference.bone_parents)
+    frame = pre.then(tgt_norm).then(Similarity(sm.rotation, 1.0, np.zeros(3)))
+    sample_pts = tgt_norm.apply(tgt_samples) @ sm.rotation.T
+    g_pts = frame.apply(target.means)
+    _, j = cKDTree(sample_pts).query(g_pts)
+    tgt_part = sm.point_part[j]
+    agreement = label_agreement(sample_pts, sm.point_part)
+    confidence = agreement[j]
+    valid = np.bincount(sm.point_part, minlength=reference.num_bones) > 0
+    centroids = np.full((reference.num_bones, 3), np.nan)
+    for b in np.flatnonzero(valid):
+        centroids[b] = sample_pts[sm.point_part == b].mean(axis=0)
+    diagnostics = MatchDiagnostics(
+        alignment=alignment, frame=frame, reference_points=ref_norm.apply(ref_samples), target_points=sample_pts,
+        target_index=index, vertex_part=sm.point_part, vertex_margin=agreement,
+        kept=np.ones(len(sample_pts), dtype=bool), similarity=None, boxes=None, box_rotations=None,
+        box_valid=valid, centroids=centroids, gaussian_status=np.zeros(target.num, dtype=np.int8), structure=sm,
+        reference_labels=ref_labels,
+    )
+    return _finish(reference, target, tgt_part, confidence, diagnostics)
+
+
+def _match_by_features(reference: Reference, target: TargetGaussians, extractor: FeatureExtractor,
+                       cfg: MatchConfig, target_vertices: np.ndarray | None, target_faces: np.ndarray | None,
+                       seed: int) -> MatchResult:
+    """The paper's part mapping (Sec. 3.3), with alignment first; see the module docstring."""
     num_parts = reference.num_bones
     ref_labels = reference.part_labels()
-    if target_vertices is None:
-        if target_faces is not None:
-            raise InputError("match_parts: target_faces given without target_vertices")
-        tgt_vertices, index = target_surface(target, max_vertices=max_target_vertices, min_opacity=min_opacity, seed=seed)
-        tgt_faces = None
-    else:
-        tgt_vertices, index = np.asarray(target_vertices, dtype=np.float64), None
-        tgt_faces = None if target_faces is None else np.asarray(target_faces, dtype=np.int64)
-
-    alignment = align_shapes(tgt_vertices, reference.rest_vertices, method=align, icp_iterations=icp_iterations, seed=seed)
+    tgt_vertices, index, tgt_faces = _target_points(target, cfg, target_vertices, target_faces, seed)
+    alignment = align_shapes(tgt_vertices, reference.rest_vertices, method=cfg.align,
+                             icp_iterations=cfg.icp_iterations, seed=seed)
     ref_norm = normalization(reference.rest_vertices)
     frame = alignment.transform.then(ref_norm)
     ref_pts = ref_norm.apply(reference.rest_vertices)
@@ -534,67 +695,30 @@ def match_parts_detailed(
     if f_ref.shape[1] != f_tgt.shape[1]:
         raise InputError(f"match: reference features have {f_ref.shape[1]} dims, target {f_tgt.shape[1]}")
     means, present = part_mean_features(f_ref, ref_labels, num_parts)
-    per_part = prototype_count(prototypes)
+    per_part = prototype_count(cfg.prototypes)
     if per_part == 1:
         similarity = cosine_similarity(f_tgt, means)  # the paper's rule, exactly
     else:
         protos, owner = part_prototype_features(f_ref, ref_labels, num_parts, per_part, seed=seed)
         similarity = prototype_similarity(f_tgt, protos, owner, num_parts)
     vertex_part, margin = assign_by_similarity(similarity, present)
-    if smooth_neighbours > 1:
-        vertex_part = smooth_labels(tgt_pts, vertex_part, similarity, num_parts, smooth_neighbours)
-    kept = remove_outliers(tgt_pts, vertex_part, num_parts, outlier_sigma)
-    boxes, rots, valid, centroids = part_boxes(tgt_pts, vertex_part, kept, num_parts, frame=box_frame, padding=box_padding)
+    if cfg.smooth_neighbours > 1:
+        vertex_part = smooth_labels(tgt_pts, vertex_part, similarity, num_parts, cfg.smooth_neighbours)
+    kept = remove_outliers(tgt_pts, vertex_part, num_parts, cfg.outlier_sigma)
+    boxes, rots, valid, centroids = part_boxes(tgt_pts, vertex_part, kept, num_parts, frame=cfg.box_frame,
+                                               padding=cfg.box_padding)
     g_pts = frame.apply(target.means)
-    if tie_break not in TIE_BREAKS:
-        raise ConfigError(f"match.tie_break={tie_break!r}: use one of {', '.join(TIE_BREAKS)}")
     distances = part_distances(
         g_pts, centroids, valid,
-        **({"vertex_points": tgt_pts[kept], "vertex_labels": vertex_part[kept]} if tie_break == "nearest_vertex" else {}),
+        **({"vertex_points": tgt_pts[kept], "vertex_labels": vertex_part[kept]}
+           if cfg.tie_break == "nearest_vertex" else {}),
     )
     tgt_part, status = assign_to_boxes(g_pts, boxes, rots, valid, centroids, distances=distances)
     confidence = gaussian_confidence(g_pts, tgt_part, status, tgt_pts, vertex_part, margin, kept)
-
-    part_map = PartMap(ref_part=ref_labels, tgt_part=tgt_part, confidence=confidence, num_parts=num_parts).validate()
     diagnostics = MatchDiagnostics(
         alignment=alignment, frame=frame, reference_points=ref_pts, target_points=tgt_pts, target_index=index,
         vertex_part=vertex_part, vertex_margin=margin, kept=kept, similarity=similarity, boxes=boxes,
         box_rotations=rots, box_valid=valid, centroids=centroids, gaussian_status=status,
+        reference_labels=ref_labels,
     )
-    log.info(
-        "match: %s", ", ".join(f"{k}={v:.4g}" for k, v in diagnostics.summary().items())
-    )
-    return MatchResult(part_map, diagnostics)
-
-
-def match_parts(
-    reference: Reference,
-    target: TargetGaussians,
-    extractor: FeatureExtractor,
-    *,
-    outlier_sigma: float = 2.5,
-    align: str = "pca_icp",
-    target_vertices: np.ndarray | None = None,
-    target_faces: np.ndarray | None = None,
-    **options: object,
-) -> PartMap:
-    """Part map of the target's Gaussians (paper Sec. 3.3); see :func:`match_parts_detailed`.
-
-    Args:
-        reference: articulated reference.
-        target: Gaussians to label.
-        extractor: a built ``features`` component.
-        outlier_sigma: outlier threshold in robust spreads.
-        align: ``none`` | ``pca`` | ``pca_icp``.
-        target_vertices: optional (M, 3) target surface; default the Gaussian means.
-        target_faces: optional (F, 3) faces of ``target_vertices``.
-        **options: further keyword options of :func:`match_parts_detailed` (``icp_iterations``,
-            ``box_frame``, ``box_padding``, ``tie_break``, ``max_target_vertices``, ``min_opacity``, ``seed``).
-
-    Returns:
-        PartMap: ref_part (V,), tgt_part (N,), confidence (N,) in [0, 1].
-    """
-    return match_parts_detailed(
-        reference, target, extractor, outlier_sigma=outlier_sigma, align=align,
-        target_vertices=target_vertices, target_faces=target_faces, **options,  # type: ignore[arg-type]
-    ).part_map
+    return _finish(reference, target, tgt_part, confidence, diagnostics)

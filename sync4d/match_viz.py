@@ -130,7 +130,9 @@ def save_match_figure(path: str | Path, diagnostics, num_parts: int, **kwargs) -
     """
     import matplotlib.pyplot as plt
 
-    reference_labels = kwargs.pop("reference_labels")
+    reference_labels = kwargs.pop("reference_labels", None)
+    if reference_labels is None:
+        reference_labels = diagnostics.reference_labels
     fig = match_figure(
         diagnostics.reference_points, reference_labels, diagnostics.target_points, diagnostics.vertex_part_final,
         num_parts, **kwargs,

@@ -137,6 +137,8 @@ class Reference:
         vertex_colors: (V, 3) float RGB in [0, 1], or None.
         bone_names: optional names of the bones (e.g. skeleton joints).
         name: a label for logs and pictures.
+        bone_parents: (B,) int parent bone of each bone (-1 for roots) when the bones form a known tree
+            (mocap skeletons), or None; structure-aware matching uses it to find the limbs.
     """
 
     rest_vertices: np.ndarray
@@ -150,6 +152,7 @@ class Reference:
     vertex_colors: np.ndarray | None = None
     bone_names: tuple[str, ...] | None = None
     name: str = "reference"
+    bone_parents: np.ndarray | None = None
 
     @property
     def num_bones(self) -> int:
@@ -191,6 +194,10 @@ class Reference:
             check_array("Reference", "vertex_colors", self.vertex_colors, ("V", 3), dims)
         if self.bone_names is not None:
             _require(len(self.bone_names) == dims["B"], "Reference.bone_names: one name per bone expected")
+        if self.bone_parents is not None:
+            check_array("Reference", "bone_parents", self.bone_parents, ("B",), dims, kind="i")
+            _require(bool(np.all((self.bone_parents >= -1) & (self.bone_parents < dims["B"]))),
+                     "Reference.bone_parents: entries must be -1 or a bone index")
         return self
 
     def bone_centers_at(self) -> np.ndarray:

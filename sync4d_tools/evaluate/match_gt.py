@@ -37,7 +37,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from sync4d.errors import DataMissingError
-from sync4d.match import MatchResult, match_parts_detailed
+from sync4d.match import MatchConfig, MatchResult, match_parts
 from sync4d.registry import build
 from sync4d.types import Reference, TargetGaussians
 
@@ -91,6 +91,8 @@ DOG_PARTS: dict[str, tuple[int, ...]] = {
     "leg_d_upper": (20, 21), "leg_d_lower": (22, 23),
     "tail": (25, 26),
 }
+# The MANN dog skeleton's parent table (as conf/recon/mocap_dog.yaml: constant segment lengths on the clip).
+DOG_PARENTS = (-1, 0, 1, 2, 3, 4, 2, 6, 7, 8, 9, 2, 11, 12, 13, 14, 0, 16, 17, 18, 0, 20, 21, 22, 0, 24, 25)
 DOG_RADII = {"torso": 0.09, "head_neck": 0.05, "tail": 0.02}
 DOG_LEG_RADIUS = 0.028
 
@@ -100,13 +102,15 @@ class Body:
     """A capsule body with ground-truth parts.
 
     Attributes:
-        vertices: (V, 3) [m]; faces: (F, 3); part: (V,) part index per vertex; names: part names.
+        vertices: (V, 3) [m]; faces: (F, 3); part: (V,) part index per vertex; names: part names;
+        part_parents: (P,) parent part of each part in the skeleton (-1 for the root part), or None.
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     part: np.ndarray
     names: tuple[str, ...]
+    part_parents: np.ndarray | None = None
 
 
 def data_path(relative: str) -> Path:
@@ -180,7 +184,24 @@ def grouped_body(
     remap = np.full(len(vertices), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     vertices, faces, part = vertices[used], remap[faces[keep_face]], joint_part[vertex_segment[used]]
-    return Body(np.asarray(vertices), np.asarray(faces, dtype=np.int64), part, names)
+    return Body(np.asarray(vertices), np.asarray(faces, dtype=np.int64), part, names,
+                part_parents(parents, joint_part, len(names)))
+
+
+def part_parents(parents: np.ndarray, joint_part: np.ndarray, num_parts: int) -> np.ndarray:
+    """(P,) parent part of each part: the part of the segment its top segment hangs from (-1 for none).
+
+    Segment j (parent joint -> j) hangs from segment parents[j]; a part whose segments all hang from its
+    own segments or from the root joint has no parent.
+    """
+    out = np.full(num_parts, -1, dtype=np.int64)
+    for j, p in enumerate(joint_part):
+        q = parents[j]
+        while q >= 0 and joint_part[q] < 0:  # helper joints of no part are skipped
+            q = parents[q]
+        if p >= 0 and q >= 0 and joint_part[q] >= 0 and joint_part[q] != p:
+            out[p] = joint_part[q]
+    return out
 
 
 def body_reference(body: Body, *, name: str) -> Reference:
@@ -192,7 +213,7 @@ def body_reference(body: Body, *, name: str) -> Reference:
     return Reference(
         rest_vertices=body.vertices, rest_faces=body.faces, bone_centers=centers, bone_covariances=covs,
         skinning=skinning, bone_transforms=np.tile(np.eye(4), (1, b, 1, 1)), global_transforms=np.eye(4)[None],
-        fps=30.0, bone_names=body.names, name=name,
+        fps=30.0, bone_names=body.names, name=name, bone_parents=body.part_parents,
     ).validate()
 
 
@@ -215,7 +236,7 @@ def dog_body() -> Body:
     """The 11-part dog capsule body on the first frame of the dog trot mocap."""
     from sync4d.io.mocap import read_joint_position_motion
 
-    motion = read_joint_position_motion(data_path(DOG_PATH), fps=60.0)
+    motion = read_joint_position_motion(data_path(DOG_PATH), fps=60.0, parents=np.array(DOG_PARENTS))
     joints, parents = motion.positions[0], np.asarray(motion.parents)
     names = tuple(DOG_PARTS)
     joint_part = np.full(len(joints), -1, dtype=np.int64)
@@ -280,7 +301,7 @@ def run_pair(
     target: TargetGaussians,
     truth: np.ndarray,
     extractor: Any,
-    match_options: dict[str, Any],
+    match_options: MatchConfig,
     *,
     target_vertices: np.ndarray | None = None,
     target_faces: np.ndarray | None = None,
@@ -288,19 +309,19 @@ def run_pair(
 ) -> PairResult:
     """Match and score one pair; ``vertex_truth`` scores the surface vertices (default: ``truth``)."""
     start = time.perf_counter()
-    result = match_parts_detailed(
-        reference, target, extractor, target_vertices=target_vertices, target_faces=target_faces, **match_options
-    )
+    result = match_parts(reference, target, extractor, match_options, target_vertices=target_vertices,
+                         target_faces=target_faces, seed=SEED)
     accuracy = float((result.part_map.tgt_part == truth).mean())
     diag = result.diagnostics
     vt = vertex_truth if vertex_truth is not None else truth[diag.target_index] if diag.target_index is not None else truth
-    vertex_accuracy = float((diag.vertex_part == vt).mean())
+    # with method=structure the surface points are fresh samples without truth: report the final accuracy
+    vertex_accuracy = float((diag.vertex_part == vt).mean()) if len(vt) == len(diag.vertex_part) else accuracy
     seconds = time.perf_counter() - start
     log.info("%s: accuracy %.4f (vertices %.4f) in %.1f s", name, accuracy, vertex_accuracy, seconds)
     return PairResult(name, accuracy, vertex_accuracy, result, reference, truth, seconds)
 
 
-def pair_self_copy(extractor: Any, options: dict[str, Any], *, seed: int = 0, n_points: int = 4000) -> PairResult:
+def pair_self_copy(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = 4000) -> PairResult:
     """(a) the human body against a resampled, rescaled, rotated, jittered copy of itself."""
     rng = np.random.default_rng(seed)
     body = human_body()
@@ -311,7 +332,7 @@ def pair_self_copy(extractor: Any, options: dict[str, Any], *, seed: int = 0, n_
     return run_pair("self_copy", body_reference(body, name="human"), target, truth, extractor, options)
 
 
-def pair_laptop_proportions(extractor: Any, options: dict[str, Any], *, seed: int = 0, n_points: int = 4000) -> PairResult:
+def pair_laptop_proportions(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = 4000) -> PairResult:
     """(b) the default laptop against a laptop of other proportions (mesh given), rotated."""
     from sync4d.scenes.laptop import laptop_mesh, laptop_reference
 
@@ -331,7 +352,7 @@ def pair_laptop_proportions(extractor: Any, options: dict[str, Any], *, seed: in
     )
 
 
-def pair_mocap_bodies(extractor: Any, options: dict[str, Any], *, seed: int = 0, n_points: int = 4000) -> PairResult:
+def pair_mocap_bodies(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = 4000) -> PairResult:
     """(c) two capsule bodies of different proportions on the same CMU skeleton."""
     rng = np.random.default_rng(seed + 2)
     body_a = human_body()
@@ -347,7 +368,7 @@ def save_pair_figure(pair: PairResult, path: Path, *, views: tuple[tuple[float, 
     from sync4d.match_viz import save_match_figure
 
     save_match_figure(
-        path, pair.result.diagnostics, pair.reference.num_bones, reference_labels=pair.reference.part_labels(),
+        path, pair.result.diagnostics, pair.reference.num_bones,
         views=views, titles=(pair.reference.name, f"target ({pair.name})"),
         suptitle=f"{pair.name}: accuracy {pair.accuracy:.3f}; black = removed outliers",
     )
@@ -362,41 +383,69 @@ def load_target_mesh(relative: str) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
-CROSS_PAIRS: tuple[tuple[str, str, str], ...] = (
-    ("human", "targets/meshes/stuffedtoy.obj", "match_human_toy.png"),
-    ("dog", "targets/meshes/spot_low_resolution.obj", "match_dog_spot.png"),
-    ("dog", "targets/meshes/cat-low-resolution.obj", "match_dog_cat.png"),
-)
+SEED = 0
 
 
-def cross_category(extractor: Any, options: dict[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
-    """Match the human / dog mocap bodies to shared target meshes and write the docs pictures.
+def load_label_target(spec: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Vertices, faces and (procedural) part names of a label file's target, turned Y-up."""
+    from sync4d_tools.match_labels.procedural import SHAPES
 
-    Returns per picture: the fraction of target vertices per part name and the diagnostics summary.
-    """
+    if spec.target.startswith("procedural:"):
+        kind = spec.target.split(":", 1)[1]
+        if kind not in SHAPES:
+            raise DataMissingError(f"--labels {spec.path}: unknown procedural target {kind!r} ({', '.join(SHAPES)})")
+        return SHAPES[kind]()
+    path = Path(spec.target)
+    vertices, faces = load_target_mesh(str(path) if path.is_absolute() else spec.target)
+    if spec.up_axis != "y":
+        from sync4d.scenes.targets import fit_to_size
+
+        vertices = fit_to_size(vertices, None, spec.up_axis)
+    return vertices, faces, None
+
+
+def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: MatchConfig,
+                  figures: Path | None) -> dict[str, Any]:
+    """Match one label file's target to its reference body; limb accuracy, per label, and a picture."""
     from sync4d.match_viz import save_match_figure
+    from sync4d_tools.match_labels.labels import limb_accuracy, vertex_areas, vertex_labels
 
-    bodies = {"human": human_body(), "dog": dog_body()}
-    report: dict[str, dict[str, Any]] = {}
-    for body_name, mesh_path, png in CROSS_PAIRS:
-        body = bodies[body_name]
-        reference = body_reference(body, name=body_name)
-        vertices, faces = load_target_mesh(mesh_path)
-        target = points_to_gaussians(vertices, name=Path(mesh_path).stem)
-        result = match_parts_detailed(reference, target, extractor, target_vertices=vertices, target_faces=faces, **options)
-        labels = result.diagnostics.vertex_part_final
-        share = {body.names[b]: round(float((labels == b).mean()), 3) for b in range(len(body.names))}
-        share["outliers"] = round(float((labels < 0).mean()), 3)
-        report[png] = {"part_share": share, **{k: round(v, 4) for k, v in result.diagnostics.summary().items()}}
+    if spec.reference not in bodies:
+        raise DataMissingError(f"--labels {spec.path}: reference {spec.reference!r}: use one of {', '.join(bodies)}")
+    body = bodies[spec.reference]
+    reference = body_reference(body, name=spec.reference)
+    vertices, faces, names = load_label_target(spec)
+    start = time.perf_counter()
+    result = match_parts(reference, points_to_gaussians(vertices, name=spec.name), extractor, options,
+                         target_vertices=vertices, target_faces=faces, seed=SEED)
+    labels = vertex_labels(spec, vertices, names)
+    acc, per_label = limb_accuracy(spec, labels, vertex_areas(vertices, faces), result.part_map.tgt_part, body.names)
+    out: dict[str, Any] = {"limb_accuracy": round(acc, 4), "kind": spec.kind, "method": options.method,
+                           "per_label": {k: round(v, 3) for k, v in per_label.items()},
+                           "left_over": [body.names[b] for b in result.leftover_parts],
+                           "seconds": round(time.perf_counter() - start, 2)}
+    if figures is not None:
         save_match_figure(
-            out_dir / png, result.diagnostics, reference.num_bones, reference_labels=reference.part_labels(),
+            figures / f"match_{spec.name}_{options.method}.png", result.diagnostics, reference.num_bones,
             views=((0.0, 10.0), (90.0, 10.0), (0.0, 80.0)),
-            titles=(f"{body_name} mocap body (reference)", f"{Path(mesh_path).name} (target)"),
-            suptitle=f"{body_name} -> {Path(mesh_path).name}; black = removed outliers\n"
-            + ("CMU mocap (mocap.cs.cmu.edu, NSF EIA-0196217)" if body_name == "human" else "dog mocap: AI4Animation, CC BY-NC 4.0")
-            + "; mesh: odedstein/meshes",
+            titles=(f"{spec.reference} body (reference)", f"{Path(spec.target).name} (target)"),
+            suptitle=f"{spec.name} [{options.method}]: limb accuracy {acc:.2f}\n"
+            + ("CMU mocap (mocap.cs.cmu.edu, NSF EIA-0196217)" if spec.reference == "human"
+               else "dog mocap: AI4Animation, CC BY-NC 4.0")
+            + ("" if spec.target.startswith("procedural:") else "; mesh: odedstein/meshes, lab4d-org/lab4d"),
         )
-    return report
+    log.info("%s [%s]: limb accuracy %.3f %s", spec.name, options.method, acc, per_label)
+    return out
+
+
+def cross_category(extractor: Any, options: MatchConfig, label_files: list[Path],
+                   figures: Path | None) -> dict[str, dict[str, Any]]:
+    """Limb accuracy of every labelled pair (see :mod:`sync4d_tools.match_labels.labels`)."""
+    from sync4d_tools.match_labels.labels import read_label_file
+
+    specs = [read_label_file(p) for p in label_files]  # all files checked before any matching
+    bodies = {"human": human_body(), "dog": dog_body()}
+    return {spec.name: labelled_pair(spec, bodies, extractor, options, figures) for spec in specs}
 
 
 def load_features_config(spec: str) -> dict[str, Any]:
@@ -408,6 +457,7 @@ def load_features_config(spec: str) -> dict[str, Any]:
         path = ROOT / "conf" / "features" / f"{spec}.yaml"
     cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
     assert isinstance(cfg, dict)
+    cfg.pop("defaults", None)  # the Hydra schema line of conf/features/*.yaml; defaults come from the Config
     return cfg
 
 
@@ -415,33 +465,52 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m sync4d.evaluate match_gt", description=__doc__.split("\n")[0])
     p.add_argument("--features", default="geometric", help="conf/features/<name>.yaml or a YAML path")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="feature config overrides")
-    p.add_argument("--outlier-sigma", type=float, default=2.5)
+    p.add_argument("--method", default=MatchConfig.method, choices=("features", "structure"),
+                   help="match.method (default: MatchConfig's)")
+    p.add_argument("--match", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="further MatchConfig overrides, e.g. structure.miss_cost=3")
     p.add_argument("--align", default="pca_icp", choices=("none", "pca", "pca_icp", "upright_icp"),
-                   help="pca_icp for the randomly rotated pairs; upright_icp (the pipeline default) assumes both shapes upright")
-    p.add_argument("--box-frame", default="aligned", choices=("aligned", "pca"))
-    p.add_argument("--tie-break", default="nearest_vertex", choices=("centroid", "nearest_vertex"),
-                   help="centroid = the paper's reading; nearest_vertex = the pipeline default")
-    p.add_argument("--prototypes", default="all",
-                   help="per-part features in the cosine rule: 1 = the paper's part mean, k, or all (the pipeline default)")
+                   help="for the randomly rotated within-category pairs (the labelled pairs use upright_icp)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--pairs", default="self_copy,laptop_proportions,mocap_bodies")
     p.add_argument("--figures", default="", help="folder for one picture per pair")
-    p.add_argument("--smooth-neighbours", type=int, default=0, help="k of the label smoothing vote (0 = off: the paper and the pipeline default)")
-    p.add_argument("--cross-category", default="", metavar="DIR", help="write the cross-category pictures here (e.g. docs)")
+    p.add_argument("--cross-category", nargs="?", const="docs", default="", metavar="DIR",
+                   help="also score the labelled pairs (sync4d_tools/match_labels/*.json); pictures into DIR (docs)")
+    p.add_argument("--labels", action="append", default=[], metavar="FILE",
+                   help="a label file of your own (format: sync4d_tools/match_labels/labels.py); repeatable")
     return p.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run the pairs, print a JSON object on the last line; returns the exit code."""
-    args = parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s", stream=sys.stderr)
+def match_config(method: str, align: str, overrides: list[str]) -> MatchConfig:
+    """A MatchConfig from its defaults, ``method``, ``align`` and KEY=VALUE overrides (checked like the pipeline's)."""
     from omegaconf import OmegaConf
 
-    feat_cfg = OmegaConf.merge(OmegaConf.create(load_features_config(args.features)), OmegaConf.from_dotlist(args.set))
-    extractor = build("features", feat_cfg, device="cpu")
-    options = {"outlier_sigma": args.outlier_sigma, "align": args.align, "box_frame": args.box_frame,
-               "tie_break": args.tie_break, "smooth_neighbours": args.smooth_neighbours, "prototypes": args.prototypes,
-               "seed": args.seed}
+    from sync4d.registry import typed_config
+
+    values = OmegaConf.to_container(OmegaConf.merge({"method": method, "align": align},
+                                                    OmegaConf.from_dotlist(overrides)))
+    assert isinstance(values, dict)
+    cfg = typed_config(MatchConfig, values, where="match", label="match_gt --match")
+    return cfg.validate()
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Run the pairs, print a JSON object on the last line and return it."""
+    global SEED
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s", stream=sys.stderr)
+    from dataclasses import replace
+
+    from omegaconf import OmegaConf
+
+    from sync4d_tools.match_labels.labels import default_label_files
+
+    SEED = args.seed
+    options = match_config(args.method, args.align, args.match)
+    extractor = None
+    if options.method == "features":
+        feat_cfg = OmegaConf.merge(OmegaConf.create(load_features_config(args.features)), OmegaConf.from_dotlist(args.set))
+        extractor = build("features", feat_cfg, device="cpu")
     runners = {"self_copy": pair_self_copy, "laptop_proportions": pair_laptop_proportions, "mocap_bodies": pair_mocap_bodies}
     out: dict[str, Any] = {}
     details: dict[str, Any] = {}
@@ -451,15 +520,17 @@ def main(argv: list[str] | None = None) -> int:
         details[name] = pair.details()
         if args.figures:
             save_pair_figure(pair, Path(args.figures) / f"match_gt_{name}.png")
-    if args.cross_category:
-        # The shared meshes are given upright, as the pipeline's experiments use them (match.align
-        # defaults to upright_icp there); --align applies to the randomly rotated pairs above.
-        details["cross_category"] = cross_category(extractor, {**options, "align": "upright_icp"}, Path(args.cross_category))
-    out["features"] = str(feat_cfg.get("type"))
+    label_files = [Path(p) for p in args.labels] + (default_label_files() if args.cross_category else [])
+    if label_files:
+        # the labelled targets are given upright (Y up), as the pipeline's experiments use them
+        figures = Path(args.cross_category) if args.cross_category else None
+        out["cross_category"] = cross_category(extractor, replace(options, align="upright_icp"), label_files, figures)
+    out["method"] = options.method
+    out["features"] = args.features if options.method == "features" else None
     out["details"] = details
     print(json.dumps(out))
-    return 0
+    return out
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

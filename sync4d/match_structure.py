@@ -1,0 +1,345 @@
+"""Structure-aware part matching: the target's curve skeleton matched to the reference's, branch by branch.
+
+Both shapes get a curve skeleton (:mod:`sync4d.skeleton`) in their own normalised frame (centroid at 0,
+unit RMS radius; both upright along ``up_axis``). Then:
+
+1. the reference's limbs come from its parts: the parts touching each other form a tree (spanning tree
+   of the strongest contacts, rooted at the part holding the centre); the trunk is the root and every
+   part where three or more parts meet, with the parts between them; each subtree hanging off the trunk
+   is a limb (:func:`reference_limbs`). Every non-root branch of the target's skeleton (with its whole
+   subtree) is a candidate for one reference limb (:func:`limb_descriptors`);
+2. for each turn of the target about the up axis (``yaw_steps`` of them), the reference limbs are
+   assigned to target subtrees by the Hungarian method on a cost of where each limb leaves the trunk,
+   where it ends, its direction and its length (:func:`limb_cost`); a limb may stay unmatched at cost
+   ``miss_cost`` (a target with fewer limbs: a cross, a table), and an assignment that holds a subtree
+   and one of its descendants is re-solved with that pair forbidden (:func:`assign_limbs`). The turn of
+   lowest assignment cost plus chamfer distance wins: the shapes need not face the same way;
+3. a matched target subtree takes the reference limb's parts by relative geodesic position along it
+   (0 where it leaves the trunk, 1 at its tip), so a longer or bent limb keeps its thigh/shin/foot
+   proportions (:func:`transfer_along`); everything else (trunk, unmatched target branches) takes the
+   part of the nearest reference trunk point in the turned frame.
+
+Unmatched reference limbs are reported (``StructureMatch.leftover``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from sync4d.align import axis_rotation, chamfer_distance
+from sync4d.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton
+
+UP_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+@dataclass
+class StructureConfig:
+    """Options of the branch assignment (distances in RMS-radius units of each shape).
+
+    Attributes:
+        skeleton: curve skeleton options.
+        yaw_steps: turns of the target about the up axis tried (360 / yaw_steps degrees apart).
+        miss_cost: cost of leaving a reference limb unmatched.
+        length_weight: weight of the squared log length ratio in the limb cost.
+        direction_weight: weight of the squared difference of unit limb directions.
+        chamfer_weight: weight of the chamfer distance of the turned shapes in the choice of the turn.
+        profile_bins: bins of relative position along a limb in the part profile.
+    """
+
+    skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
+    yaw_steps: int = 24
+    miss_cost: float = 4.0
+    length_weight: float = 0.5
+    direction_weight: float = 0.5
+    chamfer_weight: float = 2.0
+    profile_bins: int = 20
+
+
+@dataclass(frozen=True)
+class LimbSet:
+    """Descriptors of a set of limbs (point sets) of one skeleton.
+
+    Attributes:
+        members: per limb, the (Q,) indices of its points.
+        base: (L, 3) where each limb leaves the trunk: centroid of its level nearest the centre.
+        tip: (L, 3) centroid of its farthest level.
+        base_level: (L,) geodesic distance of the base from the centre.
+        length: (L,) geodesic extent from the base to the tip.
+    """
+
+    members: tuple[np.ndarray, ...]
+    base: np.ndarray
+    tip: np.ndarray
+    base_level: np.ndarray
+    length: np.ndarray
+
+    def relative_position(self, geodesic: np.ndarray, limb: int) -> np.ndarray:
+        """(Q,) relative geodesic position in [0, 1] of the limb's points (0 at the base, 1 at the tip)."""
+        return np.clip((geodesic[self.members[limb]] - self.base_level[limb]) / self.length[limb], 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class StructureMatch:
+    """Outcome of :func:`match_structure`.
+
+    Attributes:
+        reference: the reference's curve skeleton (normalised reference frame).
+        target: the target's curve skeleton (normalised target frame).
+        rotation: (3, 3) turn about the up axis taking the normalised target into the normalised reference.
+        pairs: (P, 2) matched (reference limb index into ``limbs``, target branch).
+        limbs: the reference's limbs, each a tuple of its part indices.
+        leftover: the reference limbs (tuples of part indices) left unmatched.
+        point_part: (M,) reference part of each target skeleton point.
+        cost: assignment cost of the chosen turn.
+    """
+
+    reference: CurveSkeleton
+    target: CurveSkeleton
+    rotation: np.ndarray
+    pairs: np.ndarray
+    limbs: tuple[tuple[int, ...], ...]
+    leftover: tuple[tuple[int, ...], ...]
+    point_part: np.ndarray
+    cost: float
+
+
+def limb_descriptors(skeleton: CurveSkeleton, members: list[np.ndarray]) -> LimbSet:
+    """Descriptors of limbs given as point index sets of ``skeleton``."""
+    geo, pts, h = skeleton.geodesic, skeleton.points, skeleton.level_width
+    base, tip, base_level, length = [], [], [], []
+    for m in members:
+        g = geo[m]
+        lo, hi = float(g.min()), float(g.max())
+        base.append(pts[m[g <= lo + h]].mean(axis=0))
+        tip.append(pts[m[g >= hi - h]].mean(axis=0))
+        base_level.append(lo)
+        length.append(max(hi - lo, 1e-9))
+    return LimbSet(tuple(members), np.array(base).reshape(-1, 3), np.array(tip).reshape(-1, 3),
+                   np.array(base_level), np.array(length))
+
+
+def part_tree(points: np.ndarray, labels: np.ndarray, num_parts: int, root: int, *,
+              contact_spacings: float = 5.0) -> np.ndarray:
+    """(B,) parent part of each part in the spanning tree of strongest contacts (-1: root or absent).
+
+    Two parts touch where their points are within ``contact_spacings`` median spacings (capsule bodies
+    leave gaps at the joints); the contact strength is the
+    number of such point pairs; the tree is the maximum spanning tree of the contact graph.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
+    tree = cKDTree(points)
+    spacing = float(np.median(tree.query(points, 2)[0][:, 1]))
+    pairs = tree.query_pairs(contact_spacings * spacing, output_type="ndarray")
+    a, b = labels[pairs[:, 0]], labels[pairs[:, 1]]
+    diff = a != b
+    contact = np.zeros((num_parts, num_parts))
+    np.add.at(contact, (a[diff], b[diff]), 1.0)
+    contact = contact + contact.T
+    strength = np.where(contact > 0, 1.0 / (1.0 + contact), 0.0)  # strong contact = short edge
+    mst = minimum_spanning_tree(coo_matrix(strength)).toarray()
+    mst = (mst + mst.T) > 0
+    order, pred = breadth_first_order(mst, root, directed=False, return_predecessors=True)
+    parent = np.full(num_parts, -1, dtype=np.int64)
+    parent[order[1:]] = pred[order[1:]]
+    return parent
+
+
+def reference_limbs(skeleton: CurveSkeleton, labels: np.ndarray, num_parts: int,
+                    parents: np.ndarray | None = None) -> tuple[list[list[int]], list[int]]:
+    """The reference's limbs as lists of parts, and its trunk parts (see the module docstring).
+
+    Args:
+        skeleton: the reference's curve skeleton.
+        labels: (M,) part per skeleton point.
+        num_parts: B.
+        parents: (B,) the known bone tree (-1 for roots), e.g. of a mocap skeleton; None derives it from
+            the contacts between parts (:func:`part_tree`), which touching limbs can mislead.
+    """
+    if parents is None:
+        root = int(labels[skeleton.centre])
+        parent = part_tree(skeleton.points, labels, num_parts, root)
+    else:
+        parent = np.asarray(parents, dtype=np.int64)
+        roots = np.flatnonzero(parent < 0)
+        root = int(labels[skeleton.centre]) if int(labels[skeleton.centre]) in roots else int(roots[0])
+        # further roots (a forest) hang off the main root
+        parent = np.where((parent < 0) & (np.arange(num_parts) != root), root, parent)
+    present = set(np.unique(labels).tolist()) | {root}
+    kids: dict[int, list[int]] = {p: [] for p in present}
+    for c in present:
+        if parent[c] >= 0:
+            kids[int(parent[c])].append(c)
+    degree = {p: len(kids[p]) + (parent[p] >= 0) for p in present}
+    trunk = {root} | {p for p in present if degree[p] >= 3}
+    for p in list(trunk):  # the parts between two trunk parts are trunk too
+        a = int(parent[p])
+        path = []
+        while a >= 0 and a not in trunk:
+            path.append(a)
+            a = int(parent[a])
+        if a >= 0:
+            trunk |= set(path)
+    limbs = []
+    for p in sorted(trunk):
+        for c in kids[p]:
+            if c in trunk:
+                continue
+            sub, stack = [], [c]
+            while stack:
+                q = stack.pop()
+                sub.append(q)
+                stack += kids[q]
+            limbs.append(sorted(sub))
+    return limbs, sorted(trunk)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
+
+
+def limb_cost(ref: LimbSet, tgt: LimbSet, rotation: np.ndarray, cfg: StructureConfig) -> np.ndarray:
+    """(R, T) cost of giving reference limb r the target subtree t, target turned by ``rotation``.
+
+    Squared distances of the bases and of the tips (normalised frames), plus ``direction_weight`` times
+    the squared difference of the unit base -> tip directions and ``length_weight`` times the squared log
+    length ratio.
+    """
+    tb, tt = tgt.base @ rotation.T, tgt.tip @ rotation.T
+    d_base = ((ref.base[:, None] - tb[None]) ** 2).sum(-1)
+    d_tip = ((ref.tip[:, None] - tt[None]) ** 2).sum(-1)
+    d_dir = ((_unit(ref.tip - ref.base)[:, None] - _unit(tt - tb)[None]) ** 2).sum(-1)
+    d_len = np.log(np.maximum(ref.length[:, None], 1e-6) / np.maximum(tgt.length[None], 1e-6)) ** 2
+    return d_base + d_tip + cfg.direction_weight * d_dir + cfg.length_weight * d_len
+
+
+def assign_limbs(cost: np.ndarray, skeleton: CurveSkeleton, candidates: np.ndarray, miss_cost: float,
+                 *, max_rounds: int = 32) -> tuple[list[tuple[int, int]], float]:
+    """Hungarian assignment of reference limbs (rows) to target subtrees (columns) without nesting.
+
+    A row may take a dummy column at ``miss_cost`` (unmatched). When two chosen subtrees are nested
+    (one is an ancestor of the other), the pair of higher cost is forbidden and the problem re-solved.
+
+    Returns:
+        (row, column) pairs and the total cost (misses included).
+    """
+    work = cost.copy()
+    n_r, n_c = work.shape
+    big = 1e6
+    pairs: list[tuple[int, int]] = []
+    total = float(n_r * miss_cost)
+    for _ in range(max_rounds):
+        full = np.full((n_r, n_c + n_r), big)
+        full[:, :n_c] = np.minimum(work, big)
+        full[np.arange(n_r), n_c + np.arange(n_r)] = miss_cost
+        rows, cols = linear_sum_assignment(full)
+        pairs = [(int(r), int(c)) for r, c in zip(rows, cols) if c < n_c and full[r, c] < big]
+        total = float(full[rows, cols].sum())
+        clash = None
+        for i, (r1, c1) in enumerate(pairs):
+            for r2, c2 in pairs[i + 1:]:
+                a, b = int(candidates[c1]), int(candidates[c2])
+                if skeleton.is_ancestor(a, b) or skeleton.is_ancestor(b, a):
+                    clash = (r1, c1) if work[r1, c1] >= work[r2, c2] else (r2, c2)
+                    break
+            if clash:
+                break
+        if clash is None:
+            break
+        work[clash] = big
+    return pairs, total
+
+
+def transfer_along(ref: CurveSkeleton, ref_limbs: LimbSet, r: int, ref_labels: np.ndarray, tgt: CurveSkeleton,
+                   tgt_limbs: LimbSet, t: int, num_parts: int, bins: int) -> np.ndarray:
+    """(Q,) reference part of each point of target limb ``t`` by its relative position along the limb.
+
+    The reference limb's parts are tabulated per bin of relative position (majority part; an empty bin
+    takes the nearest filled one), and each target point takes the part of its bin.
+    """
+    s_ref = ref_limbs.relative_position(ref.geodesic, r)
+    k = np.clip((s_ref * bins).astype(np.int64), 0, bins - 1)
+    votes = np.zeros((bins, num_parts))
+    np.add.at(votes, (k, ref_labels[ref_limbs.members[r]]), 1.0)
+    filled = np.flatnonzero(votes.sum(1) > 0)
+    profile = np.argmax(votes, axis=1)
+    profile = profile[filled[np.argmin(np.abs(np.arange(bins)[:, None] - filled[None]), axis=1)]]
+    s_tgt = tgt_limbs.relative_position(tgt.geodesic, t)
+    return profile[np.clip((s_tgt * bins).astype(np.int64), 0, bins - 1)]
+
+
+def yaw_rotations(up_axis: str, steps: int) -> list[np.ndarray]:
+    """Rotations about the up axis, ``steps`` of them evenly spaced, identity first."""
+    axis = UP_AXES[up_axis]
+    return [axis_rotation(axis, 2 * np.pi * k / max(steps, 1)) for k in range(max(steps, 1))]
+
+
+def match_structure(ref_points: np.ndarray, ref_labels: np.ndarray, num_parts: int, tgt_points: np.ndarray,
+                    cfg: StructureConfig, *, up_axis: str = "y", part_parents: np.ndarray | None = None) -> StructureMatch:
+    """Match the target's skeleton branches to the reference's limbs and label the target points.
+
+    Args:
+        ref_points: (V, 3) reference surface points, normalised (centroid 0, unit RMS radius).
+        ref_labels: (V,) reference part per point in [0, num_parts).
+        num_parts: B.
+        tgt_points: (M, 3) target points, normalised the same way, upright along ``up_axis``.
+        cfg: options.
+        up_axis: the shared up axis of both normalised frames.
+        part_parents: (B,) the reference's bone tree if known (see :func:`reference_limbs`).
+
+    Returns:
+        StructureMatch (``point_part`` labels the target points).
+    """
+    ref_sk = curve_skeleton(ref_points, cfg.skeleton)
+    tgt_sk = curve_skeleton(tgt_points, cfg.skeleton)
+    limb_parts, _ = reference_limbs(ref_sk, ref_labels, num_parts, part_parents)
+    ref_limbs = limb_descriptors(ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts])
+    cand = np.arange(1, len(tgt_sk.branches))
+    tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand])
+    rng = np.random.default_rng(0)
+    ref_sub = ref_points[rng.choice(len(ref_points), min(800, len(ref_points)), replace=False)]
+    tgt_sub = tgt_points[rng.choice(len(tgt_points), min(800, len(tgt_points)), replace=False)]
+    tree = cKDTree(ref_sub)
+    best = None
+    for rot in yaw_rotations(up_axis, cfg.yaw_steps):
+        if len(limb_parts) and len(cand):
+            cost = limb_cost(ref_limbs, tgt_limbs, rot, cfg)
+            pairs, total = assign_limbs(cost, tgt_sk, cand, cfg.miss_cost)
+        else:
+            pairs, total = [], cfg.miss_cost * len(limb_parts)
+        score = total + cfg.chamfer_weight * chamfer_distance(tgt_sub @ rot.T, ref_sub, tree_b=tree)
+        if best is None or score < best[0]:
+            best = (score, rot, pairs, total)
+    assert best is not None
+    _, rot, pairs, total = best
+    point_part = label_target(ref_sk, ref_limbs, ref_labels, tgt_sk, tgt_limbs, pairs, rot, num_parts,
+                              cfg.profile_bins)
+    matched = {r for r, _ in pairs}
+    leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
+    return StructureMatch(ref_sk, tgt_sk, rot, np.array([(r, int(cand[c])) for r, c in pairs], dtype=np.int64).reshape(-1, 2),
+                          tuple(tuple(p) for p in limb_parts), leftover, point_part, float(total))
+
+
+def label_target(ref: CurveSkeleton, ref_limbs: LimbSet, ref_labels: np.ndarray, tgt: CurveSkeleton,
+                 tgt_limbs: LimbSet, pairs: list[tuple[int, int]], rotation: np.ndarray, num_parts: int,
+                 bins: int) -> np.ndarray:
+    """(M,) reference part per target point: matched limbs along their length, the rest by nearest trunk."""
+    out = np.full(len(tgt.points), -1, dtype=np.int64)
+    for r, t in pairs:
+        out[tgt_limbs.members[t]] = transfer_along(ref, ref_limbs, r, ref_labels, tgt, tgt_limbs, t, num_parts, bins)
+    in_matched_ref = np.zeros(len(ref.points), dtype=bool)
+    for r, _ in pairs:
+        in_matched_ref[ref_limbs.members[r]] = True
+    pool = np.flatnonzero(~in_matched_ref)
+    if len(pool) == 0:
+        pool = np.arange(len(ref.points))
+    rest = np.flatnonzero(out < 0)
+    if len(rest):
+        _, j = cKDTree(ref.points[pool]).query(tgt.points[rest] @ rotation.T)
+        out[rest] = ref_labels[pool[j]]
+    return out
