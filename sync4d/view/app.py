@@ -89,8 +89,9 @@ class RunRow:
                                             place(source.all_means(), offsets[name], up=run.up), source.num_frames)
         prefix = f"/run{row}"
         for name, offset in offsets.items():
-            server.scene.add_label(f"{prefix}/{name}_label", f"{run.name}: {name}" if name == "target" else name,
-                                   position=tuple(offset + [0.0, 0.62, 0.0]))
+            server.scene.add_label(f"{prefix}/{name}_label", name, position=tuple(offset + [0.0, 0.6, 0.0]))
+        middle = 0.5 * (offsets[columns[0]] + offsets[columns[-1]])
+        server.scene.add_label(f"{prefix}/run_label", run.name, position=tuple(middle + [0.0, 0.72, 0.0]))
         self.video = None
         if run.video is not None:
             h, w = run.video(0).shape[:2]
@@ -169,7 +170,8 @@ class Viewer:
         self.cfg, self.runs = cfg, runs
         self.num_frames = max(r.num_frames for r in runs)
         self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="sync4d", verbose=False)
-        self.server.gui.configure_theme(control_layout="fixed", control_width="medium", show_share_button=False)
+        self.server.gui.configure_theme(control_width="medium", show_share_button=False)
+        self.server.gui.main_panel.dock_right()  # beside the scene, not over it
         self.server.scene.set_up_direction("+y")
         self.server.scene.world_axes.visible = False
         self.rows = [RunRow(self.server, run, k, cfg) for k, run in enumerate(runs)]
@@ -179,7 +181,7 @@ class Viewer:
         height = ROW_GAP * (len(runs) - 1)
         centre = np.array([0.5 * width, -0.5 * height, 0.0])
         # viser's wide default field of view: about 2.4 units across the canvas per unit of distance.
-        distance = 0.42 * max(width + 1.0, 1.6 * (height + 1.0)) + 0.3
+        distance = 0.55 * max(width + 1.2, 1.6 * (height + 1.5)) + 0.3
         self.server.initial_camera.look_at = tuple(centre)
         self.server.initial_camera.position = tuple(centre + [0.0, 0.15 * distance, distance])
         self.show(0)
