@@ -9,8 +9,13 @@ No standard Gaussian-sequence format exists; viewers (SuperSplat, GaussianSplats
   the reference mesh ``/sync4d/reference`` as a ``UsdGeom.Mesh`` (time-sampled if a vertex sequence is
   given). Y is up (as in the project's scenes; ``up_axis`` changes it) and one unit is one metre. Opens in usdview, Blender (File > Import > USD),
   Houdini, Omniverse.
+* ``sequence.glb`` (:func:`export_glb`): the Gaussian centres as an animated glTF 2.0 point cloud (one
+  morph target a frame, one weights animation), for Blender, three.js and game engines; it passes the
+  Khronos validator with no errors or warnings (tests/test_export.py).
 * ``sequence.npz`` (:func:`export_npz`): means (T, N, 3), covariances per frame (or quats/scales),
   colours / SH, opacities, fps; read back with :func:`load_npz` or ``numpy.load``.
+
+The compact whole-sequence file ``sequence.s4d`` is :mod:`sync4d.io.seq4d`.
 
 Every file is written atomically (a temporary name in the same folder, then renamed).
 """
