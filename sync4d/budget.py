@@ -22,7 +22,8 @@ after hours of sub-stepping (E = 1e12 needs ~10^5 substeps per frame).
 
 Time model (fitted to ``benchmarks/mpm.py`` on this machine, Warp 1.19 CPU, one core per launch): a
 forward substep costs ``PARTICLE_SUBSTEP_S`` per particle plus ``NODE_SUBSTEP_S`` per grid node; an
-optimisation iteration (forward + backward) ``BACKWARD_FACTOR`` times a forward. The velocity field's
+optimisation iteration (forward + backward) ``BACKWARD_FACTOR`` times a forward plus the velocity
+field's own cost (``FIELD_ITERATION_S`` + ``FIELD_PARTICLE_S`` per particle). The velocity field's
 ``iterations`` is an upper bound (early stopping usually ends sooner), so the estimate is an upper bound
 too; ``benchmarks/scale.py`` prints it beside the measured time.
 """
@@ -47,6 +48,12 @@ PARTICLE_SUBSTEP_S = 2.1e-7
 NODE_SUBSTEP_S = 1.0e-8
 #: Forward + backward over forward alone (3.5 measured at 10k and 50k particles).
 BACKWARD_FACTOR = 3.5
+#: The velocity field's share of one optimisation iteration (triplane + MLP forward and backward, its
+#: total-variation term, Adam): a fixed part [s] and a part per particle [s]. CPU seconds measured in the
+#: transfer itself (``benchmarks/scale.py``: 0.5 s per iteration at 1.7 k particles, 0.77 s at 5.9 k,
+#: where the MPM kernels take 0.04-0.1 s): at these sizes the field, not the simulator, costs most.
+FIELD_ITERATION_S = 0.4
+FIELD_PARTICLE_S = 6.0e-5
 #: Bytes of one stored particle state (x, v, C, F in float32) and of one grid node with its adjoint.
 STATE_BYTES = 96
 NODE_BYTES = 2 * (16 + 12)
@@ -242,7 +249,8 @@ def estimate_cost(
     substeps, dt = physics.substeps_for(frame_time, dt_max, min_substeps=sim.substeps)
     cause = "substeps" if substeps == sim.substeps else ("E" if c >= v_max else "motion")
     forward = substeps * (PARTICLE_SUBSTEP_S * p + NODE_SUBSTEP_S * nodes)
-    per_frame = forward * (1.0 + BACKWARD_FACTOR * max(int(iterations), 0))
+    per_iteration = BACKWARD_FACTOR * forward + FIELD_ITERATION_S + FIELD_PARTICLE_S * p
+    per_frame = forward + max(int(iterations), 0) * per_iteration
     stored = min(STATE_BYTES * p * (substeps + 1), sim.checkpoint_budget_mb * 2**20 + 2 * STATE_BYTES * p)
     gaussian_bytes = 4 * (3 + 4 + 3 + 1 + 3 * sh_coeffs)
     held = frames if held_frames is None else held_frames
