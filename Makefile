@@ -1,13 +1,14 @@
 # sync4d: two commands on a fresh machine.
 #   make train [ARGS="sim=mpm_warp recon.bones=13"]   set up .venv and run the default scene
-#   make test                                          set up .venv and run the test suite
+#   make test                                          set up .venv, lint and run the fast test lane
+#   make test-slow                                     the slow lane (end-to-end runs; CI runs both)
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export WARP_CACHE_PATH := $(CURDIR)/.warp_cache
 
-.PHONY: venv train test bench clean browser models
+.PHONY: venv train test test-slow bench clean browser models
 
 venv: $(STAMP)
 
@@ -40,8 +41,14 @@ $(STAMP): requirements.txt $(POSE_MODELS)
 train: $(STAMP)
 	$(PY) train.py $(ARGS)
 
+# The fast lane (at most 4 minutes idle here): lint, then every test not marked slow.
 test: $(STAMP)
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m ruff check sync4d sync4d_tools tests benchmarks plugins train.py
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+# The slow lane: end-to-end runs and long fits (CI runs it after the fast lane).
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)
 
 # The browser and glTF tests' tools: Debian's chromium (as root, through apt) and, from npm, playwright-core
 # (drives that chromium; it downloads no browser), the Khronos glTF validator and three.js (tests/js/).

@@ -135,7 +135,11 @@ def stage_reference(ctx: RunContext) -> tuple[Reference, str]:
 def stage_target(ctx: RunContext) -> tuple[TargetGaussians, Any]:
     """Load the target Gaussians; returns them and the source (which may offer a surface mesh)."""
     source = build("target", group_cfg(ctx.cfg, "target"), device=ctx.cfg.device, seed=ctx.cfg.seed)
-    target = source.load().validate()
+    load_checked = getattr(source, "load_checked", None)  # splat targets: floaters removed, with a report
+    target, floaters = load_checked() if load_checked is not None else (source.load(), None)
+    target = target.validate()
+    if floaters is not None:  # merged into metrics.json at the end of the run
+        atomic_write_json(ctx.run_dir / FLOATERS, floaters.as_dict())
     check_target_extent(target.means, target_label(ctx.cfg))
     log.info("target=%s: %d Gaussians (SH degree %d)", ctx.cfg.target.type, target.num, target.sh_degree)
     return target, source
@@ -174,12 +178,14 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
 
     def compute() -> PartMap:
         extractor = build("features", features_cfg, device=cfg.device)
-        return match_parts(
-            reference, target, extractor,
-            outlier_sigma=cfg.match.outlier_sigma, align=cfg.match.align,
+        from sync4d.match import MatchConfig  # interim (issue 21): the lead wires MatchConfig from conf
+        match_cfg = MatchConfig(
+            outlier_sigma=float(cfg.match.outlier_sigma), align=str(cfg.match.align),
             icp_iterations=int(cfg.match.icp_iterations), smooth_neighbours=int(cfg.match.smooth_neighbours),
-            tie_break=str(cfg.match.tie_break), prototypes=cfg.match.prototypes, target_vertices=points, target_faces=faces, seed=int(cfg.seed),
+            tie_break=str(cfg.match.tie_break), prototypes=str(cfg.match.prototypes),
         )
+        return match_parts(reference, target, extractor, match_cfg, target_vertices=points, target_faces=faces,
+                           seed=int(cfg.seed)).part_map
 
     part_map = cache.cached(ctx.cache_root, "match", key, PartMap, compute, enabled=cfg.cache).validate()
     counts = np.bincount(part_map.tgt_part, minlength=part_map.num_parts)
@@ -232,6 +238,10 @@ def apply_budget(ctx: RunContext, sim_cfg: dict[str, Any], target: TargetGaussia
 def write_frame(run_dir: Path, index: int, gaussians: TargetGaussians) -> Path:
     """Write one output frame as ``frames/%06d.ply`` (atomically)."""
     return write_gaussians_ply(run_dir / "frames" / f"{index:06d}.ply", gaussians)
+
+
+#: What floater removal did to a splat target (counts, removed and kept boxes), also in metrics.json.
+FLOATERS = "floaters.json"
 
 
 class RunFolderInUse(ConfigError):
@@ -361,9 +371,6 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
         log.warning("no feature extractor is registered yet: the run ends after loading the target")
         return {}
     part_map = stage_match(ctx, reference, recon_key, target, source)
-    # the reconstruction draws from the global RNGs when it runs and not when its cache is reused; seeding
-    # again here keeps what follows (the velocity field's initial weights) the same either way
-    seed_everything(int(cfg.seed))
     report_figures.save_match_figure(reference, target, part_map, ctx.run_dir / "match.png", logger=ctx.logger)
 
     points, faces = target_surface(target, source)
@@ -391,8 +398,12 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
         velocity_cfg=group_cfg(cfg, "velocity"), num_frames=int(cfg.frames), on_frame=writer.on_frame,
         resume=writer.resume_state(cfg.get("resume")),
     )
-    return writer.finish(trajectory, reference=reference, part_map=part_map, cfg=cfg,
-                         overrides=overrides_of(cfg), wall_seconds=time.perf_counter() - started)
+    result = writer.finish(trajectory, reference=reference, part_map=part_map, cfg=cfg,
+                           overrides=overrides_of(cfg), wall_seconds=time.perf_counter() - started)
+    if (ctx.run_dir / FLOATERS).is_file():
+        result["floaters"] = load_json(ctx.run_dir / FLOATERS)
+        atomic_write_json(ctx.run_dir / "metrics.json", result)
+    return result
 
 
 def run_guarded(cfg: DictConfig) -> dict[str, Any] | None:

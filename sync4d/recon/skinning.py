@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from sync4d.rng import init_linear_layers, torch_generator
+
 # ----------------------------------------------------------------------------------------------------
 # Point-set clustering and rigid alignment (NumPy)
 # ----------------------------------------------------------------------------------------------------
@@ -293,7 +295,7 @@ class SkinningDelta(torch.nn.Module):
     """
 
     def __init__(self, bones: int, *, center: np.ndarray, scale: float, width: int = 64, layers: int = 2,
-                 frequencies: int = 4) -> None:
+                 frequencies: int = 4, generator: torch.Generator | None = None) -> None:
         super().__init__()
         self.register_buffer("center", torch.as_tensor(np.asarray(center, dtype=np.float32)))
         self.scale = float(scale)
@@ -305,6 +307,7 @@ class SkinningDelta(torch.nn.Module):
             in_dim = width
         self.body = torch.nn.Sequential(*mods)
         self.head = torch.nn.Linear(in_dim, bones)
+        init_linear_layers(self.body, generator if generator is not None else torch_generator(0))
         torch.nn.init.zeros_(self.head.weight)
         torch.nn.init.zeros_(self.head.bias)
 

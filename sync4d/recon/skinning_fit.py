@@ -31,6 +31,7 @@ import torch
 from sync4d.errors import ConfigError, InputError
 from sync4d.recon import skinning as sk
 from sync4d.registry import register
+from sync4d.rng import torch_generator
 from sync4d.types import Reference, ReferenceInput
 
 log = logging.getLogger(__name__)
@@ -209,7 +210,6 @@ def fit_skinning(sequence: np.ndarray, bones: int, opts: FitOptions | None = Non
     else:
         idx = np.arange(n_verts)
 
-    torch.manual_seed(opts.seed)
     dt = torch.float32
     x_rest = torch.as_tensor(rest_n[idx], dtype=dt)
     y = torch.as_tensor(local_n[:, idx], dtype=dt)
@@ -224,7 +224,7 @@ def fit_skinning(sequence: np.ndarray, bones: int, opts: FitOptions | None = Non
     tau = torch.nn.Parameter(torch.as_tensor(tau0, dtype=dt))
     mlp = (
         sk.SkinningDelta(bones, center=np.zeros(3), scale=0.5, width=opts.mlp_width, layers=opts.mlp_layers,
-                         frequencies=opts.mlp_frequencies)
+                         frequencies=opts.mlp_frequencies, generator=torch_generator(opts.seed))
         if opts.mlp_width > 0
         else None
     )

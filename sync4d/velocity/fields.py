@@ -17,6 +17,7 @@ from torch import nn
 
 from sync4d.errors import ConfigError
 from sync4d.registry import register
+from sync4d.rng import init_linear_layers, torch_generator
 
 
 def total_variation(planes: torch.Tensor) -> torch.Tensor:
@@ -61,19 +62,22 @@ class TriplaneField(nn.Module):
 
     trainable = True
 
-    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray]) -> None:
+    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
         super().__init__()
         self.cfg = cfg
         self.velocity_scale = cfg.velocity_scale
         lo, hi = (torch.as_tensor(np.asarray(b, dtype=np.float32)) for b in bounds)
         self.register_buffer("lo", lo)
         self.register_buffer("hi", hi)
-        self.planes = nn.Parameter(torch.randn(3, cfg.features, cfg.resolution, cfg.resolution) * cfg.init_std)
+        generator = torch_generator(seed)
+        planes = torch.randn(3, cfg.features, cfg.resolution, cfg.resolution, generator=generator) * cfg.init_std
+        self.planes = nn.Parameter(planes)
         self.mlp = nn.Sequential(
             nn.Linear(3 * cfg.features, cfg.hidden), nn.SiLU(),
             nn.Linear(cfg.hidden, cfg.hidden), nn.SiLU(),
             nn.Linear(cfg.hidden, 3),
         )
+        init_linear_layers(self.mlp, generator)
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
 
@@ -108,7 +112,7 @@ class PerPartField(nn.Module):
 
     trainable = True
 
-    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray]) -> None:
+    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
         super().__init__()
         self.cfg = cfg
         self.velocity_scale = cfg.velocity_scale
@@ -131,7 +135,7 @@ class NoField(nn.Module):
 
     trainable = False
 
-    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray]) -> None:
+    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
         super().__init__()
         self.cfg = cfg
         self.velocity_scale = cfg.alpha
