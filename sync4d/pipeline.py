@@ -178,14 +178,12 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
 
     def compute() -> PartMap:
         extractor = build("features", features_cfg, device=cfg.device)
-        from sync4d.match import MatchConfig  # interim (issue 21): the lead wires MatchConfig from conf
-        match_cfg = MatchConfig(
-            outlier_sigma=float(cfg.match.outlier_sigma), align=str(cfg.match.align),
+        return match_parts(
+            reference, target, extractor,
+            outlier_sigma=cfg.match.outlier_sigma, align=cfg.match.align,
             icp_iterations=int(cfg.match.icp_iterations), smooth_neighbours=int(cfg.match.smooth_neighbours),
-            tie_break=str(cfg.match.tie_break), prototypes=str(cfg.match.prototypes),
+            tie_break=str(cfg.match.tie_break), prototypes=cfg.match.prototypes, target_vertices=points, target_faces=faces, seed=int(cfg.seed),
         )
-        return match_parts(reference, target, extractor, match_cfg, target_vertices=points, target_faces=faces,
-                           seed=int(cfg.seed)).part_map
 
     part_map = cache.cached(ctx.cache_root, "match", key, PartMap, compute, enabled=cfg.cache).validate()
     counts = np.bincount(part_map.tgt_part, minlength=part_map.num_parts)
@@ -371,6 +369,9 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
         log.warning("no feature extractor is registered yet: the run ends after loading the target")
         return {}
     part_map = stage_match(ctx, reference, recon_key, target, source)
+    # the reconstruction draws from the global RNGs when it runs and not when its cache is reused; seeding
+    # again here keeps what follows (the velocity field's initial weights) the same either way
+    seed_everything(int(cfg.seed))
     report_figures.save_match_figure(reference, target, part_map, ctx.run_dir / "match.png", logger=ctx.logger)
 
     points, faces = target_surface(target, source)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from sync4d.budget import choose_budget, choose_control_grid, grid_for_cells
 from sync4d.motion import driving_motion
@@ -94,3 +95,14 @@ def pytest_approx(value):
     import pytest
 
     return pytest.approx(value, rel=1e-9)
+
+
+@pytest.mark.slow
+def test_train_refuses_a_stiff_material_before_simulating(tmp_path):
+    from _runs import run_train
+
+    proc = run_train(tmp_path / "run", "reference=laptop", "recon=ground_truth", "target=laptop", "sim.E=1e12",
+                     "render_video=false", "logger=none")
+    assert proc.returncode == 2
+    assert "sim.E=1e+12 Pa" in proc.stderr and "exceed sim.max_substeps" in proc.stderr
+    assert not (tmp_path / "run" / "metrics.json").exists()

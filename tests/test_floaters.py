@@ -72,3 +72,26 @@ def test_ply_target_removes_floaters_and_reports(tmp_path):
     loaded, report = source.load_checked()
     assert loaded.num < n and np.abs(loaded.means).max() < 1.0
     assert report is not None and report.as_dict()["removed_far"] == 1
+
+
+@pytest.mark.slow
+def test_run_on_a_splat_with_a_far_floater_reports_it_and_keeps_the_physics_sane(shared_data, tmp_path):
+    """The issue's case end to end: one Gaussian 10 km away no longer sets the grid or the coverage ratio."""
+    import json
+
+    from _runs import run_train
+
+    from sync4d.io.ply import read_gaussians_ply, write_gaussians_ply
+
+    g = read_gaussians_ply(shared_data / "targets/gaussians/sunflowers_lod3_tile_0.ply")
+    floaty = g.subset(np.r_[np.arange(g.num), 0])
+    floaty.means[-1] = [1e4, 0.0, 0.0]
+    path = write_gaussians_ply(tmp_path / "floaty.ply", floaty)
+    run = tmp_path / "run"
+    proc = run_train(run, "reference=laptop", "recon=ground_truth", "target=ply", f"target.path={path}",
+                     "render_video=false", "logger=none")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["floaters"]["removed_far"] == 1 and metrics["floaters"]["removed_box_m"][1][0] == pytest.approx(1e4)
+    assert metrics["coverage_ratio"] < 100  # 5,320 with the floater in
+    assert json.loads((run / "cost_estimate.json").read_text())["substeps"] >= 1
