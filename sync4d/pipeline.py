@@ -178,12 +178,14 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
 
     def compute() -> PartMap:
         extractor = build("features", features_cfg, device=cfg.device)
-        return match_parts(
-            reference, target, extractor,
-            outlier_sigma=cfg.match.outlier_sigma, align=cfg.match.align,
+        from sync4d.match import MatchConfig  # interim (issue 21): the lead wires MatchConfig from conf
+        match_cfg = MatchConfig(
+            outlier_sigma=float(cfg.match.outlier_sigma), align=str(cfg.match.align),
             icp_iterations=int(cfg.match.icp_iterations), smooth_neighbours=int(cfg.match.smooth_neighbours),
-            tie_break=str(cfg.match.tie_break), prototypes=cfg.match.prototypes, target_vertices=points, target_faces=faces, seed=int(cfg.seed),
+            tie_break=str(cfg.match.tie_break), prototypes=str(cfg.match.prototypes),
         )
+        return match_parts(reference, target, extractor, match_cfg, target_vertices=points, target_faces=faces,
+                           seed=int(cfg.seed)).part_map
 
     part_map = cache.cached(ctx.cache_root, "match", key, PartMap, compute, enabled=cfg.cache).validate()
     counts = np.bincount(part_map.tgt_part, minlength=part_map.num_parts)
@@ -209,25 +211,19 @@ def reference_to_target_rotation(cfg: DictConfig, reference: Reference, target_p
 
 def apply_budget(ctx: RunContext, sim_cfg: dict[str, Any], target: TargetGaussians, motion: Any) -> dict[str, Any]:
     """With ``budget=auto``, size the simulation from the scene (:mod:`sync4d.budget`); else unchanged."""
-    budget_mode = str(ctx.cfg.get("budget", "off"))
-    if budget_mode == "off":
+    if str(ctx.cfg.budget) == "off":
         return sim_cfg
-    if budget_mode != "auto":
-        from sync4d.errors import ConfigError
-
-        raise ConfigError(f"budget={budget_mode}: use 'off' or 'auto'")
     if sim_cfg.get("type") != "mpm_warp":
         log.info("budget=auto applies to sim=mpm_warp only; sim=%s unchanged", sim_cfg.get("type"))
         return sim_cfg
     from sync4d.budget import choose_budget
-    from sync4d.sim.mpm_warp import MPMWarp
+    from sync4d.registry import make_config
 
-    full = {**{f: getattr(MPMWarp.Config(), f) for f in ("E", "nu", "density", "frame_time", "grid_padding",
-                                                         "wall_cells", "cfl_safety")}, **sim_cfg}
+    _, sim = make_config("sim", sim_cfg)  # every field, defaults from the simulator's own Config
     chosen = choose_budget(
-        target.means.astype(np.float64), motion, E=full["E"], nu=full["nu"], density=full["density"],
-        frame_time=full["frame_time"] or 1.0 / motion.fps, padding=full["grid_padding"], wall=full["wall_cells"],
-        cfl_safety=full["cfl_safety"],
+        target.means.astype(np.float64), motion, E=sim.E, nu=sim.nu, density=sim.density,
+        frame_time=sim.frame_time or 1.0 / motion.fps, padding=sim.grid_padding, wall=sim.wall_cells,
+        cfl_safety=sim.cfl_safety,
     )
     atomic_write_json(ctx.run_dir / "budget.json", dataclasses.asdict(chosen))
     return {**sim_cfg, "control_grid": chosen.control_grid, "n_grid": chosen.n_grid, "substeps": chosen.substeps}
@@ -369,9 +365,6 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
         log.warning("no feature extractor is registered yet: the run ends after loading the target")
         return {}
     part_map = stage_match(ctx, reference, recon_key, target, source)
-    # the reconstruction draws from the global RNGs when it runs and not when its cache is reused; seeding
-    # again here keeps what follows (the velocity field's initial weights) the same either way
-    seed_everything(int(cfg.seed))
     report_figures.save_match_figure(reference, target, part_map, ctx.run_dir / "match.png", logger=ctx.logger)
 
     points, faces = target_surface(target, source)

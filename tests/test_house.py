@@ -93,3 +93,10 @@ def test_cache_key_follows_the_code(monkeypatch: pytest.MonkeyPatch):
 
     monkeypatch.setattr(cache, "_source", edited)
     assert cache.code_hash(skinning_fit.SkinningFit) != before
+
+
+def test_readme_numbers_come_from_the_benchmarks_json():
+    """The README's generated blocks are what ``benchmarks/readme.py`` makes of benchmarks/results/*.json."""
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "readme.py"), "--check"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60, check=False)
+    assert out.returncode == 0, "README.md differs from benchmarks/results: run python benchmarks/readme.py"
