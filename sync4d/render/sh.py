@@ -149,16 +149,16 @@ def sh_rotation_blocks(rotations: np.ndarray, degree: int, *, chunk: int = 65536
     """
     rot = np.asarray(rotations, dtype=np.float64)
     p = len(rot)
-    blocks = [np.empty((p, 2 * l + 1, 2 * l + 1)) for l in range(1, degree + 1)]
+    blocks = [np.empty((p, 2 * deg + 1, 2 * deg + 1)) for deg in range(1, degree + 1)]
     if degree == 0:
         return blocks
-    pinv = [np.linalg.pinv(sh_basis(_DIRS, degree)[:, l * l:(l + 1) ** 2]) for l in range(1, degree + 1)]
+    pinv = [np.linalg.pinv(sh_basis(_DIRS, degree)[:, deg * deg:(deg + 1) ** 2]) for deg in range(1, degree + 1)]
     for start in range(0, p, chunk):
         stop = min(start + chunk, p)
         turned = np.einsum("nji,sj->ins", rot[start:stop], _DIRS)  # R^T d_s, (3, n, S)
         basis = sh_basis_first(turned, degree)  # (K, n, S)
-        for l in range(1, degree + 1):
-            blocks[l - 1][start:stop] = pinv[l - 1][None] @ np.moveaxis(basis[l * l:(l + 1) ** 2], 0, -1)
+        for deg in range(1, degree + 1):
+            blocks[deg - 1][start:stop] = pinv[deg - 1][None] @ np.moveaxis(basis[deg * deg:(deg + 1) ** 2], 0, -1)
     return blocks
 
 
@@ -192,7 +192,7 @@ def rotate_sh(
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         pick = slice(start, stop) if index is None else index[start:stop]
-        for l, D in enumerate(blocks, start=1):
-            block = slice(l * l, (l + 1) ** 2)
+        for deg, D in enumerate(blocks, start=1):
+            block = slice(deg * deg, (deg + 1) ** 2)
             out[start:stop, block] = D[pick] @ sh[start:stop, block].astype(np.float64)
     return out
