@@ -266,23 +266,39 @@ class IntegrityModel:
     gap: float
 
 
-def integrity_model(rest: np.ndarray, parts: np.ndarray, num_parts: int, *, gap: float, k: int = 8) -> IntegrityModel:
-    """Build the rest neighbour graph once per run (k = 8 nearest neighbours, ``gap`` [m])."""
+def integrity_model(
+    rest: np.ndarray, parts: np.ndarray, num_parts: int, *, gap: float, k: int = 8, truth: np.ndarray | None = None
+) -> IntegrityModel:
+    """Build the rest neighbour graph once per run (k = 8 nearest neighbours, ``gap`` [m]).
+
+    With a ``truth`` (T, N, 3), pairs that the correct motion itself strains beyond 10% in some frame
+    (two limbs side by side at rest that walk apart, a lid edge leaving the base) are left out: what
+    remains are the pairs a correct transfer keeps together, so the metrics count only what the method
+    tore. Without a truth every rest pair counts.
+    """
     rest = np.asarray(rest, dtype=np.float64)
     parts = np.asarray(parts)
     pairs = rest_neighbour_pairs(rest, k)
+    if truth is not None:
+        worst = np.max([pair_strain(rest, xt, pairs) for xt in truth], axis=0)
+        pairs = pairs[worst <= TORN_STRAIN]
     return IntegrityModel(rest, parts, int(num_parts), pairs, seam_pairs(pairs, parts),
                           part_volumes(rest, parts, num_parts), float(gap))
 
 
-def integrity_frame(model: IntegrityModel, x: np.ndarray) -> IntegrityFrame:
-    """All shape-integrity metrics of positions ``x`` (N, 3) [m] against ``model``."""
+def integrity_frame(model: IntegrityModel, x: np.ndarray, *, true_volume: np.ndarray | None = None) -> IntegrityFrame:
+    """All shape-integrity metrics of positions ``x`` (N, 3) [m] against ``model``.
+
+    ``true_volume`` (B,) [m^3]: each part's volume in the truth at this frame; the volume change is then
+    measured against it (a correct motion's own volume change is no error), else against the rest.
+    """
     strain = pair_strain(model.rest, x, model.pairs)
+    ref_volume = model.rest_volume if true_volume is None else true_volume
     return IntegrityFrame(
         torn_pairs_pct=torn_pairs_pct(strain),
         torn_seam_pairs_pct=torn_pairs_pct(strain, model.seam),
         strain_p99_pct=strain_p99_pct(strain),
-        volume_change_pct=part_volume_change_pct(part_volumes(x, model.parts, model.num_parts), model.rest_volume),
+        volume_change_pct=part_volume_change_pct(part_volumes(x, model.parts, model.num_parts), ref_volume),
         fragments=count_fragments(x, model.pairs, strain, model.gap),
     )
 

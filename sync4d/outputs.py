@@ -306,8 +306,9 @@ def compute_metrics(
     accumulated = np.concatenate([np.zeros((1, B, 3)), np.cumsum(motion.part_displacements[: T - 1], axis=0)])
     if truth is None and self_transfer:
         truth = self_transfer_truth(reference, x[0], T, loop=loop)
-    integrity = M.integrity_model(x[0], parts, B, gap=fragment_gap(x[0], dx))
-    frames = [M.integrity_frame(integrity, x[t]) for t in range(T)]
+    integrity = M.integrity_model(x[0], parts, B, gap=fragment_gap(x[0], dx), truth=truth)
+    true_volumes = [None] * T if truth is None else [M.part_volumes(truth[t], parts, B) for t in range(T)]
+    frames = [M.integrity_frame(integrity, x[t], true_volume=true_volumes[t]) for t in range(T)]
 
     per_frame = []
     for t in range(T):

@@ -92,3 +92,20 @@ def test_jitter_ratio_against_a_truth_moves_with_noise():
     assert M.jitter_ratio(truth, truth, 1.0) == pytest.approx(1.0)
     noisy = truth + np.random.default_rng(1).normal(scale=0.01, size=truth.shape)
     assert M.jitter_ratio(noisy, truth, 1.0) > 3.0
+
+
+def test_pairs_the_truth_separates_are_not_counted_as_torn(body):
+    """Two limbs side by side at rest that the correct motion moves apart are no tear; a method that does the
+    same as the truth scores 0, one that tears what the truth keeps does not."""
+    rest, parts, _ = body
+    moved = rest.copy()
+    moved[parts == 1] += [0.1, 0.0, 0.0]  # in this "truth" the arm really does move away
+    truth = np.stack([rest, moved])
+    model = M.integrity_model(rest, parts, 2, gap=0.02, truth=truth)
+    assert not model.seam.any()  # every seam pair is one the truth separates
+    f = M.integrity_frame(model, moved, true_volume=M.part_volumes(moved, parts, 2))
+    assert f.torn_pairs_pct == 0 and f.strain_p99_pct < 1e-9
+    np.testing.assert_allclose(f.volume_change_pct, 0.0, atol=1e-9)
+    torn = moved.copy()
+    torn[:500, 2] *= 1.5  # the method stretches the torso, which the truth keeps
+    assert M.integrity_frame(model, torn).torn_pairs_pct > 5.0

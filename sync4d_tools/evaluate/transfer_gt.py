@@ -210,8 +210,12 @@ def load_pair(name: str, num_frames: int, gaussians: int) -> GTPair:
     raise ConfigError(f"transfer_gt --pairs: unknown pair '{name}'; use {', '.join(PAIRS)}")
 
 
-def method_configs(name: str) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(sim config, velocity config) of a method; MPM methods use the simulator's defaults otherwise."""
+def method_configs(name: str, mpm: dict[str, Any] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(sim config, velocity config) of a method; MPM methods use the simulator's defaults otherwise.
+
+    ``mpm`` overrides keys of every ``sim=mpm_warp`` method (one setting for the whole suite; the paper's
+    own three options stay the paper's).
+    """
     triplane = {"type": "triplane", **TRAIN}
     table: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
         "lbs_hard": ({"type": "lbs", "neighbours": 1}, {"type": "none"}),
@@ -224,7 +228,23 @@ def method_configs(name: str) -> tuple[dict[str, Any], dict[str, Any]]:
     }
     if name not in table:
         raise ConfigError(f"transfer_gt --methods: unknown method '{name}'; use {', '.join(METHODS)}")
-    return table[name]
+    sim_cfg, vel_cfg = table[name]
+    if mpm and sim_cfg["type"] == "mpm_warp":
+        sim_cfg = {**sim_cfg, **{k: v for k, v in mpm.items() if not (name == "paper" and k in sim_cfg)}}
+    return sim_cfg, vel_cfg
+
+
+def parse_overrides(text: str) -> dict[str, Any]:
+    """``"E=1e5 loss_points=anchors"`` -> {"E": 100000.0, "loss_points": "anchors"} (YAML values)."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in text.split():
+        if "=" not in item:
+            raise ConfigError(f"transfer_gt --mpm: '{item}' is not KEY=VALUE")
+        key, value = item.split("=", 1)
+        out[key] = yaml.safe_load(value)
+    return out
 
 
 KEYS = ("pose_error_pct", "pose_error_max_pct", "torn_pairs_pct", "torn_seam_pairs_pct", "strain_p99_pct",
@@ -260,10 +280,10 @@ def score_truth(pair: GTPair, num_frames: int) -> dict[str, Any]:
     return score(pair, traj, motion, [0.0] * num_frames)
 
 
-def run_method(pair: GTPair, method: str, num_frames: int) -> dict[str, Any]:
+def run_method(pair: GTPair, method: str, num_frames: int, mpm: dict[str, Any] | None = None) -> dict[str, Any]:
     """Run one method on one pair and score it against the pair's truth (frames 1..T)."""
     motion = pair_motion(pair, num_frames)
-    sim_cfg, vel_cfg = method_configs(method)
+    sim_cfg, vel_cfg = method_configs(method, mpm)
     sim = build("sim", sim_cfg, device="cpu")
     torch_seed(0)
     seconds: list[float] = []
@@ -316,6 +336,19 @@ def write_charts(results: dict[str, dict[str, dict[str, Any]]], folder: Path) ->
     return written
 
 
+def markdown_table(results: dict[str, dict[str, dict[str, Any]]]) -> str:
+    """The pairs x methods table of fidelity, integrity and cost, as Markdown."""
+    cols = ("pose_error_pct", "pose_error_max_pct", "torn_pairs_pct", "torn_seam_pairs_pct", "strain_p99_pct",
+            "strain_p99_max_pct", "fragments", "volume_change_pct", "jitter_ratio", "seconds_per_frame")
+    lines = ["| pair | method | " + " | ".join(c.replace("_pct", " %") for c in cols) + " |",
+             "|---|---|" + "---|" * len(cols)]
+    for pair, rows in results.items():
+        for method, r in rows.items():
+            cells = [f"{r[c]:.3g}" if isinstance(r[c], float) else str(r[c]) for c in cols]
+            lines.append(f"| {pair} | {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m sync4d.evaluate transfer_gt", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -325,13 +358,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--gaussians", type=int, default=4000, help="target Gaussians per pair")
     parser.add_argument("--json", default="", help="write the result here too")
     parser.add_argument("--charts", default="docs/charts/transfer_gt", help="chart folder ('' = none)")
+    parser.add_argument("--table", default="", help="write the Markdown table here too")
+    parser.add_argument("--mpm", default="", help="overrides of every sim=mpm_warp method, e.g. 'E=1e5'")
     args = parser.parse_args(argv)
     if args.frames < 3:
         raise ConfigError(f"transfer_gt --frames={args.frames}: need >= 3 (frame 0 is the rest pose)")
     pairs = [p for p in args.pairs.split(",") if p]
     methods = [m for m in args.methods.split(",") if m]
+    mpm = parse_overrides(args.mpm)
     for m in methods:
-        method_configs(m)
+        method_configs(m, mpm)
     started = time.perf_counter()
     results: dict[str, dict[str, dict[str, Any]]] = {}
     for name in pairs:
@@ -339,17 +375,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         results[name] = {"truth": score_truth(pair, args.frames)}
         for method in methods:
             t0 = time.perf_counter()
-            results[name][method] = run_method(pair, method, args.frames)
+            results[name][method] = run_method(pair, method, args.frames, mpm)
             log.info("transfer_gt %s / %s: %s (%.1f s)", name, method, results[name][method], time.perf_counter() - t0)
     out: dict[str, Any] = {
         "pairs": results,
         "frames": args.frames,
         "gaussians": args.gaussians,
         "training": TRAIN,
+        "mpm_overrides": mpm,
         "seconds": round(time.perf_counter() - started, 1),
     }
     if args.charts:
         out["charts"] = write_charts(results, Path(args.charts))
+    if args.table:
+        Path(args.table).write_text(markdown_table(results))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=1))
