@@ -108,9 +108,9 @@ def _decode_ints(data: bytes, shape: tuple[int, int, int]) -> np.ndarray:
     if raw.size != 4 * frames * num * comps:
         raise InputError(f"sequence.s4d: a chunk holds {raw.size} bytes, expected {4 * frames * num * comps}")
     z = np.ascontiguousarray(np.moveaxis(raw.reshape(4, num, frames, comps), 0, -1)).view("<u4")[..., 0]
-    z = np.moveaxis(z.astype(np.int64), 0, 1)
-    r = np.where(z % 2 == 0, z // 2, -(z + 1) // 2)
-    return np.cumsum(r, axis=0)
+    z = z.astype(np.int64)
+    r = (z >> 1) ^ -(z & 1)  # zigzag back to signed
+    return np.cumsum(r, axis=1).transpose(1, 0, 2)
 
 
 def _check_inputs(means: np.ndarray, covariances: np.ndarray, colors: np.ndarray, opacities: np.ndarray) -> None:
@@ -223,30 +223,36 @@ class Sequence4D:
         self.opacities = self._zip["opacities"].astype(np.float64) / 255.0
         self.sh = self._zip["sh"].astype(np.float32) if "sh" in files else None
         self.parts = self._zip["parts"].astype(np.int64) if "parts" in files else None
-        self._cached: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._cached: dict[tuple[str, int], np.ndarray] = {}
 
-    def _chunk(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        if self._cached is None or self._cached[0] != k:
+    def _decode(self, kind: str, k: int) -> np.ndarray:
+        """Chunk ``k`` of ``kind`` "pos" (F, N, 3) [m] or "cov" (F, N, 6) log-covariance entries, cached."""
+        key = (kind, k)
+        if key not in self._cached:
             chunk = int(self.header["chunk"])
             frames = min(chunk, self.num_frames - k * chunk)
-            q_pos = _decode_ints(bytes(self._zip[f"pos_{k}"]), (frames, self.num, 3))
-            q_cov = _decode_ints(bytes(self._zip[f"cov_{k}"]), (frames, self.num, 6))
-            means = q_pos * self.header["position_step"] + np.asarray(self.header["origin"])
-            self._cached = (k, means, q_cov * self.header["log_cov_step"])
-        return self._cached[1], self._cached[2]
+            comps = 3 if kind == "pos" else 6
+            q = _decode_ints(bytes(self._zip[f"{kind}_{k}"]), (frames, self.num, comps))
+            if kind == "pos":
+                value = q * self.header["position_step"] + np.asarray(self.header["origin"])
+            else:
+                value = q * self.header["log_cov_step"]
+            self._cached = {c: v for c, v in self._cached.items() if c[0] != kind}  # one chunk of each kind
+            self._cached[key] = value
+        return self._cached[key]
 
     def frame(self, t: int) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``t``: centres (N, 3) [m] and covariances (N, 3, 3) [m^2]."""
         if not 0 <= t < self.num_frames:
             raise InputError(f"{self.path}: frame {t} outside 0..{self.num_frames - 1}")
         chunk = int(self.header["chunk"])
-        means, log_cov = self._chunk(t // chunk)
-        return means[t % chunk], exp_covariances(log_cov[t % chunk])
+        return self._decode("pos", t // chunk)[t % chunk], exp_covariances(self._decode("cov", t // chunk)[t % chunk])
 
-    def means(self) -> np.ndarray:
-        """(T, N, 3) all centres [m] (covariances are not decoded)."""
+    def means(self, index: np.ndarray | None = None) -> np.ndarray:
+        """(T, N, 3) all centres [m], or (T, M, 3) of the Gaussians ``index`` (covariances are not decoded)."""
         chunk = int(self.header["chunk"])
-        return np.concatenate([self._chunk(k)[0] for k in range(-(-self.num_frames // chunk))])
+        parts = [self._decode("pos", k) for k in range(-(-self.num_frames // chunk))]
+        return np.concatenate([p if index is None else p[:, index] for p in parts])
 
     def close(self) -> None:
         self._zip.close()

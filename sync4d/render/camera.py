@@ -183,7 +183,7 @@ def motion_view_direction(
     *,
     up: ArrayLike3 = (0.0, 1.0, 0.0),
     elevation_deg: float = 15.0,
-    azimuth_offset_deg: float = 30.0,
+    azimuth_offset_deg: float = 20.0,
     prefer: ArrayLike3 = (0.9, 1.1, 1.6),
 ) -> np.ndarray:
     """A viewing direction that keeps ``up`` up and faces the plane in which a point sequence moves most.

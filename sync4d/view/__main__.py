@@ -1,4 +1,4 @@
-"""``python -m sync4d.view RUN [RUN ...] [--port P] [--host H] [--fps F] [--play]``: serve the viewer."""
+"""``python -m sync4d.view RUN [RUN ...] [--port P] [--host H] [--fps F] [--play] [--max-gaussians M]``: serve the viewer."""
 
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--host", default="127.0.0.1", help="interface (default 127.0.0.1: this machine only)")
     parser.add_argument("--fps", type=float, default=0.0, help="playback rate; 0 = the run's (default)")
     parser.add_argument("--play", action="store_true", help="start playing")
+    parser.add_argument("--max-gaussians", type=int, default=400_000,
+                        help="show a fixed random subset of larger objects (default 400000)")
     return parser.parse_args(argv)
 
 
@@ -26,7 +28,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
     try:
         runs = [load_run(folder) for folder in args.runs]
-        viewer = Viewer(runs, ViewerConfig(host=args.host, port=args.port, fps=args.fps, play=args.play))
+        viewer = Viewer(runs, ViewerConfig(host=args.host, port=args.port, fps=args.fps, play=args.play,
+                                             max_gaussians=args.max_gaussians))
     except Sync4DError as err:
         print(f"sync4d.view: {type(err).__name__}: {err}", file=sys.stderr)
         return 2

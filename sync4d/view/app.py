@@ -33,6 +33,7 @@ from sync4d.view.data import (
 log = logging.getLogger(__name__)
 PANEL_GAP = 1.3   # [viewer units] between panel centres; objects are scaled to radius 0.5
 ROW_GAP = 1.5
+PLACEMENT_PROBE = 5000  # Gaussians sampled to place an object
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,9 @@ class ViewerConfig:
         cache_frames: decoded frames kept per object for scrubbing.
         particle_size: simulation point size [viewer units].
         play: start playing.
+        max_gaussians: an object with more Gaussians shows a fixed random subset of this many (each frame is
+            sent whole to the browser: 32 bytes a Gaussian, 12.8 MB a frame at 400,000).
+        seed: of that subset.
     """
 
     host: str = "127.0.0.1"
@@ -54,12 +58,14 @@ class ViewerConfig:
     cache_frames: int = 32
     particle_size: float = 0.006
     play: bool = False
+    max_gaussians: int = 400_000
+    seed: int = 0
 
     def validate(self) -> None:
         if not 0 < self.port < 65536:
             raise ConfigError(f"--port {self.port}: choose a port in 1..65535")
-        if self.fps < 0 or self.cache_frames < 1 or self.particle_size <= 0:
-            raise ConfigError("viewer: --fps must be >= 0, cache_frames >= 1 and particle_size > 0")
+        if self.fps < 0 or self.cache_frames < 1 or self.particle_size <= 0 or self.max_gaussians < 1:
+            raise ConfigError("viewer: --fps must be >= 0, cache_frames, max_gaussians >= 1 and particle_size > 0")
 
 
 @dataclass
@@ -69,6 +75,7 @@ class ObjectPanel:
     frames: CachedFrames
     placement: Placement
     num_frames: int
+    subset: np.ndarray | None = None
     splats: Any = None
     boxes: list[Any] | None = None
 
@@ -82,11 +89,17 @@ class RunRow:
         columns = (["video"] if run.video is not None else []) + (["reference"] if run.reference else []) + ["target"]
         offsets = {name: np.array([PANEL_GAP * k, y, 0.0]) for k, name in enumerate(columns)}
         self.panels: dict[str, ObjectPanel] = {}
+        rng = np.random.default_rng(cfg.seed)
         for name, source in (("reference", run.reference), ("target", run.target)):
             if source is None:
                 continue
+            subset = np.sort(rng.choice(source.num, cfg.max_gaussians, replace=False)) \
+                if source.num > cfg.max_gaussians else None
+            # Placement needs the extent and the plane of motion: a few thousand Gaussians tell both.
+            probe = np.sort(rng.choice(source.num, PLACEMENT_PROBE, replace=False)) if source.num > PLACEMENT_PROBE else None
             self.panels[name] = ObjectPanel(CachedFrames(source, cfg.cache_frames),
-                                            place(source.all_means(), offsets[name], up=run.up), source.num_frames)
+                                            place(source.all_means(probe), offsets[name], up=run.up),
+                                            source.num_frames, subset)
         prefix = f"/run{row}"
         for name, offset in offsets.items():
             server.scene.add_label(f"{prefix}/{name}_label", name, position=tuple(offset + [0.0, 0.6, 0.0]))
@@ -107,6 +120,8 @@ class RunRow:
         """Send frame ``t`` (modulo each object's length) with the chosen overlays."""
         for name, panel in self.panels.items():
             frame = panel.frames(t % panel.num_frames)
+            if panel.subset is not None:
+                frame = subset_frame(frame, panel.subset)
             self._show_splats(name, panel, frame, part_colours)
             self._show_boxes(name, panel, frame, boxes)
         if self.video is not None and self.run.video is not None:
@@ -158,6 +173,12 @@ class RunRow:
             self.particles.points = points.astype(np.float32)
 
 
+def subset_frame(frame: SplatFrame, index: np.ndarray) -> SplatFrame:
+    """The Gaussians ``index`` of a frame."""
+    return SplatFrame(frame.means[index], frame.covariances[index], frame.colors[index], frame.opacities[index],
+                      None if frame.parts is None else frame.parts[index])
+
+
 class Viewer:
     """A viser server showing ``runs`` (one row each), with play/pause, a frame slider and overlay toggles."""
 
@@ -181,7 +202,7 @@ class Viewer:
         height = ROW_GAP * (len(runs) - 1)
         centre = np.array([0.5 * width, -0.5 * height, 0.0])
         # viser's wide default field of view: about 2.4 units across the canvas per unit of distance.
-        distance = 0.55 * max(width + 1.2, 1.6 * (height + 1.5)) + 0.3
+        distance = 0.48 * max(width + 1.2, 1.6 * (height + 1.5)) + 0.3
         self.server.initial_camera.look_at = tuple(centre)
         self.server.initial_camera.position = tuple(centre + [0.0, 0.15 * distance, distance])
         self.show(0)

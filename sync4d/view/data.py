@@ -55,9 +55,11 @@ class FrameSource(Protocol):
 
     num_frames: int
 
+    num: int
+
     def frame(self, t: int) -> SplatFrame: ...
 
-    def all_means(self) -> np.ndarray: ...
+    def all_means(self, index: np.ndarray | None = None) -> np.ndarray: ...
 
 
 class Seq4DSource:
@@ -65,14 +67,14 @@ class Seq4DSource:
 
     def __init__(self, path: Path) -> None:
         self.seq = Sequence4D(path)
-        self.num_frames = self.seq.num_frames
+        self.num_frames, self.num = self.seq.num_frames, self.seq.num
 
     def frame(self, t: int) -> SplatFrame:
         means, covs = self.seq.frame(t)
         return SplatFrame(means, covs, self.seq.colors, self.seq.opacities, self.seq.parts)
 
-    def all_means(self) -> np.ndarray:
-        return self.seq.means()
+    def all_means(self, index: np.ndarray | None = None) -> np.ndarray:
+        return self.seq.means(index)
 
 
 class PlySource:
@@ -84,6 +86,9 @@ class PlySource:
             raise InputError(f"{folder}: no .ply frames; pass a run folder of train.py")
         self.num_frames = len(self.files)
         self.parts = parts
+        from sync4d.io.ply import read_gaussians_ply
+
+        self.num = read_gaussians_ply(self.files[0]).num
 
     def frame(self, t: int) -> SplatFrame:
         from sync4d.io.ply import read_gaussians_ply
@@ -92,10 +97,10 @@ class PlySource:
         parts = self.parts if self.parts is not None and len(self.parts) == g.num else None
         return SplatFrame(g.means.astype(np.float64), g.covariances(), g.colors(), g.opacities, parts)
 
-    def all_means(self) -> np.ndarray:
+    def all_means(self, index: np.ndarray | None = None) -> np.ndarray:
         # Framing needs only a few frames' extent: first, middle, last.
         picks = sorted({0, self.num_frames // 2, self.num_frames - 1})
-        return np.stack([self.frame(t).means for t in picks])
+        return np.stack([self.frame(t).means if index is None else self.frame(t).means[index] for t in picks])
 
 
 class CachedFrames:

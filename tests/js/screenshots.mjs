@@ -1,5 +1,6 @@
 // Open a page in headless Chromium (Debian's, through playwright-core) and follow steps given as JSON:
-//   node screenshots.mjs URL STEPS_JSON   with STEPS_JSON = [["wait", ms], ["shot", path], ["click", text], ...]
+//   node screenshots.mjs URL STEPS_JSON   with STEPS_JSON = [["wait", ms], ["shot", path], ["click", button text],
+//   ["check", checkbox label], ["text", text to wait for], ...]
 // Prints one JSON line: the page's console errors and the WebGL renderer it reported.
 import { chromium } from "playwright-core";
 
@@ -28,6 +29,7 @@ try {
     if (kind === "wait") await page.waitForTimeout(arg);
     else if (kind === "shot") await page.screenshot({ path: arg });
     else if (kind === "click") await page.getByRole("button", { name: arg, exact: true }).click();
+    else if (kind === "check") await page.getByLabel(arg, { exact: true }).check();
     else if (kind === "text") await page.getByText(arg).first().waitFor({ timeout: 60000 });
     else throw new Error(`unknown step ${kind}`);
   }
