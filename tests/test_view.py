@@ -134,3 +134,19 @@ def test_cli_reports_a_bad_folder_in_one_line(tmp_path: Path, capsys: pytest.Cap
     assert main([str(tmp_path / "nope")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "no such run folder" in err
+
+
+def test_large_objects_show_a_fixed_subset(tmp_path: Path) -> None:
+    from sync4d.view.app import Viewer, ViewerConfig
+    from sync4d.view.data import load_run
+
+    viewer = Viewer([load_run(make_run(tmp_path / "a", frames=3, n=400, video=False))],
+                    ViewerConfig(port=free_port(), max_gaussians=150))
+    try:
+        panel = viewer.rows[0].panels["target"]
+        assert len(panel.splats.buffer) == 150
+        before = panel.subset.copy()
+        viewer.step(1)
+        assert len(panel.splats.buffer) == 150 and (panel.subset == before).all()
+    finally:
+        viewer.server.stop()
