@@ -19,6 +19,7 @@ from sync4d.io.export import (
     widths_from_covariances,
     widths_from_scales,
 )
+from tests._node import node_tool, run_node
 
 
 @pytest.fixture()
@@ -115,25 +116,6 @@ def test_widths_from_covariances_and_scales_agree() -> None:
     expected = 2.0 * (0.01 * 0.02 * 0.04) ** (1 / 3)
     assert widths_from_scales(scales)[0] == pytest.approx(expected)
     assert widths_from_covariances(covs)[0] == pytest.approx(expected)
-
-
-JS = Path(__file__).parent / "js"
-
-
-def node_tool(package: str) -> bool:
-    """Whether node and ``tests/js/node_modules/<package>`` are installed (``make browser`` installs them)."""
-    import shutil
-
-    return shutil.which("node") is not None and (JS / "node_modules" / package).is_dir()
-
-
-def run_node(script: str, *args: str) -> dict:
-    import json
-    import subprocess
-
-    out = subprocess.run(["node", str(JS / script), *args], capture_output=True, text=True, timeout=120, check=False)
-    assert out.stdout.strip(), out.stderr
-    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def moving_points(t: int = 5, n: int = 40) -> np.ndarray:

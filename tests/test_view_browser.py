@@ -1,7 +1,8 @@
 """The viewer in a real browser: headless Chromium (Debian's, driven by playwright-core) opens
 ``python -m sync4d.view``, screenshots two frames, and the splats must be drawn and must move.
 
-Needs ``make browser`` (chromium and tests/js/node_modules); skipped, saying so, when chromium is absent.
+Needs chromium (``make browser`` installs it, with tests/js/node_modules, which the test also installs
+when npm is there); skipped, saying so, when chromium is absent.
 The screenshots stay in the test's tmp folder (pytest prints it with -v on failure).
 """
 
@@ -18,10 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests._node import JS, node_tool
 from tests._viewrun import RED, make_run
 from tests.test_view import free_port
-
-JS = Path(__file__).parent / "js"
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 pytestmark = [
@@ -59,8 +59,8 @@ def start_viewer(run: Path, port: int) -> subprocess.Popen:
 
 
 def test_viewer_draws_and_moves_the_splats_in_chromium(tmp_path: Path) -> None:
-    if not (JS / "node_modules" / "playwright-core").is_dir() or shutil.which("node") is None:
-        pytest.fail("chromium is installed but node/playwright-core is not: run make browser")
+    if not node_tool("playwright-core"):
+        pytest.fail("chromium is installed but node or playwright-core is not: run make browser")
     run = make_run(tmp_path / "run", frames=4, n=1500)
     port = free_port()
     started = time.monotonic()

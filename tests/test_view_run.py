@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from tests._runs import run_train
-from tests.test_export import node_tool, run_node
+from tests._node import node_tool, run_node
 
 pytestmark = pytest.mark.slow
 
