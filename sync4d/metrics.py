@@ -222,10 +222,23 @@ def part_volumes(x: np.ndarray, parts: np.ndarray, num_parts: int) -> np.ndarray
     return out
 
 
-def part_volume_change_pct(volume: np.ndarray, rest_volume: np.ndarray) -> np.ndarray:
-    """(B,) relative change of each part's volume from rest [%] (NaN where the rest volume is unknown)."""
+def part_volume_change_pct(volume: np.ndarray, rest_volume: np.ndarray, true_volume: np.ndarray | None = None) -> np.ndarray:
+    """(B,) change of each part's volume against the truth's at the same frame (or the rest), in % of its rest volume.
+
+    Dividing by the rest volume (not the truth's) keeps parts that the truth flattens from blowing up the ratio.
+    NaN where a volume is unknown.
+    """
+    ref = rest_volume if true_volume is None else true_volume
     with np.errstate(invalid="ignore", divide="ignore"):
-        return (volume / rest_volume - 1.0) * 100.0
+        return (volume - ref) / rest_volume * 100.0
+
+
+def body_volume_change_pct(change_pct: np.ndarray, rest_volume: np.ndarray) -> float:
+    """Rest-volume-weighted mean of |per-part change| [%]: how much of the body's volume went wrong."""
+    ok = np.isfinite(change_pct) & np.isfinite(rest_volume)
+    if not ok.any():
+        return 0.0
+    return float((np.abs(change_pct[ok]) * rest_volume[ok]).sum() / rest_volume[ok].sum())
 
 
 @dataclass(frozen=True)
@@ -236,7 +249,9 @@ class IntegrityFrame:
         torn_pairs_pct: rest k-NN pairs strained > 10% [% of pairs].
         torn_seam_pairs_pct: the same among pairs that join two parts [%].
         strain_p99_pct: 99th percentile pair strain [%].
-        volume_change_pct: (B,) per-part convex-hull volume change from rest [%].
+        volume_change_pct: (B,) per-part convex-hull volume change (against the truth's, else the rest),
+            in % of the part's rest volume, signed.
+        body_volume_change_pct: rest-volume-weighted mean of the parts' |change| [%].
         fragments: pieces more than ``gap`` from the rest of the body.
     """
 
@@ -244,6 +259,7 @@ class IntegrityFrame:
     torn_seam_pairs_pct: float
     strain_p99_pct: float
     volume_change_pct: np.ndarray
+    body_volume_change_pct: float
     fragments: int
 
 
@@ -293,12 +309,13 @@ def integrity_frame(model: IntegrityModel, x: np.ndarray, *, true_volume: np.nda
     measured against it (a correct motion's own volume change is no error), else against the rest.
     """
     strain = pair_strain(model.rest, x, model.pairs)
-    ref_volume = model.rest_volume if true_volume is None else true_volume
+    change = part_volume_change_pct(part_volumes(x, model.parts, model.num_parts), model.rest_volume, true_volume)
     return IntegrityFrame(
         torn_pairs_pct=torn_pairs_pct(strain),
         torn_seam_pairs_pct=torn_pairs_pct(strain, model.seam),
         strain_p99_pct=strain_p99_pct(strain),
-        volume_change_pct=part_volume_change_pct(part_volumes(x, model.parts, model.num_parts), ref_volume),
+        volume_change_pct=change,
+        body_volume_change_pct=body_volume_change_pct(change, model.rest_volume),
         fragments=count_fragments(x, model.pairs, strain, model.gap),
     )
 
@@ -307,18 +324,23 @@ def integrity_summary(frames: list[IntegrityFrame]) -> dict[str, float | int | l
     """Overall integrity over frames 1..T (frame 0 is the rest shape and stays out of every mean).
 
     Returns ``torn_pairs_pct`` / ``torn_seam_pairs_pct`` / ``strain_p99_pct`` (means over frames),
-    ``strain_p99_max_pct`` (worst frame), ``volume_change_pct`` (mean over frames of the part with the
-    largest |change|, signed), ``volume_change_per_part_pct`` (B,), ``fragments`` (most in any frame).
+    ``strain_p99_max_pct`` (worst frame), ``volume_change_pct`` (mean over frames of the body's
+    volume-weighted |part change|), ``volume_change_per_part_pct`` (B,, signed means over frames),
+    ``fragments`` (most in any frame).
     """
+    import warnings
+
     use = frames[1:] if len(frames) > 1 else frames
     vol = np.stack([f.volume_change_pct for f in use])  # (T, B)
-    worst = np.take_along_axis(vol, np.nanargmax(np.abs(np.nan_to_num(vol)), axis=1)[:, None], axis=1)[:, 0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # parts too small for a hull are NaN in every frame
+        per_part = np.nanmean(vol, axis=0)
     return {
         "torn_pairs_pct": float(np.mean([f.torn_pairs_pct for f in use])),
         "torn_seam_pairs_pct": float(np.mean([f.torn_seam_pairs_pct for f in use])),
         "strain_p99_pct": float(np.mean([f.strain_p99_pct for f in use])),
         "strain_p99_max_pct": float(np.max([f.strain_p99_pct for f in use])),
-        "volume_change_pct": float(np.mean(worst)),
-        "volume_change_per_part_pct": [float(v) for v in np.nanmean(vol, axis=0)],
+        "volume_change_pct": float(np.mean([f.body_volume_change_pct for f in use])),
+        "volume_change_per_part_pct": [float(v) for v in per_part],
         "fragments": int(max(f.fragments for f in use)),
     }

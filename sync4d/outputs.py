@@ -322,7 +322,7 @@ def compute_metrics(
             "torn_pairs_pct": frames[t].torn_pairs_pct,
             "torn_seam_pairs_pct": frames[t].torn_seam_pairs_pct,
             "strain_p99_pct": frames[t].strain_p99_pct,
-            "volume_change_pct": float(np.nanmax(np.abs(np.nan_to_num(frames[t].volume_change_pct)))),
+            "volume_change_pct": frames[t].body_volume_change_pct,
             "fragments": float(frames[t].fragments),
             "seconds": frame_seconds[t] if t < len(frame_seconds) else None,
         }

@@ -71,6 +71,9 @@ def test_shrunk_part_shows_in_its_volume(body):
     f = M.integrity_frame(model, x)
     assert f.volume_change_pct[1] == pytest.approx((0.9**3 - 1) * 100, abs=0.5)
     assert abs(f.volume_change_pct[0]) < 1e-9
+    # the body figure weighs the arm's loss by its share of the rest volume
+    share = model.rest_volume[1] / model.rest_volume.sum()
+    assert f.body_volume_change_pct == pytest.approx(share * (1 - 0.9**3) * 100, rel=0.02)
 
 
 def test_summary_leaves_frame_zero_out_and_reports_the_worst_frame(body):
