@@ -24,7 +24,7 @@ Steps, each a small pure function:
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 
 from sync4d.align import AlignResult, Similarity, align_shapes, normalization
 from sync4d.match_structure import StructureConfig, StructureMatch, match_structure
+from sync4d.skeleton import SkeletonConfig, cloud_volume_points, volume_points
 from sync4d.errors import ConfigError, InputError
 from sync4d.interfaces import FeatureExtractor
 from sync4d.types import PartMap, Reference, TargetGaussians
@@ -625,6 +626,21 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int,
     return np.einsum("sk,skd->sd", bary, tri[face])
 
 
+def skeleton_points(vertices: np.ndarray, faces: np.ndarray | None, cfg: SkeletonConfig,
+                    rng: np.random.Generator) -> np.ndarray:
+    """The points a curve skeleton is built on: voxels of the solid (``cfg.volume`` and a mesh), else
+    surface samples or the given points, subsampled to ``cfg.samples``."""
+    if cfg.volume and faces is not None and len(faces):
+        pts = volume_points(vertices, faces, cfg.resolution, rng)
+    elif cfg.volume:
+        pts = cloud_volume_points(vertices, cfg.resolution)
+    else:
+        pts = surface_samples(vertices, faces, cfg.samples, rng)
+    if len(pts) > cfg.samples:
+        pts = pts[rng.choice(len(pts), cfg.samples, replace=False)]
+    return pts
+
+
 def label_agreement(points: np.ndarray, labels: np.ndarray, neighbours: int = 8) -> np.ndarray:
     """(N,) fraction of each point's nearest ``neighbours`` points that share its label (a confidence)."""
     k = int(min(neighbours, len(points)))
@@ -643,13 +659,14 @@ def _match_by_structure(reference: Reference, target: TargetGaussians, cfg: Matc
                                  icp_iterations=cfg.icp_iterations, seed=seed)
     else:
         alignment = AlignResult(Similarity.identity(), float("nan"), np.zeros(0), "none")
-    n_samples = cfg.structure.skeleton.samples
     ref_norm = normalization(reference.rest_vertices)
-    ref_samples = surface_samples(reference.rest_vertices, reference.rest_faces, n_samples, rng)
+    # the reference's surface is enough: its parts give the trunk, and distances are taken from it
+    ref_samples = skeleton_points(reference.rest_vertices, reference.rest_faces,
+                                  replace(cfg.structure.skeleton, volume=False), rng)
     _, nearest = cKDTree(reference.rest_vertices).query(ref_samples)
     ref_labels = reference.part_labels()[nearest]
     pre = alignment.transform
-    tgt_samples = pre.apply(surface_samples(tgt_vertices, tgt_faces, n_samples, rng))
+    tgt_samples = pre.apply(skeleton_points(tgt_vertices, tgt_faces, cfg.structure.skeleton, rng))
     tgt_norm = normalization(tgt_samples)
     # the structure match works on each shape normalised by itself, then turns the target about the up axis
     sm = match_structure(ref_norm.apply(ref_samples), ref_labels, reference.num_bones, tgt_norm.apply(tgt_samples),

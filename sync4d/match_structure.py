@@ -24,14 +24,15 @@ Unmatched reference limbs are reported (``StructureMatch.leftover``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from sync4d.align import axis_rotation, chamfer_distance
-from sync4d.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton
+from sync4d.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton, neighbour_graph
 
 UP_AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -46,15 +47,20 @@ class StructureConfig:
         miss_cost: cost of leaving a reference limb unmatched.
         length_weight: weight of the squared log length ratio in the limb cost.
         direction_weight: weight of the squared difference of unit limb directions.
+        tip_weight: weight of the tip-direction term (the base term has weight 1: where a limb leaves the
+            trunk does not change with the pose, where it ends does).
+        area_weight: weight of the squared log ratio of the limbs' shares of the surface.
         chamfer_weight: weight of the chamfer distance of the turned shapes in the choice of the turn.
         profile_bins: bins of relative position along a limb in the part profile.
     """
 
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
     yaw_steps: int = 24
-    miss_cost: float = 4.0
-    length_weight: float = 0.5
+    miss_cost: float = 2.0
+    length_weight: float = 0.1
     direction_weight: float = 0.5
+    tip_weight: float = 1.0
+    area_weight: float = 0.5
     chamfer_weight: float = 2.0
     profile_bins: int = 20
 
@@ -69,6 +75,7 @@ class LimbSet:
         tip: (L, 3) centroid of its farthest level.
         base_level: (L,) geodesic distance of the base from the centre.
         length: (L,) geodesic extent from the base to the tip.
+        area: (L,) fraction of the shape's points in the limb (~ its share of the surface area).
     """
 
     members: tuple[np.ndarray, ...]
@@ -76,6 +83,7 @@ class LimbSet:
     tip: np.ndarray
     base_level: np.ndarray
     length: np.ndarray
+    area: np.ndarray
 
     def relative_position(self, geodesic: np.ndarray, limb: int) -> np.ndarray:
         """(Q,) relative geodesic position in [0, 1] of the limb's points (0 at the base, 1 at the tip)."""
@@ -118,8 +126,9 @@ def limb_descriptors(skeleton: CurveSkeleton, members: list[np.ndarray]) -> Limb
         tip.append(pts[m[g >= hi - h]].mean(axis=0))
         base_level.append(lo)
         length.append(max(hi - lo, 1e-9))
+    area = np.array([len(m) / max(len(pts), 1) for m in members])
     return LimbSet(tuple(members), np.array(base).reshape(-1, 3), np.array(tip).reshape(-1, 3),
-                   np.array(base_level), np.array(length))
+                   np.array(base_level), np.array(length), area)
 
 
 def part_tree(points: np.ndarray, labels: np.ndarray, num_parts: int, root: int, *,
@@ -206,16 +215,20 @@ def _unit(v: np.ndarray) -> np.ndarray:
 def limb_cost(ref: LimbSet, tgt: LimbSet, rotation: np.ndarray, cfg: StructureConfig) -> np.ndarray:
     """(R, T) cost of giving reference limb r the target subtree t, target turned by ``rotation``.
 
-    Squared distances of the bases and of the tips (normalised frames), plus ``direction_weight`` times
-    the squared difference of the unit base -> tip directions and ``length_weight`` times the squared log
-    length ratio.
+    Squared differences of the unit directions from the centre to the bases and (``tip_weight`` times) to
+    the tips, plus ``direction_weight`` times
+    the squared difference of the unit base -> tip directions, ``length_weight`` times the squared log
+    length ratio and ``area_weight`` times the squared log area-share ratio (a leg is not half a body).
     """
     tb, tt = tgt.base @ rotation.T, tgt.tip @ rotation.T
-    d_base = ((ref.base[:, None] - tb[None]) ** 2).sum(-1)
-    d_tip = ((ref.tip[:, None] - tt[None]) ** 2).sum(-1)
+    # directions from the shape's centre, not positions: a koala's legs leave its body lower down and are
+    # shorter than a dog's, but they still point down-front-left from the centre
+    d_base = ((_unit(ref.base)[:, None] - _unit(tb)[None]) ** 2).sum(-1)
+    d_tip = ((_unit(ref.tip)[:, None] - _unit(tt)[None]) ** 2).sum(-1)
     d_dir = ((_unit(ref.tip - ref.base)[:, None] - _unit(tt - tb)[None]) ** 2).sum(-1)
     d_len = np.log(np.maximum(ref.length[:, None], 1e-6) / np.maximum(tgt.length[None], 1e-6)) ** 2
-    return d_base + d_tip + cfg.direction_weight * d_dir + cfg.length_weight * d_len
+    d_area = np.log(np.maximum(ref.area[:, None], 1e-6) / np.maximum(tgt.area[None], 1e-6)) ** 2
+    return d_base + cfg.tip_weight * d_tip + cfg.direction_weight * d_dir + cfg.length_weight * d_len + cfg.area_weight * d_area
 
 
 def assign_limbs(cost: np.ndarray, skeleton: CurveSkeleton, candidates: np.ndarray, miss_cost: float,
@@ -273,6 +286,19 @@ def transfer_along(ref: CurveSkeleton, ref_limbs: LimbSet, r: int, ref_labels: n
     return profile[np.clip((s_tgt * bins).astype(np.int64), 0, bins - 1)]
 
 
+def distance_from_trunk(skeleton: CurveSkeleton, trunk: np.ndarray, cfg: SkeletonConfig) -> CurveSkeleton:
+    """The skeleton with its geodesic distance measured from the trunk's points instead of the centre.
+
+    The reference's parts say where its trunk is; along a limb the distance from the trunk is the
+    relative position that :func:`transfer_along` maps (0 where the limb leaves the trunk).
+    """
+    if not trunk.any():
+        return skeleton
+    graph = neighbour_graph(skeleton.points, cfg.neighbours, cfg.max_edge_factor)
+    geo = dijkstra(graph, directed=False, indices=np.flatnonzero(trunk), min_only=True)
+    return replace(skeleton, geodesic=np.where(np.isfinite(geo), geo, 0.0))
+
+
 def yaw_rotations(up_axis: str, steps: int) -> list[np.ndarray]:
     """Rotations about the up axis, ``steps`` of them evenly spaced, identity first."""
     axis = UP_AXES[up_axis]
@@ -297,7 +323,8 @@ def match_structure(ref_points: np.ndarray, ref_labels: np.ndarray, num_parts: i
     """
     ref_sk = curve_skeleton(ref_points, cfg.skeleton)
     tgt_sk = curve_skeleton(tgt_points, cfg.skeleton)
-    limb_parts, _ = reference_limbs(ref_sk, ref_labels, num_parts, part_parents)
+    limb_parts, trunk = reference_limbs(ref_sk, ref_labels, num_parts, part_parents)
+    ref_sk = distance_from_trunk(ref_sk, np.isin(ref_labels, trunk), cfg.skeleton)
     ref_limbs = limb_descriptors(ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts])
     cand = np.arange(1, len(tgt_sk.branches))
     tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand])

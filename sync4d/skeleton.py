@@ -42,15 +42,21 @@ class SkeletonConfig:
             ``level_spacings`` median point spacings (a thinner band breaks into sampling fragments).
         level_spacings: smallest level width in median nearest-neighbour spacings.
         prune_length: terminal branches shorter than this are absorbed into their parent (RMS units).
-        samples: surface samples of a mesh (or subsample of a point set) the skeleton is built on.
+        samples: points the skeleton is built on (a random subset of the volume or surface points).
+        volume: build it on the solid (voxel centres of the filled surface) rather than on the surface
+            of a mesh: geodesic levels through the solid are cross-sections, which split cleanly where
+            limbs leave a thick trunk (surface levels from one surface point do not).
+        resolution: voxels along the longest side of the bounding box for ``volume``.
     """
 
     neighbours: int = 10
     max_edge_factor: float = 4.0
     level_width: float = 0.06
-    level_spacings: float = 3.0
-    prune_length: float = 0.3
-    samples: int = 3000
+    level_spacings: float = 2.0
+    prune_length: float = 0.25
+    samples: int = 8000
+    volume: bool = True
+    resolution: int = 64
 
 
 @dataclass(frozen=True)
@@ -287,6 +293,48 @@ def prune_branches(
             a = parent[a]
         owner[owner == n] = root if a < 0 else int(owner[a])
     return alive, owner
+
+
+def volume_points(vertices: np.ndarray, faces: np.ndarray, resolution: int, rng: np.random.Generator) -> np.ndarray:
+    """(P, 3) centres of the voxels of the solid bounded by a mesh (surface voxels and their filled inside).
+
+    The surface is sampled densely (>= 8 samples per surface voxel, so the voxel shell has no holes),
+    the occupied voxels are filled with :func:`scipy.ndimage.binary_fill_holes`; no watertightness or
+    consistent orientation is needed (a union of overlapping closed shells works).
+    """
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    pitch = float((hi - lo).max()) / max(resolution, 4)
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    count = int(min(max(8 * area.sum() / pitch**2, 1000), 400_000))
+    face = rng.choice(len(faces), size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    sq = np.sqrt(r1)
+    pts = np.einsum("sk,skd->sd", np.stack([1 - sq, sq * (1 - r2), sq * r2], axis=1), tri[face])
+    return fill_solid(pts, pitch)
+
+
+def fill_solid(surface: np.ndarray, pitch: float) -> np.ndarray:
+    """(P, 3) centres of the voxels (edge ``pitch``) of the solid whose surface ``surface`` samples densely."""
+    from scipy import ndimage
+
+    origin = surface.min(axis=0) - pitch
+    idx = np.floor((surface - origin) / pitch).astype(np.int64)
+    occ = np.zeros(tuple(idx.max(axis=0) + 2), dtype=bool)
+    occ[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    # a one-voxel dilation closes seams (a union of capsules with its buried faces removed has small
+    # holes where the capsules meet); the erosion after filling gives the limbs back their size
+    grown = ndimage.binary_dilation(np.pad(occ, 2))
+    solid = ndimage.binary_erosion(ndimage.binary_fill_holes(grown))[2:-2, 2:-2, 2:-2] | occ
+    return origin + (np.argwhere(solid) + 0.5) * pitch
+
+
+def cloud_volume_points(points: np.ndarray, resolution: int) -> np.ndarray:
+    """Voxels of the solid around a point cloud (Gaussian centres): the pitch is at least 2.5 point
+    spacings, so that the surface voxels have no holes."""
+    spacing = float(np.median(cKDTree(points).query(points, 2)[0][:, 1]))
+    pitch = max(float(np.ptp(points, axis=0).max()) / max(resolution, 4), 2.5 * spacing)
+    return fill_solid(points, pitch)
 
 
 def curve_skeleton(points: np.ndarray, cfg: SkeletonConfig) -> CurveSkeleton:

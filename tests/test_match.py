@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from sync4d.errors import ConfigError, InputError
 from sync4d.match import (
     IN_ONE_BOX,
+    MatchConfig,
     IN_SEVERAL_BOXES,
     ORPHAN,
     assign_by_similarity,
@@ -154,7 +155,8 @@ def test_two_glued_boxes_match_their_parts(extractor) -> None:
     truth = tpart[tf[face, 0]]
     rot = Rotation.from_euler("xyz", [70, -120, 40], degrees=True).as_matrix()
     target = gaussians_at(2.5 * np.asarray(samples) @ rot.T + [3.0, 1.0, -2.0])
-    result = match_parts_detailed(reference, target, extractor, outlier_sigma=2.5, align="pca_icp")
+    cfg = MatchConfig(align="pca_icp", prototypes="1", tie_break="centroid")
+    result = match_parts_detailed(reference, target, extractor, cfg)
     pm = result.part_map
     assert pm.tgt_part.shape == (1500,) and pm.ref_part.tolist() == part.tolist()
     assert (pm.tgt_part == truth).mean() > 0.95
@@ -163,8 +165,12 @@ def test_two_glued_boxes_match_their_parts(extractor) -> None:
     assert diag.alignment.transform.scale == pytest.approx(1 / 2.5, rel=0.1)
     assert set(diag.summary()) >= {"align_rotation_deg", "outlier_fraction", "gaussians_orphan"}
     # the public entry gives the same part map
-    again = match_parts(reference, target, extractor, outlier_sigma=2.5, align="pca_icp")
-    assert np.array_equal(again.tgt_part, pm.tgt_part)
+    again = match_parts(reference, target, extractor, cfg)
+    assert np.array_equal(again.part_map.tgt_part, pm.tgt_part)
+    # the alignment it returns maps the target onto the reference (what the pipeline turns motion by)
+    moved = again.alignment.apply(target.means)
+    assert np.abs(moved.mean(axis=0) - v.mean(axis=0)).max() < 0.1
+    assert again.alignment.scale == pytest.approx(1 / 2.5, rel=0.1)
 
 
 def test_match_with_target_mesh_and_far_gaussian_orphan(extractor) -> None:
@@ -172,7 +178,8 @@ def test_match_with_target_mesh_and_far_gaussian_orphan(extractor) -> None:
     reference = reference_of(v, f, part)
     far = np.array([[10.0, 10.0, 10.0]])
     target = gaussians_at(np.vstack([v, far]))
-    result = match_parts_detailed(reference, target, extractor, align="none", target_vertices=v, target_faces=f)
+    cfg = MatchConfig(align="none", prototypes="1", tie_break="centroid")
+    result = match_parts_detailed(reference, target, extractor, cfg, target_vertices=v, target_faces=f)
     # Not 100% even for the identical shape: near the seam the compact part's mean feature has the
     # larger norm, so cosine similarity favours it over a band ~ the Fourier bandwidth wide, and the
     # box of that part then reaches into the other (the paper's box step inherits such seam errors).
@@ -183,7 +190,9 @@ def test_match_with_target_mesh_and_far_gaussian_orphan(extractor) -> None:
     with pytest.raises(InputError):
         match_parts(reference, target, extractor, target_faces=f)
     with pytest.raises(ConfigError):
-        match_parts(reference, target, extractor, tie_break="random")
+        match_parts(reference, target, extractor, MatchConfig(tie_break="random"))  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="features component"):
+        match_parts(reference, target, None, MatchConfig(method="features"))
 
 
 def test_smooth_labels_fixes_an_isolated_label_and_keeps_a_clean_boundary():
@@ -248,9 +257,9 @@ def test_nearest_neighbour_prototypes_remove_the_seam_band(extractor) -> None:
     v, f, part = glued_boxes(1.0, 0.5)
     reference = reference_of(v, f, part)
     target = gaussians_at(v)
-    options = {"align": "none", "target_vertices": v, "target_faces": f, "tie_break": "nearest_vertex"}
-    paper = match_parts_detailed(reference, target, extractor, prototypes=1, **options)
-    nearest = match_parts_detailed(reference, target, extractor, prototypes="all", **options)
+    options = {"target_vertices": v, "target_faces": f}
+    paper = match_parts_detailed(reference, target, extractor, MatchConfig(align="none", prototypes="1"), **options)
+    nearest = match_parts_detailed(reference, target, extractor, MatchConfig(align="none", prototypes="all"), **options)
     paper_acc = (paper.diagnostics.vertex_part == part).mean()
     nearest_acc = (nearest.diagnostics.vertex_part == part).mean()
     assert nearest_acc > 0.99 and nearest_acc > paper_acc

@@ -41,16 +41,11 @@ def test_grouped_body_keeps_outer_surface_with_parts() -> None:
     assert np.mean(lab == 1) == pytest.approx(np.mean(np.abs(pts[:, 0]) > 0.15), abs=0.1)
 
 
-def pipeline_match_options() -> dict:
-    """The pipeline's match defaults (conf/config.yaml), with pca_icp: the pairs are randomly rotated."""
-    from pathlib import Path
+def pipeline_match_options():
+    """The matching defaults (MatchConfig, the one source of them), with pca_icp: the pairs are randomly rotated."""
+    from sync4d.match import MatchConfig
 
-    from omegaconf import OmegaConf
-
-    conf = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "config.yaml")
-    options = dict(OmegaConf.to_container(conf.match, resolve=True))
-    options["align"] = "pca_icp"
-    return options
+    return MatchConfig(align="pca_icp")
 
 
 @pytest.fixture(scope="module")

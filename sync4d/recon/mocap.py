@@ -181,6 +181,25 @@ def bone_length_deviation(positions: np.ndarray, parents: np.ndarray) -> float:
     return float(np.abs(lengths - lengths[:1]).max()) if len(child) else 0.0
 
 
+def segment_group_parents(parents: np.ndarray, segments: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """(B,) parent bone of each bone (group of segments), -1 for a root bone.
+
+    A bone's parent is the bone of the nearest kept segment above its top segment (skipped zero-length
+    helper segments are walked through); segments hanging from the root joint have no parent bone.
+    """
+    parents = np.asarray(parents)
+    seg_of_joint = {int(j): i for i, j in enumerate(segments)}
+    n_bones = int(groups.max()) + 1
+    out = np.full(n_bones, -1, dtype=np.int64)
+    for i, j in enumerate(segments):
+        a = int(parents[int(j)])
+        while a >= 0 and a not in seg_of_joint:
+            a = int(parents[a])
+        if a >= 0 and groups[seg_of_joint[a]] != groups[i] and out[groups[i]] < 0:
+            out[groups[i]] = groups[seg_of_joint[a]]
+    return out
+
+
 @register("recon", "mocap")
 class MocapReconstructor:
     """Bones, capsule body and skinning from a BVH or joint-position file (``ReferenceInput.path``)."""
@@ -344,6 +363,7 @@ class MocapReconstructor:
                 # A merged bone moves rigidly with the best fit of its member joints.
                 js = np.unique(np.concatenate([segments[members], parents[segments[members]]]))
                 bone_world[:, b] = sk.kabsch(np.broadcast_to(pos[r, js], pos[:, js].shape), pos[:, js])
+        bone_parents = segment_group_parents(parents, segments, groups)
         weights = segment_skinning(
             verts, rest_joints, parents, segments, radii, groups, temperature=cfg.skin_temperature
         )
@@ -375,6 +395,7 @@ class MocapReconstructor:
             fps=float(motion.fps),
             bone_names=tuple(names),
             name=name,
+            bone_parents=bone_parents,
         ).validate()
 
     def global_transforms(
