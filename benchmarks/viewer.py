@@ -25,8 +25,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
@@ -84,7 +82,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, float]]:
           f"{'cached ms':>9} {'peak MB':>8}")
     for r in rows:
         print(f"{r['frames']:>4} {r['gaussians']:>7} {r['s4d_mb']:>7.2f} {r['ply_mb']:>7.1f} {r['ratio']:>6.1f} "
-              f"{r['startup_s']:>8.2f} {r['frame_cold_ms']:>8.1f} {r['frame_cached_ms']:>9.1f} {r['peak_rss_mb']:>8.0f}")
+              f"{r['startup_s']:>8.2f} {r['frame_cold_ms']:>8.1f} {r['frame_cached_ms']:>9.1f} "
+              f"{r['peak_rss_mb']:>8.0f}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=2))

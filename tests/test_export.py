@@ -144,7 +144,7 @@ def test_glb_holds_one_morph_target_a_frame_and_a_weights_animation(tmp_path: Pa
         export_glb(tmp_path / "bad.glb", np.full((2, 3, 3), np.nan), fps=10.0)
 
 
-@pytest.mark.skipif(not node_tool("gltf-validator"), reason="the Khronos glTF validator is not installed (make browser)")
+@pytest.mark.skipif(not node_tool("gltf-validator"), reason="the Khronos glTF validator is not installed: make browser")
 def test_glb_passes_the_khronos_validator(tmp_path: Path) -> None:
     path = export_glb(tmp_path / "sequence.glb", moving_points(), fps=12.0, colors=np.full((40, 3), 0.3))
     report = run_node("validate_gltf.mjs", str(path))
@@ -184,7 +184,8 @@ def deforming_gaussians(t: int = 20, n: int = 600) -> tuple[np.ndarray, np.ndarr
     means, covs = [], []
     for k in range(t):
         a = 0.05 * k
-        F = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]]) @ np.diag([1 + 0.01 * k, 1, 1])
+        turn = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+        F = turn @ np.diag([1 + 0.01 * k, 1, 1])
         means.append(base @ F.T + [0.01 * k, 0, 0])
         covs.append(F @ rest_cov @ F.T)
     return np.stack(means), np.stack(covs)

@@ -22,6 +22,7 @@ import pytest
 from tests._node import JS, node_tool
 from tests._viewrun import RED, make_run
 from tests.test_view import free_port
+
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 pytestmark = [

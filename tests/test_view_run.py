@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests._runs import run_train
 from tests._node import node_tool, run_node
+from tests._runs import run_train
 
 pytestmark = pytest.mark.slow
 
@@ -55,7 +55,7 @@ def test_compact_sequence_holds_the_ply_frames(run: Path) -> None:
         assert np.abs(means - read_gaussians_ply(path).means).max() <= seq.position_error + 1e-6
 
 
-@pytest.mark.skipif(not node_tool("gltf-validator"), reason="the Khronos glTF validator is not installed (make browser)")
+@pytest.mark.skipif(not node_tool("gltf-validator"), reason="the Khronos glTF validator is not installed: make browser")
 def test_run_glb_validates(run: Path) -> None:
     report = run_node("validate_gltf.mjs", str(run / "sequence.glb"))
     assert report["errors"] == 0, report["messages"]

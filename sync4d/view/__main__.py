@@ -1,4 +1,5 @@
-"""``python -m sync4d.view RUN [RUN ...] [--port P] [--host H] [--fps F] [--play] [--max-gaussians M]``: serve the viewer."""
+"""Serve the viewer: ``python -m sync4d.view RUN [RUN ...] [--port P] [--host H] [--fps F] [--play]
+[--max-gaussians M]``."""
 
 from __future__ import annotations
 

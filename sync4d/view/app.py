@@ -96,7 +96,8 @@ class RunRow:
             subset = np.sort(rng.choice(source.num, cfg.max_gaussians, replace=False)) \
                 if source.num > cfg.max_gaussians else None
             # Placement needs the extent and the plane of motion: a few thousand Gaussians tell both.
-            probe = np.sort(rng.choice(source.num, PLACEMENT_PROBE, replace=False)) if source.num > PLACEMENT_PROBE else None
+            probe = np.sort(rng.choice(source.num, PLACEMENT_PROBE, replace=False)) \
+                if source.num > PLACEMENT_PROBE else None
             self.panels[name] = ObjectPanel(CachedFrames(source, cfg.cache_frames),
                                             place(source.all_means(probe), offsets[name], up=run.up),
                                             source.num_frames, subset)
