@@ -1,0 +1,154 @@
+"""Structure-aware matching: curve skeleton, reference limbs, branch assignment, the benchmark's labels."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sync4d.errors import InputError
+from sync4d.match import MatchConfig, match_parts, skeleton_points
+from sync4d.match_structure import assign_limbs, reference_limbs, yaw_rotations
+from sync4d.skeleton import SkeletonConfig, curve_skeleton, volume_points
+from sync4d.types import Reference, TargetGaussians
+from sync4d_tools.match_labels.procedural import box_union
+
+PARTS = ("trunk", "leg_fl", "leg_fr", "leg_bl", "leg_br", "head", "tail")
+
+
+def animal(leg: float = 0.35, head: float = 0.12, body: float = 0.6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A box animal facing -x (Y up): trunk, four legs of length ``leg``, a head of size ``head``, a tail."""
+    top, w = leg + 0.2, 0.05
+    boxes = [("trunk", (-body / 2, leg, -0.12), (body / 2, top, 0.12))]
+    for name, x, z in (("leg_fl", -body / 2, 0.07), ("leg_fr", -body / 2, -0.12), ("leg_bl", body / 2 - w, 0.07),
+                       ("leg_br", body / 2 - w, -0.12)):
+        boxes.append((name, (x, 0.0, z), (x + w, leg + 0.01, z + w)))
+    boxes.append(("head", (-body / 2 - head - 0.05, top - 0.05, -head / 2), (-body / 2 + 0.01, top + head, head / 2)))
+    boxes.append(("tail", (body / 2 - 0.01, top - 0.05, -0.02), (body / 2 + 0.3, top - 0.01, 0.02)))
+    v, f, names = box_union(boxes, max_edge=0.04)
+    return v, f, np.array([PARTS.index(n) for n in names])
+
+
+def box_reference(v: np.ndarray, f: np.ndarray, part: np.ndarray, *, parents: bool = True) -> Reference:
+    b = len(PARTS)
+    return Reference(
+        rest_vertices=v, rest_faces=f, bone_centers=np.stack([v[part == i].mean(0) for i in range(b)]),
+        bone_covariances=np.tile(np.eye(3) * 1e-3, (b, 1, 1)), skinning=np.eye(b)[part],
+        bone_transforms=np.tile(np.eye(4), (1, b, 1, 1)), global_transforms=np.eye(4)[None], fps=30.0,
+        bone_names=PARTS, bone_parents=np.array([-1, 0, 0, 0, 0, 0, 0]) if parents else None,
+    ).validate()
+
+
+def gaussians_at(points: np.ndarray) -> TargetGaussians:
+    n = len(points)
+    return TargetGaussians(means=points, quats=np.tile([1.0, 0, 0, 0], (n, 1)), log_scales=np.full((n, 3), -4.0),
+                           opacity_logits=np.full(n, 3.0), sh=np.zeros((n, 1, 3))).validate()
+
+
+def test_volume_points_fill_the_solid_and_the_skeleton_separates_the_limbs() -> None:
+    v, f, part = animal()
+    pts = volume_points(v, f, 48, np.random.default_rng(0))
+    lo, hi = v.min(0), v.max(0)
+    assert ((pts >= lo - 0.05) & (pts <= hi + 0.05)).all()
+    # the trunk's centre is inside the solid (filled), not only its skin
+    assert np.linalg.norm(pts - [0.0, 0.45, 0.0], axis=1).min() < 0.03
+    sk = curve_skeleton((pts - pts.mean(0)) / np.sqrt(((pts - pts.mean(0)) ** 2).sum(1).mean()), SkeletonConfig())
+    from scipy.spatial import cKDTree
+
+    owner = part[cKDTree(v).query(pts)[1]]
+    # each leg's lower half lies in one terminal branch, and the four legs in four different ones
+    low = pts[:, 1] < 0.15
+    legs = []
+    for leg in (1, 2, 3, 4):
+        branches = sk.branch[low & (owner == leg)]
+        main = np.bincount(branches).argmax()
+        assert (branches == main).mean() > 0.9
+        legs.append(main)
+    assert len(set(legs)) == 4
+
+
+def test_reference_limbs_from_the_bone_tree() -> None:
+    v, f, part = animal()
+    pts = skeleton_points(v, f, SkeletonConfig(volume=False, samples=2000), np.random.default_rng(0))
+    from scipy.spatial import cKDTree
+
+    labels = part[cKDTree(v).query(pts)[1]]
+    sk = curve_skeleton((pts - pts.mean(0)) / np.sqrt(((pts - pts.mean(0)) ** 2).sum(1).mean()), SkeletonConfig())
+    limbs, trunk = reference_limbs(sk, labels, len(PARTS), np.array([-1, 0, 0, 0, 0, 0, 0]))
+    assert trunk == [0] and sorted(limbs) == [[1], [2], [3], [4], [5], [6]]
+
+
+def test_structure_match_follows_limbs_across_proportions_and_heading() -> None:
+    """Target: longer legs, a bigger head, facing the other way (turned 180 deg about the up axis).
+
+    (Turned by 90 deg instead, one front leg takes the other front leg's parts: docs/matching.md.)
+    """
+    v, f, part = animal()
+    reference = box_reference(v, f, part)
+    tv, tf, tpart = animal(leg=0.5, head=0.2, body=0.7)
+    turn = yaw_rotations("y", 4)[2]
+    tv = tv @ turn.T
+    result = match_parts(reference, gaussians_at(tv), None, MatchConfig(method="structure"), target_vertices=tv,
+                         target_faces=tf)
+    got = result.part_map.tgt_part
+    limbs = tpart > 0
+    assert (got[limbs] == tpart[limbs]).mean() > 0.85
+    assert result.diagnostics.structure is not None and len(result.diagnostics.structure.leftover) == 0
+    # the alignment undoes the turn (reference frame = target frame turned back)
+    assert np.allclose(result.alignment.rotation, turn.T, atol=1e-6)
+
+
+def test_assignment_leaves_a_limb_unmatched_rather_than_nesting() -> None:
+    """Two reference limbs, two candidates where candidate 1 is inside candidate 0: only one is used."""
+    class Tree:
+        @staticmethod
+        def is_ancestor(a: int, b: int) -> bool:
+            return a == b or (a == 1 and b == 2)
+
+    cost = np.array([[0.1, 0.2], [0.3, 0.1]])
+    pairs, total = assign_limbs(cost, Tree(), np.array([1, 2]), miss_cost=1.0)  # type: ignore[arg-type]
+    assert len(pairs) == 1 and total == pytest.approx(1.1)
+
+
+def test_labels_score_the_expected_parts_and_fail_when_they_are_wrong(tmp_path) -> None:
+    from sync4d_tools.match_labels.labels import limb_accuracy, read_label_file, vertex_areas, vertex_labels
+    from sync4d_tools.match_labels.procedural import chair
+
+    spec = read_label_file(next(p for p in __import__("sync4d_tools.match_labels.labels", fromlist=["x"])
+                                .default_label_files() if p.name == "chair.json"))
+    v, f, names = chair()
+    labels = vertex_labels(spec, v, names)
+    dog = ("torso", "head_neck", "leg_a_upper", "leg_a_lower", "leg_b_upper", "leg_b_lower", "leg_c_upper",
+           "leg_c_lower", "leg_d_upper", "leg_d_lower", "tail")
+    right = np.where(np.char.startswith(names.astype(str), "leg"), dog.index("leg_a_lower"),
+                     np.where(names == "back", dog.index("tail"), 0))
+    acc, per = limb_accuracy(spec, labels, vertex_areas(v, f), right, dog)
+    assert acc == pytest.approx(1.0) and set(per) == {"legs", "back"}
+    wrong = np.zeros(len(v), dtype=np.int64)  # everything 'torso'
+    assert limb_accuracy(spec, labels, vertex_areas(v, f), wrong, dog)[0] == 0.0
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"name": "x", "reference": "dog", "target": "procedural:chair", "kind": "nope",
+                               "labels": []}))
+    with pytest.raises(InputError, match="kind"):
+        read_label_file(bad)
+    with pytest.raises(InputError, match="not parts of"):
+        typo = read_label_file(bad.with_name("typo.json") if False else _typo_file(tmp_path))
+        limb_accuracy(typo, vertex_labels(typo, v, names), vertex_areas(v, f), right, dog)
+
+
+def _typo_file(tmp_path):
+    path = tmp_path / "typo.json"
+    path.write_text(json.dumps({"name": "x", "reference": "dog", "target": "procedural:chair", "kind": "cross",
+                                "labels": [{"name": "legs", "where": {"part": ["leg_fl"]}, "expect": ["leg_z"]}]}))
+    return path
+
+
+def test_mocap_bone_parents_follow_the_skeleton() -> None:
+    from sync4d.recon.mocap import segment_group_parents
+
+    # root 0 -> 1 -> 2 (arm: segments 2, 3), 0 -> 4 (leg); joint 1 is a zero-length helper (no segment)
+    parents = np.array([-1, 0, 1, 2, 0])
+    segments = np.array([2, 3, 4])
+    groups = np.array([0, 1, 2])
+    assert segment_group_parents(parents, segments, groups).tolist() == [-1, 0, -1]
