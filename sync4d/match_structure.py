@@ -159,8 +159,15 @@ def part_tree(points: np.ndarray, labels: np.ndarray, num_parts: int, root: int,
     return parent
 
 
+def _depth(parent: np.ndarray, p: int) -> int:
+    d = 0
+    while parent[p] >= 0:
+        p, d = int(parent[p]), d + 1
+    return d
+
+
 def reference_limbs(skeleton: CurveSkeleton, labels: np.ndarray, num_parts: int,
-                    parents: np.ndarray | None = None) -> tuple[list[list[int]], list[int]]:
+                    parents: np.ndarray | None = None, *, min_share: float = 0.02) -> tuple[list[list[int]], list[int]]:
     """The reference's limbs as lists of parts, and its trunk parts (see the module docstring).
 
     Args:
@@ -169,6 +176,7 @@ def reference_limbs(skeleton: CurveSkeleton, labels: np.ndarray, num_parts: int,
         num_parts: B.
         parents: (B,) the known bone tree (-1 for roots), e.g. of a mocap skeleton; None derives it from
             the contacts between parts (:func:`part_tree`), which touching limbs can mislead.
+        min_share: smallest share of the points a child subtree needs to count at a trunk junction.
     """
     if parents is None:
         root = int(labels[skeleton.centre])
@@ -184,8 +192,13 @@ def reference_limbs(skeleton: CurveSkeleton, labels: np.ndarray, num_parts: int,
     for c in present:
         if parent[c] >= 0:
             kids[int(parent[c])].append(c)
-    degree = {p: len(kids[p]) + (parent[p] >= 0) for p in present}
-    trunk = {root} | {p for p in present if degree[p] >= 3}
+    share = {p: float((labels == p).mean()) for p in present}
+    for p in sorted(present, key=lambda q: -_depth(parent, q)):  # children before parents
+        if parent[p] >= 0:
+            share[int(parent[p])] += share[p]
+    # a junction of the trunk is where two or more sizeable subtrees leave (a hand with a thumb and
+    # fingers is not one); the trunk is the root, those junctions and the parts between them
+    trunk = {root} | {p for p in present if sum(share[c] >= min_share for c in kids[p]) >= 2}
     for p in list(trunk):  # the parts between two trunk parts are trunk too
         a = int(parent[p])
         path = []
