@@ -95,9 +95,9 @@ def motion_camera(sequence: np.ndarray, rc: Any) -> Camera:
 
     ``rc`` is the renderer's config (``up``, ``view_direction`` picking the side, ``fov_deg``, size, ``margin``).
     """
-    from sync4d.render.camera import frame_object, motion_view_direction
+    from sync4d.render.camera import MotionView, frame_object, motion_view_direction
 
-    direction = motion_view_direction(sequence, up=rc.up, prefer=rc.view_direction)
+    direction = motion_view_direction(sequence, MotionView(), up=rc.up, prefer=rc.view_direction)
     return frame_object(sequence.reshape(-1, 3), direction=direction, up=rc.up, fov_deg=rc.fov_deg,
                         width=rc.width, height=rc.height, margin=rc.margin)
 

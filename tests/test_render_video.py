@@ -117,7 +117,7 @@ def test_side_by_side_puts_video_reference_and_target_in_one_frame() -> None:
 
 
 def test_motion_view_looks_at_the_plane_of_motion_upright() -> None:
-    from sync4d.render.camera import motion_view_direction
+    from sync4d.render.camera import SIDE_ON, MotionView, motion_view_direction
 
     rng = np.random.default_rng(0)
     base = rng.uniform(-0.1, 0.1, (50, 3))
@@ -125,17 +125,34 @@ def test_motion_view_looks_at_the_plane_of_motion_upright() -> None:
     angles = np.linspace(0.0, 1.2, 8)
     seq = np.stack([base @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]).T
                     + [0, 0.2, 0] for a in angles])
-    d = motion_view_direction(seq, up=(0, 1, 0), elevation_deg=0.0, azimuth_offset_deg=0.0, prefer=(1, 1, 1))
+    d = motion_view_direction(seq, SIDE_ON, up=(0, 1, 0), prefer=(1, 1, 1))
     np.testing.assert_allclose(d, [1, 0, 0], atol=1e-6)
     # The same motion turned 90 degrees about the up axis is seen from the turned side (same view in its frame).
     turn = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0.0]])
-    d_turned = motion_view_direction(seq @ turn.T, up=(0, 1, 0), elevation_deg=0.0, azimuth_offset_deg=0.0,
-                                     prefer=(-1, 1, 1))
+    d_turned = motion_view_direction(seq @ turn.T, SIDE_ON, up=(0, 1, 0), prefer=(-1, 1, 1))
     np.testing.assert_allclose(np.abs(d_turned), [0, 0, 1], atol=1e-6)
     # Elevation raises the camera above the horizon; the side follows ``prefer``.
-    raised = motion_view_direction(seq, up=(0, 1, 0), elevation_deg=20.0, azimuth_offset_deg=0.0, prefer=(-1, 0, 0))
+    raised = motion_view_direction(seq, MotionView(elevation_deg=20.0, azimuth_offset_deg=0.0), up=(0, 1, 0),
+                                   prefer=(-1, 0, 0))
     assert raised[1] == pytest.approx(np.sin(np.radians(20.0))) and raised[0] < 0
     # Z-up scenes: the camera stays upright about z.
-    dz = motion_view_direction(seq[..., [0, 2, 1]], up=(0, 0, 1), elevation_deg=0.0, azimuth_offset_deg=0.0,
-                               prefer=(1, 1, 0))
+    dz = motion_view_direction(seq[..., [0, 2, 1]], SIDE_ON, up=(0, 0, 1), prefer=(1, 1, 0))
     np.testing.assert_allclose(dz, [1, 0, 0], atol=1e-6)
+
+
+def test_turntable_of_the_last_frame(tmp_path: Path) -> None:
+    from sync4d.render_outputs import write_turntable
+    from sync4d.types import TargetGaussians
+
+    n = 40
+    rng = np.random.default_rng(4)
+    target = TargetGaussians(means=rng.uniform(-0.2, 0.2, (n, 3)).astype(np.float32),
+                             quats=np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32),
+                             log_scales=np.full((n, 3), np.log(0.03), np.float32),
+                             opacity_logits=np.full(n, 2.0, np.float32),
+                             sh=rng.normal(size=(n, 1, 3)).astype(np.float32))
+    rnd = SplatTorch(SplatTorch.Config(width=32, height=24, turntable_frames=3))
+    path = write_turntable(tmp_path / "turntable.mp4", rnd, target.means.astype(float), target.covariances(), target,
+                           8.0)
+    frames = read_video(path)
+    assert frames.shape == (3, 24, 32, 3) and not np.array_equal(frames[0], frames[1])

@@ -1,7 +1,8 @@
 """Camera helpers: look-at cameras, framing a point set, turntable orbits (OpenCV axes).
 
 All cameras are :class:`sync4d.types.Camera` with ``world_to_cam`` in the OpenCV convention: camera x
-right, y down, z forward (the viewing direction). World up defaults to +Y, the project's scenes' convention. The principal point is the image centre
+right, y down, z forward (the viewing direction). World up defaults to +Y, the project's scenes' convention.
+The principal point is the image centre
 (``cx = width / 2`` with pixel centres at half-integers, as the renderers use).
 """
 
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -178,29 +180,43 @@ def project_points(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.n
     return uvw[:, :2] / uvw[:, 2:3], xc[:, 2]
 
 
+@dataclass(frozen=True)
+class MotionView:
+    """Where a camera stands relative to the plane an object moves in (see :func:`motion_view_direction`).
+
+    Attributes:
+        elevation_deg: angle above the horizontal plane [deg].
+        azimuth_offset_deg: turn about up away from the plane's normal [deg] (0 = straight side-on; a
+            little keeps the object reading as solid rather than as a flat silhouette).
+    """
+
+    elevation_deg: float = 15.0
+    azimuth_offset_deg: float = 20.0
+
+
+SIDE_ON = MotionView(elevation_deg=0.0, azimuth_offset_deg=0.0)
+
+
 def motion_view_direction(
     sequence: np.ndarray,
+    view: MotionView,
     *,
-    up: ArrayLike3 = (0.0, 1.0, 0.0),
-    elevation_deg: float = 15.0,
-    azimuth_offset_deg: float = 20.0,
-    prefer: ArrayLike3 = (0.9, 1.1, 1.6),
+    up: ArrayLike3,
+    prefer: ArrayLike3,
 ) -> np.ndarray:
     """A viewing direction that keeps ``up`` up and faces the plane in which a point sequence moves most.
 
     The motion's principal plane is found from the covariance of every point's displacement from its
     own mean position over time; its normal (the direction of least motion), laid horizontal
     (perpendicular to ``up``), is the side from which the motion is best seen. The camera is then raised
-    by ``elevation_deg`` and turned by ``azimuth_offset_deg`` about ``up`` (so the object still reads as
-    solid rather than as a flat silhouette). Of the two sides, the one nearer ``prefer`` is taken, so
-    objects moving alike are seen from alike sides. Without motion (or motion along ``up`` only) the
-    horizontal part of ``prefer`` is used.
+    by ``view.elevation_deg`` and turned by ``view.azimuth_offset_deg`` about ``up`` towards ``prefer``.
+    Of the two sides, the one nearer ``prefer`` is taken, so objects moving alike are seen from alike
+    sides. Without motion (or motion along ``up`` only) the horizontal part of ``prefer`` is used.
 
     Args:
         sequence: (T, N, 3) positions per frame [m].
+        view: elevation and azimuth offset.
         up: (3,) world up.
-        elevation_deg: angle above the horizontal plane [deg].
-        azimuth_offset_deg: turn about ``up`` away from the plane's normal [deg], towards ``prefer``.
         prefer: (3,) direction that picks the side.
 
     Returns:
@@ -230,7 +246,7 @@ def motion_view_direction(
         normal *= np.sign(normal @ pref_h) or 1.0
     side = np.cross(up_a, normal)
     side *= np.sign(side @ pref_h) or 1.0
-    az, el = math.radians(azimuth_offset_deg), math.radians(elevation_deg)
+    az, el = math.radians(view.azimuth_offset_deg), math.radians(view.elevation_deg)
     horizontal = math.cos(az) * normal + math.sin(az) * side
     d = math.cos(el) * horizontal + math.sin(el) * up_a
     return d / np.linalg.norm(d)

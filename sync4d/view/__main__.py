@@ -10,14 +10,17 @@ from sync4d.errors import Sync4DError
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
+    from sync4d.view.app import ViewerConfig
+
+    d = ViewerConfig()  # the defaults live there
     parser = argparse.ArgumentParser(prog="python -m sync4d.view", description=__doc__)
     parser.add_argument("runs", nargs="+", help="run folders (outputs/<name>/<timestamp>), one row each")
-    parser.add_argument("--port", type=int, default=8080, help="HTTP/websocket port (default 8080)")
-    parser.add_argument("--host", default="127.0.0.1", help="interface (default 127.0.0.1: this machine only)")
-    parser.add_argument("--fps", type=float, default=0.0, help="playback rate; 0 = the run's (default)")
-    parser.add_argument("--play", action="store_true", help="start playing")
-    parser.add_argument("--max-gaussians", type=int, default=400_000,
-                        help="show a fixed random subset of larger objects (default 400000)")
+    parser.add_argument("--port", type=int, default=d.port, help=f"HTTP/websocket port ({d.port})")
+    parser.add_argument("--host", default=d.host, help=f"interface ({d.host}: this machine only)")
+    parser.add_argument("--fps", type=float, default=d.fps, help="playback rate; 0 = the run's")
+    parser.add_argument("--play", action="store_true", default=d.play, help="start playing")
+    parser.add_argument("--max-gaussians", type=int, default=d.max_gaussians,
+                        help=f"show a fixed random subset of larger objects ({d.max_gaussians})")
     return parser.parse_args(argv)
 
 

@@ -151,10 +151,10 @@ def place(sequence: np.ndarray, offset: np.ndarray, *, up: np.ndarray) -> Placem
     normal of its motion's principal plane (:func:`sync4d.render.camera.motion_view_direction`) faces +z,
     the viewer's default camera side, and scaled so its bounding sphere has radius 0.5.
     """
-    from sync4d.render.camera import bounding_sphere, motion_view_direction
+    from sync4d.render.camera import SIDE_ON, bounding_sphere, motion_view_direction
 
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    normal = motion_view_direction(sequence, up=up, elevation_deg=0.0, azimuth_offset_deg=0.0,
+    normal = motion_view_direction(sequence, SIDE_ON, up=up,
                                    prefer=np.array([0.0, 0.0, 1.0]) if abs(up[2]) < 0.9 else np.array([0.0, 1.0, 0.0]))
     side = np.cross(up, normal)
     # Rows: where the object's (side, up, normal) go in the viewer: x, y, z.
