@@ -150,3 +150,24 @@ def test_large_objects_show_a_fixed_subset(tmp_path: Path) -> None:
         assert len(panel.splats.buffer) == 150 and (panel.subset == before).all()
     finally:
         viewer.server.stop()
+
+
+def test_play_advances_frames_at_the_chosen_rate(tmp_path: Path) -> None:
+    import threading
+    import time
+
+    from sync4d.view.app import Viewer, ViewerConfig
+    from sync4d.view.data import load_run
+
+    viewer = Viewer([load_run(make_run(tmp_path / "a", frames=40, n=100, video=False))],
+                    ViewerConfig(port=free_port(), fps=20.0, play=True))
+    loop = threading.Thread(target=viewer.serve_forever)
+    loop.start()
+    time.sleep(1.0)
+    viewer.playing.value = False
+    reached = int(viewer.slider.value)
+    time.sleep(0.3)
+    viewer.stop()
+    loop.join(timeout=10)
+    assert 3 <= reached <= 21  # 20 frames/s for 1 s, less when the machine is busy
+    assert int(viewer.slider.value) == reached  # paused

@@ -198,6 +198,7 @@ class Viewer:
         self.server.scene.world_axes.visible = False
         self.rows = [RunRow(self.server, run, k, cfg) for k, run in enumerate(runs)]
         self._lock = threading.Lock()
+        self._stop = threading.Event()
         self._build_gui()
         width = PANEL_GAP * (max(len(row.panels) + (row.video is not None) for row in self.rows) - 1)
         height = ROW_GAP * (len(runs) - 1)
@@ -246,10 +247,14 @@ class Viewer:
                 row.show(t, part_colours=bool(self.part_colours.value), boxes=bool(self.boxes.value),
                          particles=bool(self.particles.value))
 
+    def stop(self) -> None:
+        """Make :meth:`serve_forever` return (from another thread)."""
+        self._stop.set()
+
     def serve_forever(self) -> None:
-        """Advance frames while "Play" is ticked; returns on KeyboardInterrupt."""
+        """Advance frames while "Play" is ticked; returns on KeyboardInterrupt or :meth:`stop`, stopping the server."""
         try:
-            while True:
+            while not self._stop.is_set():
                 started = time.perf_counter()
                 if self.playing.value and self.num_frames > 1:
                     self.step(1)
