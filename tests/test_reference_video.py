@@ -47,7 +47,8 @@ def test_filmed_laptop_masks_cover_its_projected_vertices_and_the_lid_moves() ->
 
 def test_filmed_part_labels_and_hinge_angles_of_the_laptop() -> None:
     from sync4d.scenes.laptop import laptop_reference
-    from sync4d.scenes.reference_video import film_reference, hinge_angles_rad
+    from sync4d.scenes.laptop import hinge_angles_rad
+    from sync4d.scenes.reference_video import film_reference
 
     ref = laptop_reference(4, period_frames=4, subdivisions=1, rest_angle_deg=110.0, min_angle_deg=40.0)
     angles = np.degrees(hinge_angles_rad(ref))

@@ -8,16 +8,12 @@ the base; the angle grows as the lid opens (90 deg = upright). Bone 0 is the bas
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import numpy as np
 import trimesh
 
 from sync4d.registry import register
+from sync4d.scenes.reference_video import FilmSettings, film_reference
 from sync4d.types import Camera, Reference, ReferenceInput, VideoClip
-
-if TYPE_CHECKING:
-    from sync4d.scenes.reference_video import FilmSettings
 
 
 def rotation_x(angle_rad: float) -> np.ndarray:
@@ -199,8 +195,6 @@ class LaptopReference:
 
     def film_settings(self) -> FilmSettings:
         """The camera and texture the laptop is filmed with (its ``up`` is the world's up)."""
-        from sync4d.scenes.reference_video import FilmSettings
-
         c = self.cfg
         return FilmSettings(width=c.video_width, height=c.video_height, gaussians=c.video_gaussians,
                             texture_cell=c.video_texture_cell)
@@ -208,7 +202,6 @@ class LaptopReference:
     def film(self, reference: Reference) -> tuple[VideoClip, Camera]:
         """The laptop filmed by the project's renderer from a fixed camera (see :mod:`sync4d.scenes.reference_video`)."""
         from sync4d.registry import build
-        from sync4d.scenes.reference_video import film_reference
 
         c = self.cfg
         renderer = build("render", {"type": "splat_torch", "width": c.video_width, "height": c.video_height},
@@ -242,3 +235,33 @@ class LaptopReference:
             camera=camera,
             world_up=up / np.linalg.norm(up) if c.video else None,
         )
+
+
+def hinge_angles_rad(reference: Reference, base: int = 0, lid: int = 1) -> np.ndarray:
+    """(T,) angle [rad] of bone ``lid`` relative to bone ``base``, measured from frame 0's relative pose."""
+    from scipy.spatial.transform import Rotation
+
+    j = reference.bone_transforms[:, :, :3, :3]
+    rel = np.swapaxes(j[:, base], 1, 2) @ j[:, lid]
+    change = np.swapaxes(rel[0], 0, 1)[None] @ rel
+    return np.linalg.norm(Rotation.from_matrix(change).as_rotvec(), axis=1)
+
+
+def filmed_laptop_case(settings: FilmSettings | None = None, *, num_frames: int = 24, device: str = "cpu") -> tuple[object, dict[str, np.ndarray]]:
+    """The default scene's laptop filmed, with ground truth in the layout of the hinge renders' ``gt.npz``.
+
+    Returns:
+        (ReferenceInput with video and camera, gt dict: ``hinge_angle_rad`` (T,), ``part_labels``
+        (T, H, W) uint8 with 0 background, 1 base, 2 lid, and ``K`` (3, 3)).
+    """
+    from sync4d.registry import build
+
+    settings = settings or FilmSettings()
+    reference = laptop_reference(num_frames)
+    renderer = build("render", {"type": "splat_torch", "width": settings.width, "height": settings.height}, device=device)
+    clip, camera, labels = film_reference(reference, renderer, settings, with_labels=True)  # type: ignore[misc]
+    up = np.asarray(settings.up, dtype=np.float64)
+    source = ReferenceInput(name="laptop_filmed", fps=reference.fps, video=clip, camera=camera,
+                            world_up=up / np.linalg.norm(up))
+    gt = {"hinge_angle_rad": hinge_angles_rad(reference), "part_labels": labels, "K": camera.K}
+    return source, gt

@@ -132,35 +132,3 @@ def film_reference(
 def _numpy(value: object) -> np.ndarray:
     """A renderer output (torch tensor or array) as a numpy array."""
     return np.asarray(value.detach().cpu() if hasattr(value, "detach") else value)  # type: ignore[attr-defined]
-
-
-def hinge_angles_rad(reference: Reference, base: int = 0, lid: int = 1) -> np.ndarray:
-    """(T,) angle [rad] of bone ``lid`` relative to bone ``base``, measured from frame 0's relative pose."""
-    from scipy.spatial.transform import Rotation
-
-    j = reference.bone_transforms[:, :, :3, :3]
-    rel = np.swapaxes(j[:, base], 1, 2) @ j[:, lid]
-    change = np.swapaxes(rel[0], 0, 1)[None] @ rel
-    return np.linalg.norm(Rotation.from_matrix(change).as_rotvec(), axis=1)
-
-
-def filmed_laptop_case(settings: FilmSettings | None = None, *, num_frames: int = 24, device: str = "cpu") -> tuple[object, dict[str, np.ndarray]]:
-    """The default scene's laptop filmed, with ground truth in the layout of the hinge renders' ``gt.npz``.
-
-    Returns:
-        (ReferenceInput with video and camera, gt dict: ``hinge_angle_rad`` (T,), ``part_labels``
-        (T, H, W) uint8 with 0 background, 1 base, 2 lid, and ``K`` (3, 3)).
-    """
-    from sync4d.registry import build
-    from sync4d.scenes.laptop import laptop_reference
-    from sync4d.types import ReferenceInput
-
-    settings = settings or FilmSettings()
-    reference = laptop_reference(num_frames)
-    renderer = build("render", {"type": "splat_torch", "width": settings.width, "height": settings.height}, device=device)
-    clip, camera, labels = film_reference(reference, renderer, settings, with_labels=True)  # type: ignore[misc]
-    up = np.asarray(settings.up, dtype=np.float64)
-    source = ReferenceInput(name="laptop_filmed", fps=reference.fps, video=clip, camera=camera,
-                            world_up=up / np.linalg.norm(up))
-    gt = {"hinge_angle_rad": hinge_angles_rad(reference), "part_labels": labels, "K": camera.K}
-    return source, gt

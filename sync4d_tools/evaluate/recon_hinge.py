@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from sync4d.recon._softsplat import composite_weights, front_weights, project_points, splat_alpha
+from sync4d.recon.video import VideoFit, VideoReconstructor, rotation_angle_deg
+from sync4d.recon.video.softsplat import composite_weights, front_weights, project_points, splat_alpha
 from sync4d.recon.sources import VideoSource, resolve_path
-from sync4d.recon.video import VideoReconstructor, rotation_angle_deg
 from sync4d.types import Reference
 
 
@@ -71,19 +71,18 @@ def render_bone_labels(
     return np.concatenate(out)
 
 
-def evaluate(recon: VideoReconstructor, ref: Reference, gt: dict[str, np.ndarray], *,
-             blend: str = "composite") -> dict[str, Any]:
+def evaluate(fit: VideoFit, gt: dict[str, np.ndarray], *, blend: str = "composite") -> dict[str, Any]:
     """Hinge-angle error and part-label agreement of a fitted reference against ``gt.npz``."""
-    state = recon.last_state
-    camera = state["camera"]
+    ref = fit.reference
+    camera = fit.camera
     labels_gt = gt["part_labels"]
     n_frames = ref.num_frames
     votes = np.zeros((ref.num_bones, 3))
     rendered = []
-    tau = 0.02 * recon.last_fit_report["object_width_m"]
+    tau = 0.02 * fit.object_width
     for t in range(n_frames):
         pix = np.argwhere(labels_gt[t] > 0)[:, ::-1].astype(np.float64)  # (u, v)
-        lab = render_bone_labels(ref, state["means"], state["sigma"], state["opacity"], camera, t, pix, tau=tau,
+        lab = render_bone_labels(ref, fit.means, fit.sigma, fit.opacity, camera, t, pix, tau=tau,
                                  blend=blend)
         rendered.append(lab)
         g = labels_gt[t][labels_gt[t] > 0]
@@ -133,7 +132,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     start = time.perf_counter()
     if args.scene == "laptop":
-        from sync4d.scenes.reference_video import filmed_laptop_case
+        from sync4d.scenes.laptop import filmed_laptop_case
 
         source, gt = filmed_laptop_case()
     else:
@@ -146,18 +145,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from sync4d.registry import make_config
 
     conf = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recon" / "video.yaml")
+    conf.pop("defaults", None)  # the Hydra schema entry; the typed Config holds the defaults
     conf.bones = args.bones
     for item in args.set:
         key, value = item.split("=", 1)
         OmegaConf.update(conf, key, OmegaConf.create({"v": __import__("yaml").safe_load(value)}).v)
     _, cfg = make_config("recon", conf)
     recon = VideoReconstructor(cfg)
-    ref = recon.reconstruct(source)
-    result = evaluate(recon, ref, gt, blend=args.blend)
+    fit = recon.reconstruct_detailed(source)
+    ref = fit.reference
+    result = evaluate(fit, gt, blend=args.blend)
     out = {
         "hinge_angle_error_deg": round(result["hinge_angle_error_deg"], 3),
         "part_label_agreement": round(result["part_label_agreement"], 4),
         "seconds": round(time.perf_counter() - start, 1),
+        "reconstruction_seconds": round(fit.seconds, 1),
+        "joint_kinds": fit.joints.kinds,
         "hinge_angle_max_error_deg": round(result["hinge_angle_max_error_deg"], 3),
         "bones": ref.num_bones,
         "frames": ref.num_frames,
