@@ -243,7 +243,13 @@ def parse_overrides(text: str) -> dict[str, Any]:
         if "=" not in item:
             raise ConfigError(f"transfer_gt --mpm: '{item}' is not KEY=VALUE")
         key, value = item.split("=", 1)
-        out[key] = yaml.safe_load(value)
+        parsed = yaml.safe_load(value)
+        if isinstance(parsed, str):
+            try:  # YAML 1.1 reads 1e5 (no dot) as a string
+                parsed = float(parsed)
+            except ValueError:
+                pass
+        out[key] = parsed
     return out
 
 
