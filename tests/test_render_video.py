@@ -132,7 +132,7 @@ def test_motion_view_looks_at_the_plane_of_motion_upright() -> None:
     d_turned = motion_view_direction(seq @ turn.T, SIDE_ON, up=(0, 1, 0), prefer=(-1, 1, 1))
     np.testing.assert_allclose(np.abs(d_turned), [0, 0, 1], atol=1e-6)
     # Elevation raises the camera above the horizon; the side follows ``prefer``.
-    raised = motion_view_direction(seq, MotionView(elevation_deg=20.0, azimuth_offset_deg=0.0), up=(0, 1, 0),
+    raised = motion_view_direction(seq, MotionView(elevation_deg=20.0), up=(0, 1, 0),
                                    prefer=(-1, 0, 0))
     assert raised[1] == pytest.approx(np.sin(np.radians(20.0))) and raised[0] < 0
     # Z-up scenes: the camera stays upright about z.
