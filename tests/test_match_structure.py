@@ -152,3 +152,17 @@ def test_mocap_bone_parents_follow_the_skeleton() -> None:
     segments = np.array([2, 3, 4])
     groups = np.array([0, 1, 2])
     assert segment_group_parents(parents, segments, groups).tolist() == [-1, 0, -1]
+
+
+def test_capsule_bands_put_vertices_along_the_limb_and_keep_it_closed() -> None:
+    """Mocap bodies: without bands a capsule has vertices only at its end caps (spheres at the joints)."""
+    import trimesh
+
+    from sync4d.recon.body import capsule_mesh
+
+    v, f = capsule_mesh(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.1, rings=4, sectors=10, band_spacing=0.1)
+    assert trimesh.Trimesh(v, f, process=True).is_watertight
+    heights = np.unique(np.round(v[np.abs(v[:, 2] - 0.5) < 0.5][:, 2], 6))
+    assert np.diff(heights).max() <= 0.1 + 1e-9
+    v0, _ = capsule_mesh(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.1, rings=4, sectors=10)
+    assert np.diff(np.unique(np.round(v0[:, 2], 6))).max() > 0.9  # the old single band

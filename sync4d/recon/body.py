@@ -61,7 +61,8 @@ def segment_radii(
 
 
 def capsule_mesh(
-    start: np.ndarray, end: np.ndarray, radius: float, *, rings: int = 8, sectors: int = 12
+    start: np.ndarray, end: np.ndarray, radius: float, *, rings: int = 8, sectors: int = 12,
+    band_spacing: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A closed (watertight) triangle mesh of one capsule around the segment start -> end.
 
@@ -71,6 +72,8 @@ def capsule_mesh(
         radius: capsule radius [m] (> 0).
         rings: latitude rings per hemisphere (>= 2).
         sectors: longitude divisions (>= 3).
+        band_spacing: largest distance between vertex rings along the cylinder [m]; None = one band
+            (vertices only on the end caps, so a long capsule has no vertex along its middle).
 
     Returns:
         (vertices (N, 3) [m], faces (F, 3) int64, outward-oriented).
@@ -84,7 +87,9 @@ def capsule_mesh(
     bottom = np.linspace(np.pi / 2, np.pi, rings + 1)[:-1]
     phis = np.linspace(0.0, 2 * np.pi, sectors, endpoint=False)
     rows = []
-    for lat, shift in [(a, length / 2) for a in top] + [(a, -length / 2) for a in bottom]:
+    bands = max(1, int(np.ceil(length / band_spacing))) if band_spacing and band_spacing > 0 else 1
+    middle = [(np.pi / 2, length / 2 - length * k / bands) for k in range(1, bands)]
+    for lat, shift in [(a, length / 2) for a in top] + middle + [(a, -length / 2) for a in bottom]:
         ring = np.stack(
             [radius * np.sin(lat) * np.cos(phis), radius * np.sin(lat) * np.sin(phis),
              np.full(sectors, radius * np.cos(lat) + shift)],
@@ -121,6 +126,7 @@ def capsule_body(
     min_length: float = 1e-6,
     rings: int = 6,
     sectors: int = 10,
+    band_spacing: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A body mesh made of one capsule per skeleton segment, merged into one vertex/face list.
 
@@ -140,6 +146,7 @@ def capsule_body(
         min_length: segments shorter than this are skipped [m].
         rings: latitude rings per hemisphere of each capsule.
         sectors: longitude divisions of each capsule.
+        band_spacing: largest ring spacing along each cylinder [m] (see :func:`capsule_mesh`).
 
     Returns:
         vertices: (N, 3) [m].
@@ -160,7 +167,8 @@ def capsule_body(
     verts, faces, owner = [], [], []
     offset = 0
     for j, r in zip(segments, rad):
-        v, f = capsule_mesh(joints[parents[j]], joints[j], float(max(r, 1e-9)), rings=rings, sectors=sectors)
+        v, f = capsule_mesh(joints[parents[j]], joints[j], float(max(r, 1e-9)), rings=rings, sectors=sectors,
+                            band_spacing=band_spacing)
         verts.append(v)
         faces.append(f + offset)
         owner.append(np.full(len(v), j, dtype=np.int64))

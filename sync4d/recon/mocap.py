@@ -231,6 +231,9 @@ class MocapReconstructor:
                 (:func:`sync4d.recon.body.segment_skinning`).
             capsule_rings: latitude rings per capsule hemisphere.
             capsule_sectors: longitude divisions per capsule.
+            capsule_band: largest ring spacing along each capsule's cylinder [m], so the body has surface
+                vertices along its limbs and not only at the joints (matching and features use the
+                vertices); <= 0 = one band (vertices at the end caps only).
         """
 
         bones: Any = "skeleton"
@@ -251,6 +254,7 @@ class MocapReconstructor:
         skin_temperature: float = 0.25
         capsule_rings: int = 4
         capsule_sectors: int = 10
+        capsule_band: float = 0.03
 
         def validate(self) -> None:
             if isinstance(self.bones, str) and self.bones.strip().isdigit():
@@ -338,7 +342,7 @@ class MocapReconstructor:
         full_radii[segments] = radii
         verts, faces, owner_joint = capsule_body(
             rest_joints, parents, radii=full_radii, min_radius=cfg.min_radius, min_length=cfg.min_segment_length,
-            rings=cfg.capsule_rings, sectors=cfg.capsule_sectors,
+            rings=cfg.capsule_rings, sectors=cfg.capsule_sectors, band_spacing=cfg.capsule_band,
         )
         seg_index = {int(j): i for i, j in enumerate(segments)}
         owner_seg = np.array([seg_index[int(j)] for j in owner_joint])
