@@ -250,16 +250,21 @@ def render_preview(cfg, target, particles, trajectory, motion) -> dict:
 
 
 def table(results: list[dict]) -> str:
+    """Per stage and size: wall seconds, CPU seconds of this process, peak resident MB."""
     stages = [r["stage"] for r in results[0]["rows"]]
-    head = f"{'stage':<12}" + "".join(f"{r['gaussians']:>22,}" for r in results)
-    lines = [head, f"{'':<12}" + "".join(f"{'s':>12}{'peak MB':>10}" for _ in results)]
+    head = f"{'stage':<12}" + "".join(f"{r['gaussians']:>26,}" for r in results)
+    lines = [head, f"{'':<12}" + "".join(f"{'wall s':>9}{'CPU s':>8}{'peak MB':>9}" for _ in results)]
     for s in stages:
         cells = ""
         for r in results:
             row = next(x for x in r["rows"] if x["stage"] == s)
-            cells += f"{row['seconds']:>12.1f}{row['peak_mb']:>10.0f}"
+            cells += f"{row['seconds']:>9.1f}{row.get('cpu_seconds', float('nan')):>8.1f}{row['peak_mb']:>9.0f}"
         lines.append(f"{s:<12}{cells}")
-    lines.append(f"{'total':<12}" + "".join(f"{r['wall_seconds']:>12.1f}{r['peak_rss_mb']:>10.0f}" for r in results))
+    total = ""
+    for r in results:
+        cpu = sum(x.get("cpu_seconds", 0.0) for x in r["rows"])
+        total += f"{r['wall_seconds']:>9.1f}{cpu:>8.1f}{r['peak_rss_mb']:>9.0f}"
+    lines.append(f"{'total':<12}{total}")
     return "\n".join(lines)
 
 
@@ -269,7 +274,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "results" / "scale.json")
     parser.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--show", type=Path, default=None, help="print the table of a results JSON and exit")
     args = parser.parse_args(argv)
+    if args.show is not None:
+        print(table(json.loads(args.show.read_text())["results"]))
+        return 0
     if args.child is not None:
         print(json.dumps(child(args.child, args.frames)))
         return 0
@@ -289,9 +298,9 @@ def main(argv: list[str] | None = None) -> int:
         results.append(result)
         print(f"{n:,} Gaussians: {result['wall_seconds']:.0f} s in stages, {result['process_seconds']:.0f} s "
               f"with start-up, peak {result['peak_rss_mb']:.0f} MB", flush=True)
+        args.json.parent.mkdir(parents=True, exist_ok=True)  # after every size: a long sweep keeps what it has
+        args.json.write_text(json.dumps({"results": results, "source": str(SOURCE.name)}, indent=1) + "\n")
     print(table(results))
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps({"results": results, "source": str(SOURCE.name)}, indent=1) + "\n")
     return 0
 
 
