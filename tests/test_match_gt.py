@@ -74,3 +74,29 @@ def test_human_self_copy_meets_the_accuracy_goal(geometric_extractor) -> None:
     except DataMissingError as err:
         pytest.skip(str(err))
     assert pair.accuracy >= 0.95
+
+
+def test_labels_option_reports_limb_accuracy_per_pair(tmp_path, capsys) -> None:
+    """``--labels FILE`` (a procedural target: no shared data): one JSON line with cross_category."""
+    import json
+
+    from sync4d_tools.evaluate.match_gt import main
+    from sync4d_tools.match_labels.labels import default_label_files
+
+    chair = next(p for p in default_label_files() if p.name == "chair.json")
+    try:
+        out = main(["--pairs", "", "--method", "structure", "--labels", str(chair), "--match",
+                    "structure.skeleton.samples=3000"])
+    except Exception as err:  # the dog reference body needs ../shared/data
+        from sync4d.errors import DataMissingError
+
+        if isinstance(err, DataMissingError):
+            pytest.skip(str(err))
+        raise
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    pair = last["cross_category"]["dog_to_chair"]
+    assert pair["kind"] == "cross" and 0.0 <= pair["limb_accuracy"] <= 1.0 and out == last
+    from sync4d.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="match"):
+        main(["--pairs", "", "--method", "structure", "--labels", str(chair), "--match", "structure.nope=1"])
