@@ -41,4 +41,7 @@ def register_schemas() -> None:
                 f"{schema.__name__}_{group}_{name}", [("type", str, dataclasses.field(default=name))], bases=(schema,)
             )
             store.store(group=group, name=schema_name(name), node=node)
+    from sync4d.match import MatchConfig
+
+    store.store(group="match", name="defaults", node=omegaconf_schema(MatchConfig))
     _registered = True

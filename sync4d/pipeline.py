@@ -178,14 +178,9 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
 
     def compute() -> PartMap:
         extractor = build("features", features_cfg, device=cfg.device)
-        from sync4d.match import MatchConfig  # interim (issue 21): the lead wires MatchConfig from conf
-        match_cfg = MatchConfig(
-            outlier_sigma=float(cfg.match.outlier_sigma), align=str(cfg.match.align),
-            icp_iterations=int(cfg.match.icp_iterations), smooth_neighbours=int(cfg.match.smooth_neighbours),
-            tie_break=str(cfg.match.tie_break), prototypes=str(cfg.match.prototypes),
-        )
-        return match_parts(reference, target, extractor, match_cfg, target_vertices=points, target_faces=faces,
-                           seed=int(cfg.seed)).part_map
+        result = match_parts(reference, target, extractor, match_config(cfg), target_vertices=points,
+                             target_faces=faces, seed=int(cfg.seed))
+        return dataclasses.replace(result.part_map, alignment_rotation=result.alignment.rotation)
 
     part_map = cache.cached(ctx.cache_root, "match", key, PartMap, compute, enabled=cfg.cache).validate()
     counts = np.bincount(part_map.tgt_part, minlength=part_map.num_parts)
@@ -193,20 +188,24 @@ def stage_match(ctx: RunContext, reference: Reference, recon_key: str, target: T
     return part_map
 
 
-def reference_to_target_rotation(cfg: DictConfig, reference: Reference, target_points: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation taking the reference's frame to the target's, from the same alignment matching uses.
+def match_config(cfg: DictConfig) -> Any:
+    """The run's typed :class:`sync4d.match.MatchConfig` (defaults from the code, ``match.*`` deviations)."""
+    from sync4d.match import MatchConfig
+    from sync4d.registry import typed_config
 
-    The reference's motion must turn with the target when the alignment turns it (e.g. ``pca_icp`` on
-    a target lying on its side); the alignment is cheap next to the simulation, so it is recomputed
-    rather than cached with the part map.
+    return typed_config(MatchConfig, OmegaConf.to_container(cfg.match, resolve=True), where="match",
+                        label="match").validate()
+
+
+def reference_to_target_rotation(part_map: PartMap) -> np.ndarray:
+    """(3, 3) rotation taking the reference's frame to the target's: the one matching aligned them with.
+
+    The reference's motion must turn with the target when the alignment turned it (e.g. ``pca_icp`` on a
+    target lying on its side, or the structure match's turn about the up axis).
     """
-    from sync4d.align import align_shapes
-
-    if cfg.match.align == "none":
+    if part_map.alignment_rotation is None:
         return np.eye(3)
-    alignment = align_shapes(target_points, reference.rest_vertices, method=cfg.match.align,
-                             icp_iterations=int(cfg.match.icp_iterations), seed=int(cfg.seed))
-    return alignment.transform.rotation.T
+    return np.asarray(part_map.alignment_rotation, dtype=np.float64).T
 
 
 def apply_budget(ctx: RunContext, sim_cfg: dict[str, Any], target: TargetGaussians, motion: Any) -> dict[str, Any]:
@@ -281,7 +280,8 @@ def check_components(cfg: DictConfig) -> dict[str, Any]:
         if str(cfg.get(key)) not in allowed:
             raise ConfigError(f"{key}={cfg.get(key)!r}: must be one of {', '.join(allowed)}")
     shrink = cfg.get("shrink") or {}
-    return {group: make_config(group, cfg[group], shrink=shrink.get(group))[1] for group in GROUPS if group in cfg}
+    built = {group: make_config(group, cfg[group], shrink=shrink.get(group))[1] for group in GROUPS if group in cfg}
+    return {**built, "match": match_config(cfg)}
 
 
 def check_device(device: str) -> None:
@@ -374,7 +374,7 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
         if cfg.get("pivot", "part_centroid") == "part_centroid" else None
     motion = driving_motion(reference, target_points=points, target_faces=faces, num_frames=int(cfg.frames),
                             loop=bool(cfg.loop_reference), part_centroids=anchor,
-                            rotation=reference_to_target_rotation(cfg, reference, points))
+                            rotation=reference_to_target_rotation(part_map))
     log.info("driving motion: %d frames, coverage ratio s_t/s_o = %.4f", motion.num_frames, motion.coverage_ratio)
 
     from sync4d.outputs import FrameWriter

@@ -312,18 +312,23 @@ class PartMap:
         tgt_part: (N,) int part of each target Gaussian, in [0, B).
         confidence: (N,) float in [0, 1]: cosine-similarity margin of the assignment (0 for orphans).
         num_parts: B.
+        alignment_rotation: (3, 3) rotation matching used to turn the target into the reference's frame
+            (its transpose turns the reference's motion into the target's), or None when not recorded.
     """
 
     ref_part: np.ndarray
     tgt_part: np.ndarray
     confidence: np.ndarray
     num_parts: int
+    alignment_rotation: np.ndarray | None = None
 
     def validate(self) -> PartMap:
         dims: dict[str, int] = {}
         check_array("PartMap", "ref_part", self.ref_part, ("V",), dims, kind="i")
         check_array("PartMap", "tgt_part", self.tgt_part, ("N",), dims, kind="i")
         check_array("PartMap", "confidence", self.confidence, ("N",), dims)
+        if self.alignment_rotation is not None:
+            check_array("PartMap", "alignment_rotation", self.alignment_rotation, (3, 3), dims)
         for name in ("ref_part", "tgt_part"):
             arr = getattr(self, name)
             _require(
