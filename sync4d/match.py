@@ -654,6 +654,10 @@ def _match_by_structure(reference: Reference, target: TargetGaussians, cfg: Matc
     """Structure-aware matching (:mod:`sync4d.match_structure`) wrapped into a MatchResult."""
     rng = np.random.default_rng(seed)
     tgt_vertices, index, tgt_faces = _target_points(target, cfg, target_vertices, target_faces, seed)
+    if tgt_vertices.ndim != 2 or tgt_vertices.shape[1] != 3 or len(tgt_vertices) < 16 \
+            or not np.isfinite(tgt_vertices).all():
+        raise InputError(f"match: the target surface must be (M >= 16, 3) finite points, got {tgt_vertices.shape}"
+                         " (NaN/inf or too few Gaussians above match.min_opacity)")
     if cfg.align in ("pca", "pca_icp"):
         alignment = align_shapes(tgt_vertices, reference.rest_vertices, method=cfg.align,
                                  icp_iterations=cfg.icp_iterations, seed=seed)

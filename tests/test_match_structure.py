@@ -166,3 +166,13 @@ def test_capsule_bands_put_vertices_along_the_limb_and_keep_it_closed() -> None:
     assert np.diff(heights).max() <= 0.1 + 1e-9
     v0, _ = capsule_mesh(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.1, rings=4, sectors=10)
     assert np.diff(np.unique(np.round(v0[:, 2], 6))).max() > 0.9  # the old single band
+
+
+def test_structure_match_refuses_a_bad_target_before_any_work() -> None:
+    v, f, part = animal()
+    reference = box_reference(v, f, part)
+    bad = v.copy()
+    bad[3] = np.nan
+    with pytest.raises(InputError, match="finite"):
+        match_parts(reference, gaussians_at(v), None, MatchConfig(method="structure"), target_vertices=bad,
+                    target_faces=f)
