@@ -342,6 +342,26 @@ def write_charts(results: dict[str, dict[str, dict[str, Any]]], folder: Path) ->
     return written
 
 
+BASELINES = ("lbs_hard", "lbs_smooth", "kinematic")
+
+
+def criteria(rows: dict[str, dict[str, Any]], method: str = "mpm_none") -> dict[str, Any]:
+    """Issue 18's bar for ``method`` on one pair, each as pass/fail with the numbers compared.
+
+    fragments 0; strain_p99_max_pct <= half of lbs_hard's; torn_pairs_pct below lbs_hard's; pose error within
+    1% of the diagonal of the best baseline (lbs hard / smooth, kinematic).
+    """
+    m, hard = rows[method], rows["lbs_hard"]
+    best = min(rows[b]["pose_error_pct"] for b in BASELINES if b in rows)
+    return {
+        "fragments_zero": m["fragments"] == 0,
+        "strain_p99_max_half_of_lbs_hard": m["strain_p99_max_pct"] <= 0.5 * hard["strain_p99_max_pct"],
+        "torn_below_lbs_hard": m["torn_pairs_pct"] < hard["torn_pairs_pct"],
+        "pose_within_1pct_of_best_baseline": m["pose_error_pct"] <= best + 1.0,
+        "best_baseline_pose_error_pct": best,
+    }
+
+
 def markdown_table(results: dict[str, dict[str, dict[str, Any]]]) -> str:
     """The pairs x methods table of fidelity, integrity and cost, as Markdown."""
     cols = ("pose_error_pct", "pose_error_max_pct", "torn_pairs_pct", "torn_seam_pairs_pct", "strain_p99_pct",
@@ -385,6 +405,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             log.info("transfer_gt %s / %s: %s (%.1f s)", name, method, results[name][method], time.perf_counter() - t0)
     out: dict[str, Any] = {
         "pairs": results,
+        "criteria_mpm_none": {p: criteria(r) for p, r in results.items() if {"mpm_none", "lbs_hard"} <= set(r)},
         "frames": args.frames,
         "gaussians": args.gaussians,
         "training": TRAIN,
