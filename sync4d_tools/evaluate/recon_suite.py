@@ -151,7 +151,7 @@ def run_case(name: str, folder: Path | None, seed: int) -> dict[str, Any]:
     mapping, votes, labels = part_mapping(rendered, gt["part_labels"], fit.reference.num_bones, n_parts)
     joints = joint_errors(fit, gt, mapping, votes)
     return {"case": name, "seed": seed, "joints": joints, "labels": round(labels, 4),
-            "seconds": round(fit.seconds, 1), "frames": fit.reference.num_frames,
+            "seconds": round(fit.seconds, 1), "cpu_seconds": round(fit.cpu_seconds, 1), "frames": fit.reference.num_frames,
             "size": list(fit.masks.shape[1:][::-1]), "pass": passes(joints, labels)}
 
 

@@ -50,6 +50,8 @@ class VideoFit:
         sigma: (N,) isotropic Gaussian sizes [m]; opacity: (N,) in (0, 1).
         object_width: the object's width in frame 0 [m].
         seconds: wall time of the reconstruction [s].
+        cpu_seconds: CPU time of this process during it [s] (the wall time of an idle machine, as the fit
+            runs on one thread; on a shared machine the wall time is longer).
     """
 
     reference: Reference
@@ -63,6 +65,7 @@ class VideoFit:
     opacity: np.ndarray
     object_width: float
     seconds: float
+    cpu_seconds: float
 
 
 @register("recon", "video")
@@ -120,7 +123,7 @@ class VideoReconstructor:
         if clip.num_frames < 2:
             raise InputError(f"recon=video: '{clip.source}' has {clip.num_frames} frame; need at least 2")
         cfg = self.cfg
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         rng = np.random.default_rng(cfg.seed)
         camera = source.camera if source.camera is not None else default_camera(clip, cfg.init.fov_deg)
         masks = video_masks(clip, cfg.masks)
@@ -143,11 +146,11 @@ class VideoReconstructor:
         means = scene.centre.numpy() + joints.depth[:, None] * scene.rays.numpy()
         sigma = tracks.stride * joints.depth / camera.K[0, 0]
         ref = build_reference(joints, means, clip, camera, source.name)
-        seconds = time.perf_counter() - start
-        log.info("recon=video: %d frames reconstructed in %.1f s", clip.num_frames, seconds)
+        seconds, cpu = time.perf_counter() - start, time.process_time() - cpu_start
+        log.info("recon=video: %d frames reconstructed in %.1f s (%.1f s CPU)", clip.num_frames, seconds, cpu)
         return VideoFit(reference=ref, camera=camera, masks=masks, tracks=tracks, init=init, joints=joints,
                         means=means, sigma=sigma, opacity=np.full(len(means), cfg.opacity),
-                        object_width=scene.width, seconds=seconds)
+                        object_width=scene.width, seconds=seconds, cpu_seconds=cpu)
 
     @staticmethod
     def _root_motion(tracks: Tracks, init: PartInit, camera: Camera, z_ref: float) -> np.ndarray:
