@@ -78,8 +78,10 @@ def load_clip(clip: str, frames: int, stride: int) -> tuple[dict[str, np.ndarray
 
         motion = read_deepmimic(DATA / "deepmimic" / "humanoid3d_walk.txt", DATA / "deepmimic" / "humanoid.urdf",
                                 urdf_scale=0.25)
+    elif clip == "dog":
+        return load_dog(frames, stride)
     else:
-        raise SystemExit(f"--clip {clip}: use cmu or deepmimic")
+        raise SystemExit(f"--clip {clip}: use cmu, deepmimic or dog")
     motion = motion.subsample(stride)
     pos = motion.positions[:frames]
     tracks = {key: pos[:, motion.names.index(name)] for key, name in CLIP_JOINTS[clip].items()}
@@ -104,6 +106,30 @@ def add_face(tracks: dict[str, np.ndarray]) -> None:
     tracks["mouth_l"] = h + 0.085 * fwd - 0.045 * up + 0.02 * left
     tracks["mouth_r"] = h + 0.085 * fwd - 0.045 * up - 0.02 * left
     tracks["hair"] = h - 0.02 * fwd + 0.02 * up
+
+
+DOG_TRUTH = ("pelvis", "neck", "head", "tail_base", "fl_upper", "fl_middle", "fl_paw", "fr_upper", "fr_middle",
+             "fr_paw", "hl_upper", "hl_middle", "hl_paw", "hr_upper", "hr_middle", "hr_paw")
+
+
+def load_dog(frames: int, stride: int) -> tuple[dict[str, np.ndarray], float]:
+    """Named joint tracks of the AI4Animation dog trot (CC BY-NC 4.0; 60 fps), template joint names."""
+    from sync4d.io.mocap import read_joint_positions
+    from sync4d.recon.pose.quadruped_fit import DOG_NAMES
+
+    pos = read_joint_positions(DATA / "dog_mocap" / "dog_trot_joint_pos.txt")[::stride][:frames]
+    return {n: pos[:, j] for j, n in enumerate(DOG_NAMES)}, 60.0 / stride
+
+
+def dog_capsules(tracks: dict[str, np.ndarray]) -> tuple[Capsule, ...]:
+    """The template's own capsules (radii as in the quadruped fit), one brown body with darker paws."""
+    from sync4d.recon.pose.quadruped_fit import DOG_NAMES, DOG_PARENTS, DOG_RADII
+
+    length = float(np.linalg.norm(tracks["head"][0] - tracks["tail_base"][0]))
+    fur, paw = (0.62, 0.42, 0.24), (0.25, 0.17, 0.1)
+    return tuple(Capsule(DOG_NAMES[p], DOG_NAMES[j], float(DOG_RADII[j] * length),
+                         paw if DOG_NAMES[j].endswith("paw") else fur)
+                 for j, p in enumerate(DOG_PARENTS) if p >= 0)
 
 
 def capsule_gaussians(a: np.ndarray, b: np.ndarray, radius: float, rng: np.random.Generator,
@@ -141,7 +167,7 @@ def render_clip(tracks: dict[str, np.ndarray], camera, *, seed: int = 0) -> tupl
     frames, masks = [], []
     for t in range(len(tracks["pelvis"])):
         pts, cols = [], []
-        for part in MANNEQUIN:
+        for part in (dog_capsules(tracks) if "tail_base" in tracks else MANNEQUIN):
             p, n = capsule_gaussians(tracks[part.a][t], tracks[part.b][t], part.radius, rng)
             shade = 0.35 + 0.65 * np.clip(n @ light, 0, None)
             pts.append(p)
@@ -164,7 +190,10 @@ def clip_camera(tracks: dict[str, np.ndarray], view: str, width: int, height: in
     extent = allp.max(0) - allp.min(0)
     angle = {"front": 0.0, "side": 90.0, "oblique": 40.0, "back": 180.0}[view]
     # the clip's facing: from the pelvis towards the average of the toes, else +z
-    facing = (tracks["l_toe"] + tracks["r_toe"]).mean(0) / 2 - tracks["l_ankle"].mean(0) / 2 - tracks["r_ankle"].mean(0) / 2
+    if "tail_base" in tracks:  # a quadruped faces from its tail to its head
+        facing = (tracks["head"] - tracks["tail_base"]).mean(0)
+    else:
+        facing = (tracks["l_toe"] + tracks["r_toe"]).mean(0) / 2 - tracks["l_ankle"].mean(0) / 2 - tracks["r_ankle"].mean(0) / 2
     facing[1] = 0.0
     facing = facing / np.linalg.norm(facing) if np.linalg.norm(facing) > 1e-6 else np.array([0.0, 0.0, 1.0])
     c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
@@ -194,15 +223,16 @@ def write_clip(out: Path, clip: str, view: str, *, frames: int, stride: int, wid
     for t, m in enumerate(masks):
         imageio.imwrite(out / "masks" / f"{t:05d}.png", (m * 255).astype(np.uint8))
     np.savez(out / "camera.npz", K=K, cam_pos=pos, cam_forward=fwd, cam_up=up)
-    joints = np.stack([tracks[n] for n in TRUTH_NAMES], axis=1)
-    np.savez(out / "gt.npz", joints=joints, names=np.array(TRUTH_NAMES), fps=fps)
+    names = DOG_TRUTH if clip == "dog" else TRUTH_NAMES
+    joints = np.stack([tracks[n] for n in names], axis=1)
+    np.savez(out / "gt.npz", joints=joints, names=np.array(names), fps=fps)
     return {"clip": clip, "view": view, "frames": len(rgb), "fps": fps, "out": str(out)}
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True)
-    parser.add_argument("--clip", default="cmu", choices=["cmu", "deepmimic"])
+    parser.add_argument("--clip", default="cmu", choices=["cmu", "deepmimic", "dog"])
     parser.add_argument("--view", default="front", choices=["front", "side", "oblique", "back"])
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--stride", type=int, default=8)

@@ -25,6 +25,7 @@ from sync4d.errors import InputError
 from sync4d.types import Camera
 
 log = logging.getLogger(__name__)
+DTYPE = torch.float32  # float64 doubles the cost of the silhouette, the dominant term, for no gain at this resolution
 
 DOG_FILE = Path(__file__).resolve().parents[4] / "shared" / "data" / "motion" / "dog_mocap" / "dog_trot_joint_pos.txt"
 DOG_PARENTS = np.array([-1, 0, 1, 2, 3, 4, 2, 6, 7, 8, 9, 2, 11, 12, 13, 14, 0, 16, 17, 18, 0, 20, 21, 22, 0, 24, 25])
@@ -76,7 +77,7 @@ class QuadrupedFitConfig:
     start_frames: int = 3
     grid: int = 64
     start_iterations: int = 150
-    iterations: int = 300
+    iterations: int = 200
     lr: float = 0.03
     silhouette_weight: float = 1.0
     inside_weight: float = 0.05
@@ -176,19 +177,32 @@ def soft_silhouette(joints: torch.Tensor, parents: np.ndarray, radii: torch.Tens
     return 1 - torch.exp(torch.log1p(-occ.clamp(max=1 - 1e-6)).sum(1))
 
 
-def _grid(camera: Camera, cells: int) -> tuple[np.ndarray, int, int]:
-    step = max(camera.width, camera.height) / cells
-    gw, gh = max(1, int(round(camera.width / step))), max(1, int(round(camera.height / step)))
-    us = (np.arange(gw) + 0.5) * camera.width / gw
-    vs = (np.arange(gh) + 0.5) * camera.height / gh
+def mask_box(masks: np.ndarray, margin: float = 0.15) -> tuple[int, int, int, int]:
+    """(u0, v0, u1, v1) pixel box around every frame's mask, enlarged by ``margin`` of its size each side."""
+    ys, xs = np.nonzero(masks.any(0))
+    h, w = masks.shape[1:]
+    du, dv = margin * (xs.max() - xs.min() + 1), margin * (ys.max() - ys.min() + 1)
+    return (max(0, int(xs.min() - du)), max(0, int(ys.min() - dv)), min(w, int(xs.max() + du) + 1),
+            min(h, int(ys.max() + dv) + 1))
+
+
+def _grid(box: tuple[int, int, int, int], cells: int) -> tuple[np.ndarray, int, int]:
+    """Cell centres (P, 2) [px] of a grid ``cells`` across the longer side of ``box``, and its size."""
+    u0, v0, u1, v1 = box
+    step = max(u1 - u0, v1 - v0) / cells
+    gw, gh = max(1, int(round((u1 - u0) / step))), max(1, int(round((v1 - v0) / step)))
+    us = u0 + (np.arange(gw) + 0.5) * (u1 - u0) / gw
+    vs = v0 + (np.arange(gh) + 0.5) * (v1 - v0) / gh
     uu, vv = np.meshgrid(us, vs)
     return np.stack([uu.ravel(), vv.ravel()], 1), gw, gh
 
 
-def _coarse_masks(masks: np.ndarray, gw: int, gh: int) -> np.ndarray:
+def _coarse_masks(masks: np.ndarray, box: tuple[int, int, int, int], gw: int, gh: int) -> np.ndarray:
     import cv2
 
-    return np.stack([cv2.resize(m.astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA) for m in masks])
+    u0, v0, u1, v1 = box
+    return np.stack([cv2.resize(m[v0:v1, u0:u1].astype(np.float32), (gw, gh), interpolation=cv2.INTER_AREA)
+                     for m in masks])
 
 
 def _outside_distance(coarse: np.ndarray) -> np.ndarray:
@@ -224,15 +238,17 @@ class _Problem:
     """The tensors of one fit: coarse masks, distance fields, grid, camera, template."""
 
     def __init__(self, masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig) -> None:
-        uv, self.gw, self.gh = _grid(camera, cfg.grid)
-        coarse = _coarse_masks(masks, self.gw, self.gh)
-        self.target = torch.tensor(coarse.reshape(len(masks), -1), dtype=torch.float64)
-        self.outside = torch.tensor(_outside_distance(coarse), dtype=torch.float64)
-        self.uv = torch.tensor(uv, dtype=torch.float64)
-        self.K = torch.tensor(camera.K, dtype=torch.float64)
-        self.tau = max(camera.width, camera.height) / cfg.grid * 0.5
-        self.template = torch.tensor(dog_template(), dtype=torch.float64)
-        self.radii = torch.tensor(DOG_RADII, dtype=torch.float64)
+        self.box = mask_box(masks)
+        uv, self.gw, self.gh = _grid(self.box, cfg.grid)
+        coarse = _coarse_masks(masks, self.box, self.gw, self.gh)
+        dt = DTYPE
+        self.target = torch.tensor(coarse.reshape(len(masks), -1), dtype=dt)
+        self.outside = torch.tensor(_outside_distance(coarse), dtype=dt)
+        self.uv = torch.tensor(uv, dtype=dt)
+        self.K = torch.tensor(camera.K, dtype=dt)
+        self.tau = max(self.box[2] - self.box[0], self.box[3] - self.box[1]) / cfg.grid * 0.5
+        self.template = torch.tensor(dog_template(), dtype=dt)
+        self.radii = torch.tensor(DOG_RADII, dtype=dt)
         self.camera = camera
         self.twin = np.array([_twin(n) for n in DOG_NAMES])
 
@@ -254,11 +270,12 @@ def _losses(prob: _Problem, frames: np.ndarray, params: dict[str, torch.Tensor],
     bce = -(tgt * torch.log(occ.clamp(1e-5)) + (1 - tgt) * torch.log((1 - occ).clamp(1e-5))).mean()
     # points along segments must land inside the mask
     seg = np.flatnonzero(DOG_PARENTS >= 0)
-    s = torch.linspace(0, 1, 5, dtype=torch.float64)[None, None, :, None]
+    s = torch.linspace(0, 1, 5, dtype=DTYPE)[None, None, :, None]
     pts = joints[:, DOG_PARENTS[seg]][:, :, None] * (1 - s) + joints[:, seg][:, :, None] * s
     uv = pts[..., :2] / pts[..., 2:].clamp_min(1e-3) * prob.K[0, 0] + prob.K[:2, 2]
-    gx = uv[..., 0] / prob.camera.width * 2 - 1
-    gy = uv[..., 1] / prob.camera.height * 2 - 1
+    u0, v0, u1, v1 = prob.box
+    gx = (uv[..., 0] - u0) / (u1 - u0) * 2 - 1
+    gy = (uv[..., 1] - v0) / (v1 - v0) * 2 - 1
     grid = torch.stack([gx, gy], -1).reshape(len(frames), 1, -1, 2)
     dist = torch.nn.functional.grid_sample(prob.outside[frames][:, None], grid, align_corners=False,
                                            padding_mode="border")
@@ -284,7 +301,7 @@ def _run(prob: _Problem, frames: np.ndarray, params: dict[str, torch.Tensor], cf
         _, joints, occ = _losses(prob, frames, params, cfg)
     pred, tgt = occ > 0.5, prob.target[frames] > 0.5
     iou = ((pred & tgt).sum(1) / (pred | tgt).sum(1).clamp_min(1)).numpy()
-    return joints.numpy(), iou
+    return joints.numpy().astype(np.float64), iou
 
 
 def fit_quadruped(masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig, *, source: str,
@@ -311,7 +328,7 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig, *,
     if world_up is not None:
         up_cam = camera.world_to_cam[:3, :3] @ np.asarray(world_up, dtype=np.float64)
     root0 = _initial_root(masks[0], camera, cfg.template_length, up_cam)
-    dt = torch.float64
+    dt = DTYPE
     nj = len(DOG_PARENTS)
     best = None
     first = np.arange(min(cfg.start_frames, n))
@@ -345,11 +362,12 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig, *,
 def render_silhouettes(joints: np.ndarray, parents: np.ndarray, camera: Camera) -> np.ndarray:
     """(T, H, W) bool silhouettes of the template's capsules around ``joints`` (camera frame) at full size."""
     scale = float(np.linalg.norm(joints[0, 4] - joints[0, 24]))
-    uv, gw, gh = _grid(camera, max(camera.width, camera.height))
+    uv, gw, gh = _grid((0, 0, camera.width, camera.height), max(camera.width, camera.height))
     out = []
     with torch.no_grad():
         for t in range(len(joints)):  # one frame at a time: (S, P) distances at full resolution
-            occ = soft_silhouette(torch.tensor(joints[t: t + 1]), parents, torch.tensor(DOG_RADII * scale),
-                                  torch.tensor(camera.K), torch.tensor(uv), 0.5)
+            occ = soft_silhouette(torch.tensor(joints[t: t + 1], dtype=DTYPE), parents,
+                                  torch.tensor(DOG_RADII * scale, dtype=DTYPE), torch.tensor(camera.K, dtype=DTYPE),
+                                  torch.tensor(uv, dtype=DTYPE), 0.5)
             out.append(occ.numpy()[0].reshape(gh, gw) > 0.5)
     return np.stack(out)
