@@ -39,6 +39,7 @@ def test_part_mapping_scores_and_can_fail() -> None:
     assert passes([{"error": 2.9}], 0.96) and not passes([{"error": 3.1}], 0.99) and not passes([], 0.94)
 
 
+@pytest.mark.slow
 def test_a_tiny_mujoco_clip_has_the_laptop_layout(tmp_path: Path) -> None:
     import os
 

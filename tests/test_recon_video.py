@@ -193,6 +193,7 @@ def test_two_plate_hinge_is_found_and_followed() -> None:
     assert fit.means.shape == (len(fit.tracks.uv0), 3) and fit.seconds > 0
 
 
+@pytest.mark.slow
 def test_two_plate_slide_is_found_as_a_slide() -> None:
     fit, labels, travel = _fit("slide", 0.1)
     moving = 1 - fit.joints.root
