@@ -85,7 +85,9 @@ def test_yaml_builds(repo_root):
 
     from sync4d.registry import build
 
-    sim = build("sim", OmegaConf.load(repo_root / "conf/sim/mpm_warp.yaml"), device="cpu")
+    cfg = OmegaConf.load(repo_root / "conf/sim/mpm_warp.yaml")
+    cfg.pop("defaults", None)  # Hydra's schema line; the values come from MPMWarp.Config
+    sim = build("sim", cfg, device="cpu")
     assert isinstance(sim, MPMWarp) and sim.cfg.E == 1e4 and sim.cfg.control_grid == MPMWarp.Config().control_grid
     # the simulated time of a frame is the reference's frame interval unless set
     assert sim.cfg.frame_time is None and sim.frame_time_for(12.0) == pytest.approx(1 / 12)
