@@ -193,7 +193,7 @@ def clip_camera(tracks: dict[str, np.ndarray], view: str, width: int, height: in
     if "tail_base" in tracks:  # a quadruped faces from its tail to its head
         facing = (tracks["head"] - tracks["tail_base"]).mean(0)
     else:
-        facing = (tracks["l_toe"] + tracks["r_toe"]).mean(0) / 2 - tracks["l_ankle"].mean(0) / 2 - tracks["r_ankle"].mean(0) / 2
+        facing = 0.5 * (tracks["l_toe"] + tracks["r_toe"] - tracks["l_ankle"] - tracks["r_ankle"]).mean(0)
     facing[1] = 0.0
     facing = facing / np.linalg.norm(facing) if np.linalg.norm(facing) > 1e-6 else np.array([0.0, 0.0, 1.0])
     c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))

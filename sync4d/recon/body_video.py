@@ -171,7 +171,8 @@ class BodyVideoReconstructor:
             self._write_figures(source.video, fit, reference, np.linalg.inv(cam_to_world))
         return reference
 
-    def _write_figures(self, clip: VideoClip, fit: BodyVideoFit, reference: Reference, world_to_cam: np.ndarray) -> None:
+    def _write_figures(self, clip: VideoClip, fit: BodyVideoFit, reference: Reference,
+                       world_to_cam: np.ndarray) -> None:
         """Fit pictures into ``<run folder>/recon/`` when running under Hydra."""
         from hydra.core.hydra_config import HydraConfig
 

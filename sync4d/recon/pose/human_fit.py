@@ -50,7 +50,8 @@ PARENTS = np.array([p for _, p, _ in HUMAN_SKELETON], dtype=np.int64)
 KNEES = ((1, 3, 5), (2, 4, 6))
 # capsule radius of the segment ending at each joint as a fraction of the pelvis-neck-thigh-shin length
 # (an adult: 0.5 + 0.45 + 0.42 m; torso 0.13 m, thigh 0.075 m, ...): the body's silhouette for the mask term
-BODY_RADII = np.array([0, .10, .10, .075, .075, .055, .055, .035, .035, .13, .09, .06, .06, .045, .045, .04, .04]) / 1.37
+BODY_RADII = np.array(
+    [0, .10, .10, .075, .075, .055, .055, .035, .035, .13, .09, .06, .06, .045, .045, .04, .04]) / 1.37
 ELBOWS = ((11, 13, 15), (12, 14, 16))
 
 
