@@ -202,12 +202,20 @@ def _ply_columns(g: TargetGaussians) -> list[tuple[str, np.ndarray]]:
 
 
 def gaussians_table(gaussians: TargetGaussians) -> np.ndarray:
-    """(N,) structured float32 array of the Inria properties, in file order."""
-    cols = _ply_columns(gaussians)
-    data = np.empty(gaussians.num, dtype=[(n, "<f4") for n, _ in cols])
-    for n, values in cols:
-        data[n] = values
-    return data
+    """(N,) structured float32 array of the Inria properties, in file order.
+
+    Built as one contiguous (N, P) float32 matrix from a few block copies and viewed as the structured
+    type (assigning P strided columns one by one took 2.8 s for 2 M Gaussians).
+    """
+    g = gaussians
+    k = g.sh.shape[1]
+    blocks = [g.means] + ([g.normals] if g.normals is not None else []) + [g.sh[:, 0, :]]
+    if k > 1:  # channel-major: all R coefficients, then G, then B
+        blocks.append(np.transpose(g.sh[:, 1:, :], (0, 2, 1)).reshape(g.num, 3 * (k - 1)))
+    blocks += [g.opacity_logits[:, None], g.log_scales, g.quats]
+    matrix = np.concatenate([np.asarray(b, dtype="<f4") for b in blocks], axis=1)
+    names = [n for n, _ in _ply_columns(g)]
+    return matrix.view(np.dtype([(n, "<f4") for n in names])).reshape(g.num)
 
 
 def write_gaussians_ply(path: str | os.PathLike[str], gaussians: TargetGaussians) -> Path:
