@@ -78,7 +78,7 @@ class VideoReconstructor:
 
         Attributes:
             bones: number of parts B (>= 1), the root (base) included.
-            seed: seed of the stage generators (grid jitter-free sampling of cover pixels).
+            seed: seed of the generator that samples the mask pixels of the cover term (the only random choice).
             opacity: opacity of the output Gaussians.
             masks, tracks, init, fit: the stages' blocks (:class:`MaskConfig`, :class:`TrackConfig`,
                 :class:`InitConfig`, :class:`FitConfig`).
