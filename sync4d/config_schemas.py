@@ -43,5 +43,8 @@ def register_schemas() -> None:
             store.store(group=group, name=schema_name(name), node=node)
     from sync4d.match import MatchConfig
 
+    from sync4d.transfer import TransferConfig
+
     store.store(group="match", name="defaults", node=omegaconf_schema(MatchConfig))
+    store.store(group="transfer", name="defaults", node=omegaconf_schema(TransferConfig))
     _registered = True

@@ -197,6 +197,15 @@ def match_config(cfg: DictConfig) -> Any:
                         label="match").validate()
 
 
+def transfer_config(cfg: DictConfig) -> Any:
+    """The run's typed :class:`sync4d.transfer.TransferConfig` (defaults from the code, ``transfer.*``)."""
+    from sync4d.registry import typed_config
+    from sync4d.transfer import TransferConfig
+
+    return typed_config(TransferConfig, OmegaConf.to_container(cfg.transfer, resolve=True), where="transfer",
+                        label="transfer")
+
+
 def reference_to_target_rotation(part_map: PartMap) -> np.ndarray:
     """(3, 3) rotation taking the reference's frame to the target's: the one matching aligned them with.
 
@@ -281,7 +290,7 @@ def check_components(cfg: DictConfig) -> dict[str, Any]:
             raise ConfigError(f"{key}={cfg.get(key)!r}: must be one of {', '.join(allowed)}")
     shrink = cfg.get("shrink") or {}
     built = {group: make_config(group, cfg[group], shrink=shrink.get(group))[1] for group in GROUPS if group in cfg}
-    return {**built, "match": match_config(cfg)}
+    return {**built, "match": match_config(cfg), "transfer": transfer_config(cfg)}
 
 
 def check_device(device: str) -> None:
@@ -389,7 +398,8 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
     simulator = build("sim", sim_cfg, device=cfg.device)
     trajectory = simulator.run(
         target, part_map, motion,
-        velocity_cfg=group_cfg(cfg, "velocity"), num_frames=int(cfg.frames), on_frame=writer.on_frame,
+        velocity_cfg=group_cfg(cfg, "velocity"), num_frames=int(cfg.frames), transfer=transfer_config(cfg),
+        seed=int(cfg.seed), on_frame=writer.on_frame,
         resume=writer.resume_state(cfg.get("resume")),
     )
     result = writer.finish(trajectory, reference=reference, part_map=part_map, cfg=cfg,

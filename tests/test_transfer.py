@@ -12,7 +12,7 @@ from sync4d.scenes.laptop import laptop_mesh, laptop_reference
 from sync4d.io.mesh import mesh_to_gaussians
 from sync4d.sim.lbs import LinearBlendSkinning
 from sync4d.sim.mpm_warp import MPMWarp
-from sync4d.transfer import anchor_weights, initial_velocity, make_particles
+from sync4d.transfer import PAPER, anchor_weights, initial_velocity, make_particles
 from sync4d.types import PartMap
 
 
@@ -30,11 +30,10 @@ def tiny_scene():
 def test_loss_decreases_in_every_frame(tiny_scene):
     ref, target, part_map, motion = tiny_scene
     # The paper's own setting: one velocity per part, L1 on part centroids, relative targets.
-    sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4, init="centroid", loss_points="centroid",
-                                 target_mode="relative"), device="cpu")
+    sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4), device="cpu")
     stats = []
     velocity = {"type": "per_part", "iterations": 15, "lr": 0.5, "patience": 15, "velocity_scale": 0.3}
-    sim.run(target, part_map, motion, velocity_cfg=velocity, num_frames=3,
+    sim.run(target, part_map, motion, velocity_cfg=velocity, num_frames=3, transfer=PAPER,
             on_frame=lambda t, x, F, s, checkpoint=None: stats.append(s))
     assert len(stats) == 3
     for s in stats[1:]:
@@ -44,7 +43,7 @@ def test_loss_decreases_in_every_frame(tiny_scene):
 def test_untrained_rigid_init_follows_the_hinge(tiny_scene):
     """With the bone's rigid velocity field and no training the lid still tracks the reference closely."""
     ref, target, part_map, motion = tiny_scene
-    sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4, init="rigid"), device="cpu")
+    sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4), device="cpu")  # transfer.init=rigid: the default
     traj = sim.run(target, part_map, motion, velocity_cfg={"type": "none"}, num_frames=3)
     m = compute_metrics(traj, target, part_map, motion, ref, self_transfer=True, frame_seconds=[0.0] * 3)
     assert m["pose_error_max_pct"] < 2.0

@@ -2,7 +2,7 @@
 
 The same particles as ``sim=mpm_warp`` (control points split by part, :func:`sync4d.transfer.make_particles`)
 start every frame pair on the same initial velocities (:func:`sync4d.transfer.initial_velocity`) and fly
-freely for the frame: x <- x + N dt v, F <- (I + N dt C) F. With ``init: rigid`` that is exactly each
+freely for the frame: x <- x + N dt v, F <- (I + N dt C) F. With ``transfer.init=rigid`` that is exactly each
 part's rigid step, so every particle moves with its part's rigid motion. Whatever ``sim=mpm_warp``
 does beyond this comes from the grid and the stress; this is the reference point that shows it.
 """
@@ -12,13 +12,14 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from sync4d.errors import ConfigError
 from sync4d.registry import register
 from sync4d.sim.control import carry_gaussians, gaussian_covariances
+from sync4d.transfer.config import TransferConfig
 from sync4d.types import DrivingMotion, PartMap, TargetGaussians, Trajectory
 
 
@@ -30,12 +31,10 @@ class Kinematic:
     class Config:
         """Attributes:
         control_grid: control-point lattice cells per axis (as ``sim=mpm_warp``), or null for every Gaussian.
-        init: initial velocities: ``rigid`` (the bone's rigid velocity field) or ``centroid`` (the paper's
-            one velocity per part, which turns no part).
+        (The initial velocities follow ``transfer.init``, as the MPM's do.)
         """
 
         control_grid: int | None = 40
-        init: Literal["rigid", "centroid"] = "rigid"
 
         def validate(self) -> None:
             if self.control_grid is not None and self.control_grid < 1:
@@ -53,11 +52,16 @@ class Kinematic:
         *,
         velocity_cfg: Any = None,
         num_frames: int,
+        transfer: TransferConfig | None = None,
+        seed: int = 0,
         on_frame: Callable[..., None] | None = None,
         resume: dict[str, Any] | None = None,
     ) -> Trajectory:
-        """Free flight of every frame pair; ``velocity_cfg`` is ignored (nothing is optimised)."""
+        """Free flight of every frame pair from ``transfer.init``'s velocities; nothing is optimised, so
+        ``velocity_cfg`` and ``seed`` are unused."""
         from sync4d.transfer import initial_velocity, make_particles
+
+        init = (transfer or TransferConfig()).init
 
         particles = make_particles(target, part_map, self.cfg.control_grid)
         rest = particles.points
@@ -72,7 +76,7 @@ class Kinematic:
                 P_t, P_next = motion.part_transforms[t - 1], motion.part_transforms[t]
                 step = P_next @ np.linalg.inv(P_t)
                 v0, C0 = initial_velocity(x, particles.part, step, motion.part_displacements[t - 1], frame_time,
-                                          self.cfg.init)
+                                          init)
                 x = x + frame_time * v0
                 F = (np.eye(3)[None] + frame_time * C0) @ F
             means_t, _ = carry_gaussians(means0, cov0, particles.gaussian_to_point, rest, x, F)

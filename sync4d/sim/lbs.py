@@ -54,9 +54,13 @@ class LinearBlendSkinning:
         *,
         velocity_cfg: Any = None,
         num_frames: int,
+        transfer: Any = None,
+        seed: int = 0,
         on_frame: Callable[..., None] | None = None,
         resume: dict[str, Any] | None = None,
     ) -> Trajectory:
+        """Point-wise skinning of every frame; nothing is simulated or optimised (``velocity_cfg``,
+        ``transfer`` and ``seed`` are unused)."""
         rest = target.means.astype(np.float64)
         weights = smoothed_part_weights(rest, part_map.tgt_part, part_map.num_parts, self.cfg.neighbours)
         xs, fs = [], []

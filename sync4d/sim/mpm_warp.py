@@ -448,10 +448,6 @@ class MPMWarp:
         checkpoint_budget_mb: float = 512.0
         sort_particles: bool = True
         refit_grid: bool = True
-        # Motion transfer (sync4d.transfer): how each frame pair is initialised and supervised.
-        init: str = "rigid"  # centroid (paper: one velocity per part) | rigid (the bone's rigid velocity field)
-        loss_points: str = "particles"  # centroid (paper) | anchors (centroid + 6 half-space centroids) | particles (every particle)
-        target_mode: str = "absolute"  # relative (paper: the reference's step from the current state) | absolute (pose at t+1)
 
         def validate(self) -> None:
             """Raise :class:`ConfigError` naming the offending ``sim.*`` key."""
@@ -480,11 +476,6 @@ class MPMWarp:
                 raise ConfigError(f"sim.control_grid={self.control_grid}: must be >= 1, or null to simulate every Gaussian")
             if len(self.gravity) != 3:
                 raise ConfigError(f"sim.gravity={self.gravity}: expected 3 values [m/s^2]")
-            for key, value, allowed in (("init", self.init, ("centroid", "rigid")),
-                                        ("loss_points", self.loss_points, ("centroid", "anchors", "particles")),
-                                        ("target_mode", self.target_mode, ("relative", "absolute"))):
-                if value not in allowed:
-                    raise ConfigError(f"sim.{key}={value!r}: must be one of {', '.join(allowed)}")
             if self.checkpoint_every is not None and self.checkpoint_every < 1:
                 raise ConfigError(f"sim.checkpoint_every={self.checkpoint_every}: must be >= 1, or null (from the budget)")
             if not self.checkpoint_budget_mb > 0:
@@ -808,7 +799,7 @@ class MPMWarp:
     # -- the transfer loop (issue 5) ---------------------------------------------------------------
 
     def run(self, target: Any, part_map: Any, motion: Any, **kwargs: Any) -> Any:
-        """Motion transfer loop; implemented in :mod:`sync4d.transfer`."""
+        """The transfer stage's frame-pair loop through this simulator (:mod:`sync4d.transfer`)."""
         from sync4d.transfer import run_mpm_transfer
 
         return run_mpm_transfer(self, target, part_map, motion, **kwargs)

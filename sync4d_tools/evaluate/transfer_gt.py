@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from sync4d.transfer import PAPER, TransferConfig
 from sync4d.errors import ConfigError
 from sync4d.io.mesh import mesh_to_gaussians
 from sync4d.io.mocap import SkeletonMotion
@@ -210,28 +211,29 @@ def load_pair(name: str, num_frames: int, gaussians: int) -> GTPair:
     raise ConfigError(f"transfer_gt --pairs: unknown pair '{name}'; use {', '.join(PAIRS)}")
 
 
-def method_configs(name: str, mpm: dict[str, Any] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(sim config, velocity config) of a method; MPM methods use the simulator's defaults otherwise.
+def method_configs(name: str, mpm: dict[str, Any] | None = None
+                   ) -> tuple[dict[str, Any], dict[str, Any], TransferConfig]:
+    """(sim config, velocity config, transfer options) of a method; MPM methods use the simulator's
+    defaults otherwise.
 
-    ``mpm`` overrides keys of every ``sim=mpm_warp`` method (one setting for the whole suite; the paper's
-    own three options stay the paper's).
+    ``mpm`` overrides keys of every ``sim=mpm_warp`` method (one setting for the whole suite); the paper's
+    form keeps its own transfer options (:data:`sync4d.transfer.PAPER`).
     """
     triplane = {"type": "triplane", **TRAIN}
-    table: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
-        "lbs_hard": ({"type": "lbs", "neighbours": 1}, {"type": "none"}),
-        "lbs_smooth": ({"type": "lbs", "neighbours": 16}, {"type": "none"}),
-        "kinematic": ({"type": "kinematic"}, {"type": "none"}),
-        "mpm_none": ({"type": "mpm_warp"}, {"type": "none"}),
-        "mpm_triplane": ({"type": "mpm_warp"}, triplane),
-        "paper": ({"type": "mpm_warp", "init": "centroid", "loss_points": "centroid", "target_mode": "relative"},
-                  triplane),
+    table: dict[str, tuple[dict[str, Any], dict[str, Any], TransferConfig]] = {
+        "lbs_hard": ({"type": "lbs", "neighbours": 1}, {"type": "none"}, TransferConfig()),
+        "lbs_smooth": ({"type": "lbs", "neighbours": 16}, {"type": "none"}, TransferConfig()),
+        "kinematic": ({"type": "kinematic"}, {"type": "none"}, TransferConfig()),
+        "mpm_none": ({"type": "mpm_warp"}, {"type": "none"}, TransferConfig()),
+        "mpm_triplane": ({"type": "mpm_warp"}, triplane, TransferConfig()),
+        "paper": ({"type": "mpm_warp"}, triplane, PAPER),
     }
     if name not in table:
         raise ConfigError(f"transfer_gt --methods: unknown method '{name}'; use {', '.join(METHODS)}")
-    sim_cfg, vel_cfg = table[name]
+    sim_cfg, vel_cfg, transfer = table[name]
     if mpm and sim_cfg["type"] == "mpm_warp":
-        sim_cfg = {**sim_cfg, **{k: v for k, v in mpm.items() if not (name == "paper" and k in sim_cfg)}}
-    return sim_cfg, vel_cfg
+        sim_cfg = {**sim_cfg, **mpm}
+    return sim_cfg, vel_cfg, transfer
 
 
 def parse_overrides(text: str) -> dict[str, Any]:
@@ -289,9 +291,8 @@ def score_truth(pair: GTPair, num_frames: int) -> dict[str, Any]:
 def run_method(pair: GTPair, method: str, num_frames: int, mpm: dict[str, Any] | None = None) -> dict[str, Any]:
     """Run one method on one pair and score it against the pair's truth (frames 1..T)."""
     motion = pair_motion(pair, num_frames)
-    sim_cfg, vel_cfg = method_configs(method, mpm)
+    sim_cfg, vel_cfg, transfer = method_configs(method, mpm)
     sim = build("sim", sim_cfg, device="cpu")
-    torch_seed(0)
     seconds: list[float] = []
     last = [time.perf_counter()]
 
@@ -300,15 +301,9 @@ def run_method(pair: GTPair, method: str, num_frames: int, mpm: dict[str, Any] |
         seconds.append(now - last[0])
         last[0] = now
 
-    traj = sim.run(pair.target, pair.part_map, motion, velocity_cfg=vel_cfg, num_frames=num_frames, on_frame=on_frame)
+    traj = sim.run(pair.target, pair.part_map, motion, velocity_cfg=vel_cfg, num_frames=num_frames, transfer=transfer,
+                   seed=0, on_frame=on_frame)
     return score(pair, traj, motion, seconds)
-
-
-def torch_seed(seed: int) -> None:
-    """The velocity fields draw their initial weights from torch's generator: same seed, same numbers."""
-    import torch
-
-    torch.manual_seed(seed)
 
 
 def write_charts(results: dict[str, dict[str, dict[str, Any]]], folder: Path) -> list[str]:

@@ -1,4 +1,4 @@
-"""Physics-integrated motion transfer (paper Sec. 3.4): frame-pair training of a delta-velocity field.
+"""The transfer loop (paper Sec. 3.4): frame-pair training of a delta-velocity field through the simulator.
 
 For each frame pair t -> t+1:
   1. every simulated particle (a control point or a Gaussian) of part b starts with the reference
@@ -12,11 +12,11 @@ For each frame pair t -> t+1:
   4. Adam updates the field until the loss stops improving; the best field advances the state
      (x, F, C; v is re-initialised at the next pair), and the frame is handed to ``on_frame``.
 
-Initial velocities (``init``): ``centroid`` is the paper's v0 = (b_{t+1} - b_t) / (N dt) per part;
+Initial velocities (``transfer.init``): ``centroid`` is the paper's v0 = (b_{t+1} - b_t) / (N dt) per part;
 ``rigid`` uses the whole rigid motion of the part's bone, v0(x) = (T_rel x - x) / (N dt) with
 T_rel = P_{t+1} P_t^{-1}, and the matching APIC matrix C = (R_rel - I) / (N dt).
 
-Targets (``target_mode``): ``relative`` moves the current anchors by the reference's step (the paper:
+Targets (``transfer.target_mode``): ``relative`` moves the current anchors by the reference's step (the paper:
 errors accumulate), ``absolute`` moves the rest anchors by the reference's pose at t+1 (drift is
 corrected at every pair).
 """
@@ -35,6 +35,7 @@ import torch
 
 from sync4d.registry import build
 from sync4d.sim.control import carry_gaussians, gaussian_covariances, make_control_points
+from sync4d.transfer.config import TransferConfig
 from sync4d.types import DrivingMotion, PartMap, TargetGaussians, Trajectory
 
 log = logging.getLogger(__name__)
@@ -142,15 +143,6 @@ class PartLoss:
         return total
 
 
-@dataclass
-class TransferConfig:
-    """The transfer options read from ``sim`` (see ``conf/sim/mpm_warp.yaml``)."""
-
-    init: str = "rigid"             # centroid (paper) | rigid
-    loss_points: str = "anchors"    # centroid (paper) | anchors
-    target_mode: str = "absolute"   # relative (paper) | absolute
-
-
 def run_mpm_transfer(
     sim: Any,
     target: TargetGaussians,
@@ -159,22 +151,24 @@ def run_mpm_transfer(
     *,
     velocity_cfg: Any,
     num_frames: int,
+    transfer: TransferConfig | None = None,
+    seed: int = 0,
     on_frame: Callable[..., None] | None = None,
     resume: dict[str, Any] | None = None,
 ) -> Trajectory:
-    """Frame-pair training through the differentiable simulator ``sim`` (``sim=mpm_warp``)."""
+    """Frame-pair training through the differentiable simulator ``sim`` (``sim=mpm_warp``).
+
+    ``transfer`` holds the stage's options (defaults when None); ``seed`` draws the velocity field's
+    initial weights.
+    """
     cfg = sim.cfg
-    options = TransferConfig(
-        init=getattr(cfg, "init", "rigid"),
-        loss_points=getattr(cfg, "loss_points", "anchors"),
-        target_mode=getattr(cfg, "target_mode", "absolute"),
-    )
+    options = transfer if transfer is not None else TransferConfig()
     particles = make_particles(target, part_map, cfg.control_grid)
     B = part_map.num_parts
     model = sim.prepare(particles.points, volume=particles.volume)
     grid = model.grid
     lo, hi = grid.origin, grid.origin + (np.asarray(grid.dims) - 1) * grid.dx
-    field = build("velocity", velocity_cfg, num_parts=B, bounds=(lo, hi))
+    field = build("velocity", velocity_cfg, num_parts=B, bounds=(lo, hi), seed=seed)
     initial_field = {k: v.clone() for k, v in field.state_dict().items()}
     optimizer = torch.optim.Adam(field.parameters(), lr=float(getattr(field.cfg, "lr", 1e-2))) if field.trainable else None
 
