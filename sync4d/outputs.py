@@ -124,12 +124,14 @@ class FrameWriter:
         return {**payload["sim"], "frame": int(payload["frame"])}
 
     # ------------------------------------------------------------------------------------------ final
-    def finish(self, trajectory: Trajectory, *, reference: Reference, part_map: PartMap, cfg: DictConfig,
-               overrides: dict[str, str], wall_seconds: float) -> dict[str, Any]:
-        """Write ``trajectory.npz`` and ``metrics.json``, render videos, export, log hparams.
+    def finish(self, trajectory: Trajectory, *, reference: Reference, part_map: PartMap, self_transfer: bool,
+               loop: bool, run_name: str, overrides: dict[str, str], wall_seconds: float,
+               extra: dict[str, Any] | None = None) -> tuple[dict[str, Any], Trajectory]:
+        """Write ``trajectory.npz`` and ``metrics.json`` (with ``extra`` merged in) and log the metrics and hparams.
 
         The trajectory is rebuilt from the frames this writer received (all of them, including those
         restored on resume); the simulator's own ``trajectory`` supplies the frame interval and velocities.
+        Returns the metrics and that whole trajectory (what the renders and exports are made from).
         """
         full_F = None if self.frames_F[0] is None else np.stack(self.frames_F)
         trajectory = Trajectory(
@@ -148,9 +150,9 @@ class FrameWriter:
         )
         result = compute_metrics(
             trajectory, self.target, part_map, self.motion, reference,
-            self_transfer=bool(cfg.get("self_transfer", False)),
+            self_transfer=self_transfer,
             frame_seconds=self.frame_seconds,
-            loop=bool(cfg.get("loop_reference", True)),
+            loop=loop,
             dx=next((row["sim/dx"] for row in self.frame_stats if "sim/dx" in row), None),
         )
         result["wall_seconds"] = wall_seconds
@@ -159,21 +161,17 @@ class FrameWriter:
         result["frame_stats"] = self.frame_stats
         dx = [row["sim/dx"] for row in self.frame_stats if "sim/dx" in row]
         result["dx"] = dx[0] if dx else None
+        result.update(extra or {})
         atomic_write_json(self.run_dir / "metrics.json", result)
         if self.logger is not None:
             for t, row in enumerate(result["per_frame"]):
                 for key, value in row.items():
                     if value is not None and np.isfinite(value):
                         self.logger.scalar(f"metric/{key}", value, t)
-            self.logger.hparams(overrides or {"config": cfg.get("name", "run")},
+            self.logger.hparams(overrides or {"config": run_name},
                                 {k: v for k, v in result.items() if isinstance(v, (int, float))})
-        if cfg.get("render_video", True):
-            from sync4d.render_outputs import render_run_outputs
-
-            render_run_outputs(self.run_dir, cfg, self.target, trajectory, self.motion, reference, part_map=part_map,
-                               logger=self.logger)
         log.info("metrics: %s", {k: v for k, v in result.items() if k.endswith(("_pct", "_ratio", "deviation", "per_frame_s"))})
-        return result
+        return result, trajectory
 
 
 def state_path(run_dir: Path, t: int) -> Path:

@@ -402,11 +402,18 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
         seed=int(cfg.seed), on_frame=writer.on_frame,
         resume=writer.resume_state(cfg.get("resume")),
     )
-    result = writer.finish(trajectory, reference=reference, part_map=part_map, cfg=cfg,
-                           overrides=overrides_of(cfg), wall_seconds=time.perf_counter() - started)
-    if (ctx.run_dir / FLOATERS).is_file():
-        result["floaters"] = load_json(ctx.run_dir / FLOATERS)
-        atomic_write_json(ctx.run_dir / "metrics.json", result)
+    floaters = ctx.run_dir / FLOATERS
+    result, trajectory = writer.finish(
+        trajectory, reference=reference, part_map=part_map, self_transfer=bool(cfg.self_transfer),
+        loop=bool(cfg.loop_reference), run_name=str(cfg.name), overrides=overrides_of(cfg),
+        wall_seconds=time.perf_counter() - started,
+        extra={"floaters": load_json(floaters)} if floaters.is_file() else None,
+    )
+    if cfg.render_video:
+        from sync4d.render_outputs import render_run_outputs
+
+        render_run_outputs(ctx.run_dir, cfg, target, trajectory, motion, reference, part_map=part_map,
+                           logger=ctx.logger)
     return result
 
 
