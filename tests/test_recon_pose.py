@@ -167,3 +167,16 @@ def test_quadruped_fit_on_template_silhouettes() -> None:
     fit = qf.fit_quadruped(masks, camera, cfg, source="template")
     assert fit.iou.mean() > 0.6 and fit.joints.shape == cam.shape and np.isfinite(fit.joints).all()
     assert np.isfinite(joint_errors(fit.joints, cam)).all()
+
+
+def test_reference_video_auto_companions(tmp_path: Path) -> None:
+    """reference=video with masks/camera 'auto': taken from beside the video when there, else none."""
+    from sync4d.io.video import write_video
+    from sync4d.registry import build
+
+    frames = np.full((2, 16, 24, 3), 100, np.uint8)
+    write_video(tmp_path / "clip.mp4", frames, 10.0)
+    alone = build("reference", {"type": "video", "video": str(tmp_path / "clip.mp4")}).load()
+    assert alone.camera is None and not alone.video.masks.any()
+    laptop = build("reference", {"type": "video"}).load()  # the default video has masks/ and gt.npz beside it
+    assert laptop.camera is not None and laptop.video.masks.any()
