@@ -52,7 +52,7 @@ def test_sh_rest_is_channel_major(tmp_path):
     path = write_gaussians_ply(tmp_path / "g.ply", g)
     raw = path.read_bytes()
     header_end = raw.index(b"end_header\n") + len(b"end_header\n")
-    names = [l.split()[-1] for l in raw[:header_end].decode().splitlines() if l.startswith("property")]
+    names = [line.split()[-1] for line in raw[:header_end].decode().splitlines() if line.startswith("property")]
     row0 = np.frombuffer(raw[header_end:], dtype="<f4", count=len(names))
     values = dict(zip(names, row0))
     # f_rest_0..2 are the R channel of SH coefficients 1..3.

@@ -108,7 +108,6 @@ def kirchhoff_adjoint(F: wp.mat33, R: wp.mat33, mu: float, lam: float, adj_tau: 
     y = (tr(S) I - S)^-1 axial(R^T Rbar) and axial(M) = (M32 - M23, M13 - M31, M21 - M12).
     """
     G = adj_tau
-    Ft = wp.transpose(F)
     adj_F = 2.0 * mu * ((G + wp.transpose(G)) * F - wp.transpose(G) * R)
     Rbar = -2.0 * mu * (G * F)
     # J = det F: dJ = J tr(F^-1 dF), i.e. dJ/dF = cofactor(F)
