@@ -86,15 +86,21 @@ class MatchConfig:
 
     def validate(self) -> MatchConfig:
         """Raise ConfigError naming the first bad option."""
-        choices = {"method": METHODS, "up_axis": ("x", "y", "z"), "align": ("none", "pca", "pca_icp", "upright_icp"),
-                   "tie_break": TIE_BREAKS, "box_frame": BOX_FRAMES}
+        choices = {
+            "method": METHODS,
+            "up_axis": ("x", "y", "z"),
+            "align": ("none", "pca", "pca_icp", "upright_icp"),
+            "tie_break": TIE_BREAKS,
+            "box_frame": BOX_FRAMES,
+        }
         for key, allowed in choices.items():
             if getattr(self, key) not in allowed:
                 raise ConfigError(f"match.{key}={getattr(self, key)!r}: use one of {', '.join(allowed)}")
         prototype_count(self.prototypes)
         if self.icp_iterations < 1 or self.max_target_vertices < 16 or self.structure.yaw_steps < 1:
-            raise ConfigError("match.icp_iterations, match.structure.yaw_steps must be >= 1 and "
-                              "match.max_target_vertices >= 16")
+            raise ConfigError(
+                "match.icp_iterations, match.structure.yaw_steps must be >= 1 and " "match.max_target_vertices >= 16"
+            )
         if self.structure.skeleton.samples < 64 or self.structure.skeleton.neighbours < 3:
             raise ConfigError("match.structure.skeleton.samples must be >= 64 and .neighbours >= 3")
         return self
@@ -161,8 +167,14 @@ class MatchDiagnostics:
             "gaussians_in_several_boxes": float((self.gaussian_status == IN_SEVERAL_BOXES).sum() / n),
             "gaussians_orphan": float((self.gaussian_status == ORPHAN).sum() / n),
             "parts_matched": float(self.box_valid.sum()),
-            **({"limbs_matched": float(len(self.structure.pairs)), "limbs_left_over": float(len(self.structure.leftover))}
-               if self.structure is not None else {}),
+            **(
+                {
+                    "limbs_matched": float(len(self.structure.pairs)),
+                    "limbs_left_over": float(len(self.structure.leftover)),
+                }
+                if self.structure is not None
+                else {}
+            ),
         }
 
 
@@ -325,8 +337,13 @@ def assign_by_similarity(similarity: np.ndarray, present: np.ndarray | None = No
 
 
 def smooth_labels(
-    points: np.ndarray, labels: np.ndarray, similarity: np.ndarray, num_parts: int, neighbours: int,
-    *, iterations: int = 3,
+    points: np.ndarray,
+    labels: np.ndarray,
+    similarity: np.ndarray,
+    num_parts: int,
+    neighbours: int,
+    *,
+    iterations: int = 3,
 ) -> np.ndarray:
     """Relabel each point by the vote of its ``neighbours`` nearest points, weighted by their similarity.
 
@@ -348,8 +365,9 @@ def smooth_labels(
     out = labels.copy()
     for _ in range(iterations):
         votes = np.zeros((len(points), num_parts))
-        np.add.at(votes, (np.repeat(np.arange(len(points)), k), out[idx].ravel()),
-                  weight[idx.ravel(), out[idx].ravel()])
+        np.add.at(
+            votes, (np.repeat(np.arange(len(points)), k), out[idx].ravel()), weight[idx.ravel(), out[idx].ravel()]
+        )
         new = np.argmax(votes, axis=1)
         if np.array_equal(new, out):
             break
@@ -393,7 +411,13 @@ def remove_outliers(points: np.ndarray, labels: np.ndarray, num_parts: int, sigm
 
 
 def part_boxes(
-    points: np.ndarray, labels: np.ndarray, keep: np.ndarray, num_parts: int, *, frame: str = "aligned", padding: float = 0.0
+    points: np.ndarray,
+    labels: np.ndarray,
+    keep: np.ndarray,
+    num_parts: int,
+    *,
+    frame: str = "aligned",
+    padding: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Bounding box of the kept points of each part.
 
@@ -541,14 +565,20 @@ def target_surface(
     return target.means[index].astype(np.float64), index
 
 
-def _target_points(target: TargetGaussians, cfg: MatchConfig, target_vertices: np.ndarray | None,
-                   target_faces: np.ndarray | None, seed: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+def _target_points(
+    target: TargetGaussians,
+    cfg: MatchConfig,
+    target_vertices: np.ndarray | None,
+    target_faces: np.ndarray | None,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Target surface vertices (M, 3) [m], their Gaussian index (or None for a mesh) and faces (or None)."""
     if target_vertices is None:
         if target_faces is not None:
             raise InputError("match_parts: target_faces given without target_vertices")
-        points, index = target_surface(target, max_vertices=cfg.max_target_vertices, min_opacity=cfg.min_opacity,
-                                       seed=seed)
+        points, index = target_surface(
+            target, max_vertices=cfg.max_target_vertices, min_opacity=cfg.min_opacity, seed=seed
+        )
         return points, index, None
     faces = None if target_faces is None else np.asarray(target_faces, dtype=np.int64)
     return np.asarray(target_vertices, dtype=np.float64), None, faces
@@ -587,17 +617,28 @@ def match_parts(
     return _match_by_features(reference, target, extractor, cfg, target_vertices, target_faces, seed)
 
 
-def match_parts_detailed(reference: Reference, target: TargetGaussians, extractor: FeatureExtractor | None,
-                         config: MatchConfig | None = None, **kwargs: object) -> MatchResult:
+def match_parts_detailed(
+    reference: Reference,
+    target: TargetGaussians,
+    extractor: FeatureExtractor | None,
+    config: MatchConfig | None = None,
+    **kwargs: object,
+) -> MatchResult:
     """Alias of :func:`match_parts` (kept for callers of the earlier name)."""
     return match_parts(reference, target, extractor, config, **kwargs)  # type: ignore[arg-type]
 
 
-def _finish(reference: Reference, target: TargetGaussians, tgt_part: np.ndarray, confidence: np.ndarray,
-            diagnostics: MatchDiagnostics) -> MatchResult:
+def _finish(
+    reference: Reference,
+    target: TargetGaussians,
+    tgt_part: np.ndarray,
+    confidence: np.ndarray,
+    diagnostics: MatchDiagnostics,
+) -> MatchResult:
     num_parts = reference.num_bones
-    part_map = PartMap(ref_part=reference.part_labels(), tgt_part=tgt_part, confidence=confidence,
-                       num_parts=num_parts).validate()
+    part_map = PartMap(
+        ref_part=reference.part_labels(), tgt_part=tgt_part, confidence=confidence, num_parts=num_parts
+    ).validate()
     got = np.bincount(tgt_part, minlength=num_parts) > 0
     leftover = tuple(int(b) for b in np.flatnonzero(~got))
     log.info("match: %s", ", ".join(f"{k}={v:.4g}" for k, v in diagnostics.summary().items()))
@@ -608,8 +649,7 @@ def _finish(reference: Reference, target: TargetGaussians, tgt_part: np.ndarray,
     return MatchResult(part_map, diagnostics, alignment, leftover)
 
 
-def surface_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int,
-                    rng: np.random.Generator) -> np.ndarray:
+def surface_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int, rng: np.random.Generator) -> np.ndarray:
     """(count, 3) area-uniform samples of a mesh, or a random subset of the points when there are no faces."""
     if faces is None or len(faces) == 0:
         if len(vertices) <= count:
@@ -626,19 +666,29 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int,
     return np.einsum("sk,skd->sd", bary, tri[face])
 
 
-def skeleton_points(vertices: np.ndarray, faces: np.ndarray | None, cfg: SkeletonConfig,
-                    rng: np.random.Generator) -> np.ndarray:
+def skeleton_points(
+    vertices: np.ndarray, faces: np.ndarray | None, cfg: SkeletonConfig, rng: np.random.Generator
+) -> np.ndarray:
     """The points a curve skeleton is built on: voxels of the solid (``cfg.volume`` and a mesh), else
     surface samples or the given points, subsampled to ``cfg.samples``."""
+    return skeleton_points_depth(vertices, faces, cfg, rng)[0]
+
+
+def skeleton_points_depth(
+    vertices: np.ndarray, faces: np.ndarray | None, cfg: SkeletonConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`skeleton_points` and, for voxels of the solid, each one's depth inside it [m] (else None)."""
+    depth = None
     if cfg.volume and faces is not None and len(faces):
-        pts = volume_points(vertices, faces, cfg.resolution, rng)
+        pts, depth = volume_points(vertices, faces, cfg.resolution, rng, with_depth=True)
     elif cfg.volume:
-        pts = cloud_volume_points(vertices, cfg.resolution)
+        pts, depth = cloud_volume_points(vertices, cfg.resolution, with_depth=True)
     else:
         pts = surface_samples(vertices, faces, cfg.samples, rng)
     if len(pts) > cfg.samples:
-        pts = pts[rng.choice(len(pts), cfg.samples, replace=False)]
-    return pts
+        keep = rng.choice(len(pts), cfg.samples, replace=False)
+        pts, depth = pts[keep], None if depth is None else depth[keep]
+    return pts, depth
 
 
 def label_agreement(points: np.ndarray, labels: np.ndarray, neighbours: int = 8) -> np.ndarray:
@@ -648,34 +698,55 @@ def label_agreement(points: np.ndarray, labels: np.ndarray, neighbours: int = 8)
     return (labels[idx.reshape(len(points), k)] == labels[:, None]).mean(axis=1)
 
 
-def _match_by_structure(reference: Reference, target: TargetGaussians, cfg: MatchConfig,
-                        target_vertices: np.ndarray | None, target_faces: np.ndarray | None,
-                        seed: int) -> MatchResult:
+def _match_by_structure(
+    reference: Reference,
+    target: TargetGaussians,
+    cfg: MatchConfig,
+    target_vertices: np.ndarray | None,
+    target_faces: np.ndarray | None,
+    seed: int,
+) -> MatchResult:
     """Structure-aware matching (:mod:`sync4d.match_structure`) wrapped into a MatchResult."""
     rng = np.random.default_rng(seed)
     tgt_vertices, index, tgt_faces = _target_points(target, cfg, target_vertices, target_faces, seed)
-    if tgt_vertices.ndim != 2 or tgt_vertices.shape[1] != 3 or len(tgt_vertices) < 16 \
-            or not np.isfinite(tgt_vertices).all():
-        raise InputError(f"match: the target surface must be (M >= 16, 3) finite points, got {tgt_vertices.shape}"
-                         " (NaN/inf or too few Gaussians above match.min_opacity)")
+    if (
+        tgt_vertices.ndim != 2
+        or tgt_vertices.shape[1] != 3
+        or len(tgt_vertices) < 16
+        or not np.isfinite(tgt_vertices).all()
+    ):
+        raise InputError(
+            f"match: the target surface must be (M >= 16, 3) finite points, got {tgt_vertices.shape}"
+            " (NaN/inf or too few Gaussians above match.min_opacity)"
+        )
     if cfg.align in ("pca", "pca_icp"):
-        alignment = align_shapes(tgt_vertices, reference.rest_vertices, method=cfg.align,
-                                 icp_iterations=cfg.icp_iterations, seed=seed)
+        alignment = align_shapes(
+            tgt_vertices, reference.rest_vertices, method=cfg.align, icp_iterations=cfg.icp_iterations, seed=seed
+        )
     else:
         alignment = AlignResult(Similarity.identity(), float("nan"), np.zeros(0), "none")
     ref_norm = normalization(reference.rest_vertices)
     # the reference's surface is enough: its parts give the trunk, and distances are taken from it
-    ref_samples = skeleton_points(reference.rest_vertices, reference.rest_faces,
-                                  replace(cfg.structure.skeleton, volume=False), rng)
+    ref_samples = skeleton_points(
+        reference.rest_vertices, reference.rest_faces, replace(cfg.structure.skeleton, volume=False), rng
+    )
     _, nearest = cKDTree(reference.rest_vertices).query(ref_samples)
     ref_labels = reference.part_labels()[nearest]
     pre = alignment.transform
-    tgt_samples = pre.apply(skeleton_points(tgt_vertices, tgt_faces, cfg.structure.skeleton, rng))
+    tgt_raw, tgt_depth = skeleton_points_depth(tgt_vertices, tgt_faces, cfg.structure.skeleton, rng)
+    tgt_samples = pre.apply(tgt_raw)
     tgt_norm = normalization(tgt_samples)
     # the structure match works on each shape normalised by itself, then turns the target about the up axis
-    sm = match_structure(ref_norm.apply(ref_samples), ref_labels, reference.num_bones, tgt_norm.apply(tgt_samples),
-                         cfg.structure, up_axis=cfg.up_axis,
-                         part_parents=reference.bone_parents)
+    sm = match_structure(
+        ref_norm.apply(ref_samples),
+        ref_labels,
+        reference.num_bones,
+        tgt_norm.apply(tgt_samples),
+        cfg.structure,
+        up_axis=cfg.up_axis,
+        part_parents=reference.bone_parents,
+        tgt_depth=None if tgt_depth is None else tgt_depth * pre.scale * tgt_norm.scale,
+    )
     frame = pre.then(tgt_norm).then(Similarity(sm.rotation, 1.0, np.zeros(3)))
     sample_pts = tgt_norm.apply(tgt_samples) @ sm.rotation.T
     g_pts = frame.apply(target.means)
@@ -688,24 +759,42 @@ def _match_by_structure(reference: Reference, target: TargetGaussians, cfg: Matc
     for b in np.flatnonzero(valid):
         centroids[b] = sample_pts[sm.point_part == b].mean(axis=0)
     diagnostics = MatchDiagnostics(
-        alignment=alignment, frame=frame, reference_points=ref_norm.apply(ref_samples), target_points=sample_pts,
-        target_index=index, vertex_part=sm.point_part, vertex_margin=agreement,
-        kept=np.ones(len(sample_pts), dtype=bool), similarity=None, boxes=None, box_rotations=None,
-        box_valid=valid, centroids=centroids, gaussian_status=np.zeros(target.num, dtype=np.int8), structure=sm,
+        alignment=alignment,
+        frame=frame,
+        reference_points=ref_norm.apply(ref_samples),
+        target_points=sample_pts,
+        target_index=index,
+        vertex_part=sm.point_part,
+        vertex_margin=agreement,
+        kept=np.ones(len(sample_pts), dtype=bool),
+        similarity=None,
+        boxes=None,
+        box_rotations=None,
+        box_valid=valid,
+        centroids=centroids,
+        gaussian_status=np.zeros(target.num, dtype=np.int8),
+        structure=sm,
         reference_labels=ref_labels,
     )
     return _finish(reference, target, tgt_part, confidence, diagnostics)
 
 
-def _match_by_features(reference: Reference, target: TargetGaussians, extractor: FeatureExtractor,
-                       cfg: MatchConfig, target_vertices: np.ndarray | None, target_faces: np.ndarray | None,
-                       seed: int) -> MatchResult:
+def _match_by_features(
+    reference: Reference,
+    target: TargetGaussians,
+    extractor: FeatureExtractor,
+    cfg: MatchConfig,
+    target_vertices: np.ndarray | None,
+    target_faces: np.ndarray | None,
+    seed: int,
+) -> MatchResult:
     """The paper's part mapping (Sec. 3.3), with alignment first; see the module docstring."""
     num_parts = reference.num_bones
     ref_labels = reference.part_labels()
     tgt_vertices, index, tgt_faces = _target_points(target, cfg, target_vertices, target_faces, seed)
-    alignment = align_shapes(tgt_vertices, reference.rest_vertices, method=cfg.align,
-                             icp_iterations=cfg.icp_iterations, seed=seed)
+    alignment = align_shapes(
+        tgt_vertices, reference.rest_vertices, method=cfg.align, icp_iterations=cfg.icp_iterations, seed=seed
+    )
     ref_norm = normalization(reference.rest_vertices)
     frame = alignment.transform.then(ref_norm)
     ref_pts = ref_norm.apply(reference.rest_vertices)
@@ -726,20 +815,37 @@ def _match_by_features(reference: Reference, target: TargetGaussians, extractor:
     if cfg.smooth_neighbours > 1:
         vertex_part = smooth_labels(tgt_pts, vertex_part, similarity, num_parts, cfg.smooth_neighbours)
     kept = remove_outliers(tgt_pts, vertex_part, num_parts, cfg.outlier_sigma)
-    boxes, rots, valid, centroids = part_boxes(tgt_pts, vertex_part, kept, num_parts, frame=cfg.box_frame,
-                                               padding=cfg.box_padding)
+    boxes, rots, valid, centroids = part_boxes(
+        tgt_pts, vertex_part, kept, num_parts, frame=cfg.box_frame, padding=cfg.box_padding
+    )
     g_pts = frame.apply(target.means)
     distances = part_distances(
-        g_pts, centroids, valid,
-        **({"vertex_points": tgt_pts[kept], "vertex_labels": vertex_part[kept]}
-           if cfg.tie_break == "nearest_vertex" else {}),
+        g_pts,
+        centroids,
+        valid,
+        **(
+            {"vertex_points": tgt_pts[kept], "vertex_labels": vertex_part[kept]}
+            if cfg.tie_break == "nearest_vertex"
+            else {}
+        ),
     )
     tgt_part, status = assign_to_boxes(g_pts, boxes, rots, valid, centroids, distances=distances)
     confidence = gaussian_confidence(g_pts, tgt_part, status, tgt_pts, vertex_part, margin, kept)
     diagnostics = MatchDiagnostics(
-        alignment=alignment, frame=frame, reference_points=ref_pts, target_points=tgt_pts, target_index=index,
-        vertex_part=vertex_part, vertex_margin=margin, kept=kept, similarity=similarity, boxes=boxes,
-        box_rotations=rots, box_valid=valid, centroids=centroids, gaussian_status=status,
+        alignment=alignment,
+        frame=frame,
+        reference_points=ref_pts,
+        target_points=tgt_pts,
+        target_index=index,
+        vertex_part=vertex_part,
+        vertex_margin=margin,
+        kept=kept,
+        similarity=similarity,
+        boxes=boxes,
+        box_rotations=rots,
+        box_valid=valid,
+        centroids=centroids,
+        gaussian_status=status,
         reference_labels=ref_labels,
     )
     return _finish(reference, target, tgt_part, confidence, diagnostics)

@@ -56,6 +56,7 @@ class StructureConfig:
 
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
     yaw_steps: int = 24
+    base_weight: float = 0.5
     miss_cost: float = 2.0
     length_weight: float = 0.1
     direction_weight: float = 0.5
@@ -127,12 +128,19 @@ def limb_descriptors(skeleton: CurveSkeleton, members: list[np.ndarray]) -> Limb
         base_level.append(lo)
         length.append(max(hi - lo, 1e-9))
     area = np.array([len(m) / max(len(pts), 1) for m in members])
-    return LimbSet(tuple(members), np.array(base).reshape(-1, 3), np.array(tip).reshape(-1, 3),
-                   np.array(base_level), np.array(length), area)
+    return LimbSet(
+        tuple(members),
+        np.array(base).reshape(-1, 3),
+        np.array(tip).reshape(-1, 3),
+        np.array(base_level),
+        np.array(length),
+        area,
+    )
 
 
-def part_tree(points: np.ndarray, labels: np.ndarray, num_parts: int, root: int, *,
-              contact_spacings: float = 5.0) -> np.ndarray:
+def part_tree(
+    points: np.ndarray, labels: np.ndarray, num_parts: int, root: int, *, contact_spacings: float = 5.0
+) -> np.ndarray:
     """(B,) parent part of each part in the spanning tree of strongest contacts (-1: root or absent).
 
     Two parts touch where their points are within ``contact_spacings`` median spacings (capsule bodies
@@ -166,8 +174,14 @@ def _depth(parent: np.ndarray, p: int) -> int:
     return d
 
 
-def reference_limbs(skeleton: CurveSkeleton, labels: np.ndarray, num_parts: int,
-                    parents: np.ndarray | None = None, *, min_share: float = 0.02) -> tuple[list[list[int]], list[int]]:
+def reference_limbs(
+    skeleton: CurveSkeleton,
+    labels: np.ndarray,
+    num_parts: int,
+    parents: np.ndarray | None = None,
+    *,
+    min_share: float = 0.02,
+) -> tuple[list[list[int]], list[int]]:
     """The reference's limbs as lists of parts, and its trunk parts (see the module docstring).
 
     Args:
@@ -225,27 +239,59 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
 
 
-def limb_cost(ref: LimbSet, tgt: LimbSet, rotation: np.ndarray, cfg: StructureConfig) -> np.ndarray:
+def horizontal_scale(points: np.ndarray, rotation: np.ndarray, up: int) -> np.ndarray:
+    """(3,) per-axis spread of ``points @ rotation.T`` with the up axis left at 1 (see :func:`limb_cost`)."""
+    spread = np.sqrt(np.maximum(np.diag(rotation @ np.cov(points.T) @ rotation.T), 1e-12))
+    spread[up] = 1.0
+    return spread
+
+
+def limb_cost(
+    ref: LimbSet,
+    tgt: LimbSet,
+    rotation: np.ndarray,
+    cfg: StructureConfig,
+    *,
+    up: int = 1,
+    ref_scale: np.ndarray | None = None,
+    tgt_scale: np.ndarray | None = None,
+) -> np.ndarray:
     """(R, T) cost of giving reference limb r the target subtree t, target turned by ``rotation``.
 
-    Squared differences of the unit directions from the centre to the bases and (``tip_weight`` times) to
-    the tips, plus ``direction_weight`` times
-    the squared difference of the unit base -> tip directions, ``length_weight`` times the squared log
-    length ratio and ``area_weight`` times the squared log area-share ratio (a leg is not half a body).
+    Terms: where the limb leaves the trunk seen from above (its base's horizontal offset from the centre,
+    each horizontal axis divided by the shape's spread along it, so that a narrow body's left/right
+    offset counts as much as a long body's front/back one; the height of a base depends on where the
+    target's level sets split and is not compared); ``tip_weight`` x the squared difference of the unit
+    directions from the centre to the tips; ``direction_weight`` x that of the unit base -> tip
+    directions; ``length_weight`` x the squared log length ratio; ``area_weight`` x the squared log
+    ratio of the shares of the points (a leg is not half a body).
     """
     tb, tt = tgt.base @ rotation.T, tgt.tip @ rotation.T
-    # directions from the shape's centre, not positions: a koala's legs leave its body lower down and are
-    # shorter than a dog's, but they still point down-front-left from the centre
-    d_base = ((_unit(ref.base)[:, None] - _unit(tb)[None]) ** 2).sum(-1)
+    rs = np.ones(3) if ref_scale is None else ref_scale
+    ts = np.ones(3) if tgt_scale is None else tgt_scale
+    flat = np.ones(3)
+    flat[up] = 0.0
+    hb_r, hb_t = ref.base * flat / rs, tb * flat / ts
+    d_base = ((hb_r[:, None] - hb_t[None]) ** 2).sum(-1)
     d_tip = ((_unit(ref.tip)[:, None] - _unit(tt)[None]) ** 2).sum(-1)
     d_dir = ((_unit(ref.tip - ref.base)[:, None] - _unit(tt - tb)[None]) ** 2).sum(-1)
     d_len = np.log(np.maximum(ref.length[:, None], 1e-6) / np.maximum(tgt.length[None], 1e-6)) ** 2
-    d_area = np.log(np.maximum(ref.area[:, None], 1e-6) / np.maximum(tgt.area[None], 1e-6)) ** 2
-    return d_base + cfg.tip_weight * d_tip + cfg.direction_weight * d_dir + cfg.length_weight * d_len + cfg.area_weight * d_area
+    # one-sided: a target branch holding more than the limb is penalised (a leg is not half a body), a
+    # smaller one is not (the target's levels split where a limb leaves the trunk's level sets, often
+    # below where it leaves the trunk, so a target limb branch is typically a limb's lower part)
+    d_area = np.maximum(np.log(np.maximum(tgt.area[None], 1e-6) / np.maximum(ref.area[:, None], 1e-6)), 0.0) ** 2
+    return (
+        cfg.base_weight * d_base
+        + cfg.tip_weight * d_tip
+        + cfg.direction_weight * d_dir
+        + cfg.length_weight * d_len
+        + cfg.area_weight * d_area
+    )
 
 
-def assign_limbs(cost: np.ndarray, skeleton: CurveSkeleton, candidates: np.ndarray, miss_cost: float,
-                 *, max_rounds: int = 32) -> tuple[list[tuple[int, int]], float]:
+def assign_limbs(
+    cost: np.ndarray, skeleton: CurveSkeleton, candidates: np.ndarray, miss_cost: float, *, max_rounds: int = 32
+) -> tuple[list[tuple[int, int]], float]:
     """Hungarian assignment of reference limbs (rows) to target subtrees (columns) without nesting.
 
     A row may take a dummy column at ``miss_cost`` (unmatched). When two chosen subtrees are nested
@@ -268,7 +314,7 @@ def assign_limbs(cost: np.ndarray, skeleton: CurveSkeleton, candidates: np.ndarr
         total = float(full[rows, cols].sum())
         clash = None
         for i, (r1, c1) in enumerate(pairs):
-            for r2, c2 in pairs[i + 1:]:
+            for r2, c2 in pairs[i + 1 :]:
                 a, b = int(candidates[c1]), int(candidates[c2])
                 if skeleton.is_ancestor(a, b) or skeleton.is_ancestor(b, a):
                     clash = (r1, c1) if work[r1, c1] >= work[r2, c2] else (r2, c2)
@@ -281,8 +327,17 @@ def assign_limbs(cost: np.ndarray, skeleton: CurveSkeleton, candidates: np.ndarr
     return pairs, total
 
 
-def transfer_along(ref: CurveSkeleton, ref_limbs: LimbSet, r: int, ref_labels: np.ndarray, tgt: CurveSkeleton,
-                   tgt_limbs: LimbSet, t: int, num_parts: int, bins: int) -> np.ndarray:
+def transfer_along(
+    ref: CurveSkeleton,
+    ref_limbs: LimbSet,
+    r: int,
+    ref_labels: np.ndarray,
+    tgt: CurveSkeleton,
+    tgt_limbs: LimbSet,
+    t: int,
+    num_parts: int,
+    bins: int,
+) -> np.ndarray:
     """(Q,) reference part of each point of target limb ``t`` by its relative position along the limb.
 
     The reference limb's parts are tabulated per bin of relative position (majority part; an empty bin
@@ -318,8 +373,17 @@ def yaw_rotations(up_axis: str, steps: int) -> list[np.ndarray]:
     return [axis_rotation(axis, 2 * np.pi * k / max(steps, 1)) for k in range(max(steps, 1))]
 
 
-def match_structure(ref_points: np.ndarray, ref_labels: np.ndarray, num_parts: int, tgt_points: np.ndarray,
-                    cfg: StructureConfig, *, up_axis: str = "y", part_parents: np.ndarray | None = None) -> StructureMatch:
+def match_structure(
+    ref_points: np.ndarray,
+    ref_labels: np.ndarray,
+    num_parts: int,
+    tgt_points: np.ndarray,
+    cfg: StructureConfig,
+    *,
+    up_axis: str = "y",
+    part_parents: np.ndarray | None = None,
+    tgt_depth: np.ndarray | None = None,
+) -> StructureMatch:
     """Match the target's skeleton branches to the reference's limbs and label the target points.
 
     Args:
@@ -330,12 +394,13 @@ def match_structure(ref_points: np.ndarray, ref_labels: np.ndarray, num_parts: i
         cfg: options.
         up_axis: the shared up axis of both normalised frames.
         part_parents: (B,) the reference's bone tree if known (see :func:`reference_limbs`).
+        tgt_depth: (M,) depth of each target point inside its solid, or None (see :func:`curve_skeleton`).
 
     Returns:
         StructureMatch (``point_part`` labels the target points).
     """
     ref_sk = curve_skeleton(ref_points, cfg.skeleton)
-    tgt_sk = curve_skeleton(tgt_points, cfg.skeleton)
+    tgt_sk = curve_skeleton(tgt_points, cfg.skeleton, tgt_depth)
     limb_parts, trunk = reference_limbs(ref_sk, ref_labels, num_parts, part_parents)
     ref_sk = distance_from_trunk(ref_sk, np.isin(ref_labels, trunk), cfg.skeleton)
     ref_limbs = limb_descriptors(ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts])
@@ -345,10 +410,20 @@ def match_structure(ref_points: np.ndarray, ref_labels: np.ndarray, num_parts: i
     ref_sub = ref_points[rng.choice(len(ref_points), min(800, len(ref_points)), replace=False)]
     tgt_sub = tgt_points[rng.choice(len(tgt_points), min(800, len(tgt_points)), replace=False)]
     tree = cKDTree(ref_sub)
+    up = UP_AXES[up_axis]
+    ref_scale = horizontal_scale(ref_points, np.eye(3), up)
     best = None
     for rot in yaw_rotations(up_axis, cfg.yaw_steps):
         if len(limb_parts) and len(cand):
-            cost = limb_cost(ref_limbs, tgt_limbs, rot, cfg)
+            cost = limb_cost(
+                ref_limbs,
+                tgt_limbs,
+                rot,
+                cfg,
+                up=up,
+                ref_scale=ref_scale,
+                tgt_scale=horizontal_scale(tgt_points, rot, up),
+            )
             pairs, total = assign_limbs(cost, tgt_sk, cand, cfg.miss_cost)
         else:
             pairs, total = [], cfg.miss_cost * len(limb_parts)
@@ -357,17 +432,32 @@ def match_structure(ref_points: np.ndarray, ref_labels: np.ndarray, num_parts: i
             best = (score, rot, pairs, total)
     assert best is not None
     _, rot, pairs, total = best
-    point_part = label_target(ref_sk, ref_limbs, ref_labels, tgt_sk, tgt_limbs, pairs, rot, num_parts,
-                              cfg.profile_bins)
+    point_part = label_target(ref_sk, ref_limbs, ref_labels, tgt_sk, tgt_limbs, pairs, rot, num_parts, cfg.profile_bins)
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
-    return StructureMatch(ref_sk, tgt_sk, rot, np.array([(r, int(cand[c])) for r, c in pairs], dtype=np.int64).reshape(-1, 2),
-                          tuple(tuple(p) for p in limb_parts), leftover, point_part, float(total))
+    return StructureMatch(
+        ref_sk,
+        tgt_sk,
+        rot,
+        np.array([(r, int(cand[c])) for r, c in pairs], dtype=np.int64).reshape(-1, 2),
+        tuple(tuple(p) for p in limb_parts),
+        leftover,
+        point_part,
+        float(total),
+    )
 
 
-def label_target(ref: CurveSkeleton, ref_limbs: LimbSet, ref_labels: np.ndarray, tgt: CurveSkeleton,
-                 tgt_limbs: LimbSet, pairs: list[tuple[int, int]], rotation: np.ndarray, num_parts: int,
-                 bins: int) -> np.ndarray:
+def label_target(
+    ref: CurveSkeleton,
+    ref_limbs: LimbSet,
+    ref_labels: np.ndarray,
+    tgt: CurveSkeleton,
+    tgt_limbs: LimbSet,
+    pairs: list[tuple[int, int]],
+    rotation: np.ndarray,
+    num_parts: int,
+    bins: int,
+) -> np.ndarray:
     """(M,) reference part per target point: matched limbs along their length, the rest by nearest trunk."""
     out = np.full(len(tgt.points), -1, dtype=np.int64)
     for r, t in pairs:
@@ -378,6 +468,22 @@ def label_target(ref: CurveSkeleton, ref_limbs: LimbSet, ref_labels: np.ndarray,
     pool = np.flatnonzero(~in_matched_ref)
     if len(pool) == 0:
         pool = np.arange(len(ref.points))
+    rest = np.flatnonzero(out < 0)
+    if len(rest) == 0:
+        return out
+    # the trunk's core takes the part of the nearest reference point outside the matched limbs; the
+    # rest of the trunk (and unmatched branches) grows from the core and the matched limbs over the
+    # solid, each point taking the part of its geodesically nearest labelled point: the boundary between
+    # a limb and the trunk lies halfway between the limb's branch and the trunk's core
+    core = np.intersect1d(tgt.core, rest)
+    _, j = cKDTree(ref.points[pool]).query(tgt.points[core] @ rotation.T) if len(core) else (None, [])
+    out[core] = ref_labels[pool[np.asarray(j, dtype=np.int64)]] if len(core) else out[core]
+    seeds = np.flatnonzero(out >= 0)
+    rest = np.flatnonzero(out < 0)
+    if len(rest) and len(seeds) and tgt.graph is not None:
+        dist, _, source = dijkstra(tgt.graph, directed=False, indices=seeds, return_predecessors=True, min_only=True)
+        reach = rest[np.isfinite(dist[rest])]
+        out[reach] = out[source[reach]]
     rest = np.flatnonzero(out < 0)
     if len(rest):
         _, j = cKDTree(ref.points[pool]).query(tgt.points[rest] @ rotation.T)

@@ -20,7 +20,7 @@ M points (~0.1 s for M = 3000 here).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.sparse import coo_matrix, csr_matrix
@@ -47,6 +47,13 @@ class SkeletonConfig:
             of a mesh: geodesic levels through the solid are cross-sections, which split cleanly where
             limbs leave a thick trunk (surface levels from one surface point do not).
         resolution: voxels along the longest side of the bounding box for ``volume``.
+        core_depth: with a depth per point (distance to the outside of the solid), geodesic distance is
+            measured from the trunk's core: the connected points deeper than this fraction of the
+            deepest point's depth, around it. Levels are then offsets of the trunk, so a limb's branch
+            starts where it leaves the trunk (from a single centre point the levels are spheres, which
+            cut an elongated trunk into halves and the legs low down). 0 measures from the centre point.
+        core_reach: the core extends at most this many times the largest depth (geodesically) from
+            its seed (:func:`trunk_core`).
     """
 
     neighbours: int = 10
@@ -57,6 +64,8 @@ class SkeletonConfig:
     samples: int = 8000
     volume: bool = True
     resolution: int = 64
+    core_depth: float = 0.8
+    core_reach: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -98,6 +107,9 @@ class CurveSkeleton:
         branch: (M,) branch per point.
         branches: the branches; index 0 is the root branch (holding the centre).
         level_width: width of one Reeb level (RMS units).
+        core: (C,) indices of the trunk's core points the geodesic distance is measured from (just the
+            centre without a depth).
+        graph: (M, M) the neighbour graph the skeleton was built on.
     """
 
     points: np.ndarray
@@ -107,6 +119,8 @@ class CurveSkeleton:
     branch: np.ndarray
     branches: tuple[Branch, ...]
     level_width: float
+    core: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    graph: csr_matrix | None = None
 
     def terminal(self) -> list[int]:
         """Indices of the branches without children (limb candidates of a reference), root excluded."""
@@ -164,8 +178,9 @@ def geodesic_from(graph: csr_matrix, source: int) -> tuple[np.ndarray, np.ndarra
     return dist, pred
 
 
-def reeb_tree(graph: csr_matrix, geodesic: np.ndarray, predecessor: np.ndarray, level_width: float,
-              centre: int) -> tuple[np.ndarray, np.ndarray]:
+def reeb_tree(
+    graph: csr_matrix, geodesic: np.ndarray, predecessor: np.ndarray, level_width: float, centre: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Reeb nodes of the geodesic levels and each node's parent.
 
     Args:
@@ -295,7 +310,9 @@ def prune_branches(
     return alive, owner
 
 
-def volume_points(vertices: np.ndarray, faces: np.ndarray, resolution: int, rng: np.random.Generator) -> np.ndarray:
+def volume_points(
+    vertices: np.ndarray, faces: np.ndarray, resolution: int, rng: np.random.Generator, *, with_depth: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """(P, 3) centres of the voxels of the solid bounded by a mesh (surface voxels and their filled inside).
 
     The surface is sampled densely (>= 8 samples per surface voxel, so the voxel shell has no holes),
@@ -311,11 +328,14 @@ def volume_points(vertices: np.ndarray, faces: np.ndarray, resolution: int, rng:
     r1, r2 = rng.random(count), rng.random(count)
     sq = np.sqrt(r1)
     pts = np.einsum("sk,skd->sd", np.stack([1 - sq, sq * (1 - r2), sq * r2], axis=1), tri[face])
-    return fill_solid(pts, pitch)
+    return fill_solid(pts, pitch, with_depth=with_depth)
 
 
-def fill_solid(surface: np.ndarray, pitch: float) -> np.ndarray:
-    """(P, 3) centres of the voxels (edge ``pitch``) of the solid whose surface ``surface`` samples densely."""
+def fill_solid(
+    surface: np.ndarray, pitch: float, *, with_depth: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """(P, 3) centres of the voxels (edge ``pitch``) of the solid whose surface ``surface`` samples densely,
+    and with ``with_depth`` also (P,) each voxel's distance to the outside of the solid (same unit)."""
     from scipy import ndimage
 
     origin = surface.min(axis=0) - pitch
@@ -326,23 +346,53 @@ def fill_solid(surface: np.ndarray, pitch: float) -> np.ndarray:
     # holes where the capsules meet); the erosion after filling gives the limbs back their size
     grown = ndimage.binary_dilation(np.pad(occ, 2))
     solid = ndimage.binary_erosion(ndimage.binary_fill_holes(grown))[2:-2, 2:-2, 2:-2] | occ
-    return origin + (np.argwhere(solid) + 0.5) * pitch
+    idx = np.argwhere(solid)
+    points = origin + (idx + 0.5) * pitch
+    if not with_depth:
+        return points
+    depth = ndimage.distance_transform_edt(np.pad(solid, 1))[1:-1, 1:-1, 1:-1] * pitch
+    return points, depth[idx[:, 0], idx[:, 1], idx[:, 2]]
 
 
-def cloud_volume_points(points: np.ndarray, resolution: int) -> np.ndarray:
+def cloud_volume_points(
+    points: np.ndarray, resolution: int, *, with_depth: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Voxels of the solid around a point cloud (Gaussian centres): the pitch is at least 2.5 point
     spacings, so that the surface voxels have no holes."""
     spacing = float(np.median(cKDTree(points).query(points, 2)[0][:, 1]))
     pitch = max(float(np.ptp(points, axis=0).max()) / max(resolution, 4), 2.5 * spacing)
-    return fill_solid(points, pitch)
+    return fill_solid(points, pitch, with_depth=with_depth)
 
 
-def curve_skeleton(points: np.ndarray, cfg: SkeletonConfig) -> CurveSkeleton:
+def trunk_core(graph: csr_matrix, points: np.ndarray, depth: np.ndarray, fraction: float, reach: float) -> np.ndarray:
+    """(C,) indices of the trunk's core: the points deeper than ``fraction`` x the largest depth that are
+    connected (over ``graph``, through such points) to the seed and within geodesic ``reach`` x the
+    largest depth of it. The seed is the deepest point, ties broken towards the centroid (a shape of bars
+    of one thickness is equally deep along every bar); the reach keeps a thin shape's core from running
+    along all of its bars.
+
+    Args:
+        graph: (M, M) neighbour graph; points: (M, 3) normalised points (centroid 0);
+        depth: (M,) depth inside the solid in the points' unit; fraction, reach: as above.
+    """
+    d_max = float(depth.max())
+    seed = int(np.argmax(depth / max(d_max, 1e-12) - 0.6 * np.linalg.norm(points, axis=1)))
+    deep = np.flatnonzero(depth >= fraction * d_max)
+    deep = np.union1d(deep, [seed])
+    sub = graph[deep][:, deep]
+    local = int(np.searchsorted(deep, seed))
+    dist = dijkstra(sub, directed=False, indices=local, limit=reach * d_max)
+    return deep[np.isfinite(dist)]
+
+
+def curve_skeleton(points: np.ndarray, cfg: SkeletonConfig, depth: np.ndarray | None = None) -> CurveSkeleton:
     """The curve skeleton of a normalised point set (see the module docstring).
 
     Args:
         points: (M, 3) points in a normalised frame (unit RMS radius about their centroid), M >= 16.
         cfg: skeleton options.
+        depth: (M,) distance of each point to the outside of the solid (any unit), or None; with it and
+            ``cfg.core_depth > 0`` geodesic distance is taken from the trunk's core (:func:`trunk_core`).
 
     Returns:
         CurveSkeleton.
@@ -351,8 +401,24 @@ def curve_skeleton(points: np.ndarray, cfg: SkeletonConfig) -> CurveSkeleton:
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 16 or not np.isfinite(pts).all():
         raise InputError(f"curve_skeleton: need (M >= 16, 3) finite points, got {pts.shape}")
     graph = neighbour_graph(pts, cfg.neighbours, cfg.max_edge_factor)
+    if depth is not None and cfg.core_depth > 0 and len(depth) == len(pts):
+        core = trunk_core(graph, pts, np.asarray(depth, dtype=np.float64), cfg.core_depth, cfg.core_reach)
+        sk = _skeleton_from(pts, graph, core, cfg)
+        if len(sk.branches) > 1:
+            return sk
+        # no branch off the core (a shape of bars of one thickness, whose deepest part is an end):
+        # the levels from the centre point still split where its bars meet
     centre = int(np.argmin(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))
-    geo, pred = geodesic_from(graph, centre)
+    return _skeleton_from(pts, graph, np.array([centre]), cfg)
+
+
+def _skeleton_from(pts: np.ndarray, graph: csr_matrix, core: np.ndarray, cfg: SkeletonConfig) -> CurveSkeleton:
+    """The skeleton of levels of geodesic distance from the ``core`` points (a single centre, or a core)."""
+    centre = int(core[np.argmin(np.linalg.norm(pts[core] - pts[core].mean(axis=0), axis=1))])
+    if len(core) > 1:
+        geo, pred, _ = dijkstra(graph, directed=False, indices=core, return_predecessors=True, min_only=True)
+    else:
+        geo, pred = geodesic_from(graph, centre)
     spacing = float(np.median(cKDTree(pts).query(pts, 2)[0][:, 1]))
     width = max(cfg.level_width, cfg.level_spacings * spacing)
     node, parent = reeb_tree(graph, geo, pred, width, centre)
@@ -365,11 +431,18 @@ def curve_skeleton(points: np.ndarray, cfg: SkeletonConfig) -> CurveSkeleton:
     alive, owner = prune_branches(parent, top, bottom, root, cfg.prune_length)
     node = owner[node]
     chains, chain_parent = node_chains(parent, alive, root)
-    return _assemble(pts, geo, centre, node, chains, chain_parent, width)
+    return replace(_assemble(pts, geo, centre, node, chains, chain_parent, width), core=core, graph=graph)
 
 
-def _assemble(pts: np.ndarray, geo: np.ndarray, centre: int, node: np.ndarray, chains: list[list[int]],
-              chain_parent: list[int], level_width: float) -> CurveSkeleton:
+def _assemble(
+    pts: np.ndarray,
+    geo: np.ndarray,
+    centre: int,
+    node: np.ndarray,
+    chains: list[list[int]],
+    chain_parent: list[int],
+    level_width: float,
+) -> CurveSkeleton:
     """Branches from node chains: point sets, subtrees, base/tip centroids, lengths."""
     node_branch = np.full(int(node.max()) + 1, -1, dtype=np.int64)
     for i, chain in enumerate(chains):
@@ -396,9 +469,17 @@ def _assemble(pts: np.ndarray, geo: np.ndarray, centre: int, node: np.ndarray, c
         base_level = float(geo[first].min()) if len(first) else 0.0
         far = float(geo[sub].max()) if len(sub) else base_level
         tip_pts = sub[geo[sub] >= far - level_width] if len(sub) else first
-        out.append(Branch(
-            nodes=tuple(int(n) for n in chain), parent=int(chain_parent[i]), children=tuple(children[i]),
-            points=own, subtree=sub, base=pts[first].mean(axis=0), tip=pts[tip_pts].mean(axis=0),
-            base_level=base_level, length=max(far - base_level, 1e-9),
-        ))
+        out.append(
+            Branch(
+                nodes=tuple(int(n) for n in chain),
+                parent=int(chain_parent[i]),
+                children=tuple(children[i]),
+                points=own,
+                subtree=sub,
+                base=pts[first].mean(axis=0),
+                tip=pts[tip_pts].mean(axis=0),
+                base_level=base_level,
+                length=max(far - base_level, 1e-9),
+            )
+        )
     return CurveSkeleton(pts, geo, centre, node, branch, tuple(out), level_width)
