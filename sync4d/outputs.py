@@ -3,6 +3,16 @@
 Each completed frame is written at once (``frames/%06d.ply``, after the global transform G_t), logged
 to TensorBoard, and checkpointed (``checkpoint.pt``: the simulator's state plus the frames so far), so a
 killed run can resume from its last complete frame. All files are written atomically.
+
+A run simulated on control points hands each frame over as the points' x and F (P of them) with the
+points (``control``); the writer carries the Gaussians one frame at a time, and keeps, stores
+(``state/``, ``trajectory.npz``) and returns only per-point arrays plus the Gaussian-to-point index, so
+its memory does not grow with frames x Gaussians. Metrics use at most ``METRIC_GAUSSIANS`` Gaussians
+(evenly by stride; all of them below that).
+
+A frame's ``.ply`` (carrying, SH rotation, the 3DGS table: seconds for millions of Gaussians) is made in
+a second thread while the simulator computes the next frame, one frame in flight at most; its state
+and the checkpoint are written before ``on_frame`` returns, so a resume never depends on it.
 """
 
 from __future__ import annotations
@@ -10,6 +20,7 @@ from __future__ import annotations
 import io
 import logging
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -21,10 +32,15 @@ from sync4d.deform import deform_gaussians
 from sync4d.errors import ConfigError
 from sync4d.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
 from sync4d.io.ply import write_gaussians_ply
+from sync4d.sim.control import ControlPoints, bounded_subset, gaussian_trajectory, with_control
 from sync4d.types import DrivingMotion, PartMap, Reference, TargetGaussians, Trajectory
 
 log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.pt"
+#: The control points of a run simulated through them (``state/control.npz``: rest points and index).
+CONTROL = "control.npz"
+#: Most Gaussians the metrics follow over every frame (evenly by stride beyond it): bounds their memory.
+METRIC_GAUSSIANS = 100_000
 
 
 class FrameWriter:
@@ -47,12 +63,16 @@ class FrameWriter:
         self.frames_F: list[np.ndarray | None] = []
         self.frame_stats: list[dict[str, float]] = []
         self.frame_seconds: list[float] = []
+        self.control: ControlPoints | None = None
         self._last = time.perf_counter()
+        self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frame-writer")
+        self._pending: Future | None = None
 
     # ----------------------------------------------------------------------------------------- frames
     def on_frame(self, t: int, x: np.ndarray, F: np.ndarray | None, stats: dict[str, float],
-                 checkpoint: dict[str, Any] | None = None) -> None:
-        """Write frame ``t``: positions (N, 3) and deformation gradients (N, 3, 3) of every Gaussian."""
+                 checkpoint: dict[str, Any] | None = None, control: ControlPoints | None = None) -> None:
+        """Write frame ``t``: positions (N, 3) and deformation gradients (N, 3, 3) of every Gaussian, or,
+        with ``control``, of its P control points ((P, 3) and (P, 3, 3)), which carry the Gaussians."""
         now = time.perf_counter()
         seconds = stats.get("time/frame_s", now - self._last)
         self._last = now
@@ -62,8 +82,12 @@ class FrameWriter:
         self.frames_F.append(None if F is None else np.asarray(F, dtype=np.float64))
         self.frame_stats.append({k: float(v) for k, v in stats.items()})
         self.frame_seconds.append(float(seconds))
-        moved = deform_gaussians(self.target, x, F, self.motion.global_transforms[t])
-        write_gaussians_ply(self.run_dir / "frames" / f"{t:06d}.ply", moved)
+        if control is not None and self.control is None:
+            self.control = control
+            atomic_save_npz(self.run_dir / "state" / CONTROL, rest=control.rest,
+                            gaussian_to_point=control.gaussian_to_point)
+        self.wait_for_frames()  # one frame in flight: memory stays one frame's
+        self._pending = self._writer.submit(self.write_frame, t)
         # Exact per-frame state beside the .ply (which holds float32 world Gaussians): a resume reads it
         # back, so the checkpoint itself stays one frame's size however long the run.
         atomic_save_npz(state_path(self.run_dir, t), x=self.frames_x[-1],
@@ -73,6 +97,23 @@ class FrameWriter:
                 self.logger.scalar(key if "/" in key else f"loss/{key}", value, t)
         if checkpoint is not None:
             self.save_checkpoint(t, checkpoint)
+
+    def write_frame(self, t: int) -> None:
+        """``frames/%06d.ply`` of received frame ``t``."""
+        write_gaussians_ply(self.run_dir / "frames" / f"{t:06d}.ply", self.gaussians_at(t))
+
+    def wait_for_frames(self) -> None:
+        """Block until the frame being written is on disk (re-raising its error, if any)."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
+
+    def gaussians_at(self, t: int) -> TargetGaussians:
+        """Every Gaussian of received frame ``t`` in the world (carried by the control points if any)."""
+        x, F, G = self.frames_x[t], self.frames_F[t], self.motion.global_transforms[t]
+        if self.control is not None:
+            return self.control.carry(self.target, x, F, G)
+        return deform_gaussians(self.target, x, F, G)
 
     def save_checkpoint(self, t: int, state: dict[str, Any]) -> None:
         """Atomically store the simulator's state after frame ``t`` (the frames themselves are in ``state/``)."""
@@ -108,14 +149,17 @@ class FrameWriter:
         check_same_config(payload.get("config"), self.run_config, resume)
         last = int(payload["frame"])
         self.frames_x, self.frames_F = read_frame_states(folder, last, resume)
+        self.control = read_control(folder, resume)
+        if self.control is not None:
+            atomic_save_npz(self.run_dir / "state" / CONTROL, rest=self.control.rest,
+                            gaussian_to_point=self.control.gaussian_to_point)
         self.frame_stats = list(payload["frame_stats"])
         self.frame_seconds = list(payload["frame_seconds"])
         if len(self.frame_stats) != last + 1:
             raise ConfigError(f"resume={resume}: {CHECKPOINT} holds {len(self.frame_stats)} frame records for frame "
                               f"{last}; it is damaged, start the run again")
         for t, (x, F) in enumerate(zip(self.frames_x, self.frames_F)):
-            moved = deform_gaussians(self.target, x, F, self.motion.global_transforms[t])
-            write_gaussians_ply(self.run_dir / "frames" / f"{t:06d}.ply", moved)
+            self.write_frame(t)
             atomic_save_npz(state_path(self.run_dir, t), x=x, F=np.zeros(0) if F is None else F)
             if self.logger is not None:
                 for key, value in self.frame_stats[t].items():
@@ -131,22 +175,31 @@ class FrameWriter:
 
         The trajectory is rebuilt from the frames this writer received (all of them, including those
         restored on resume); the simulator's own ``trajectory`` supplies the frame interval and velocities.
-        Returns the metrics and that whole trajectory (what the renders and exports are made from).
+        Returns the metrics and that whole trajectory (what the renders and exports are made from): per
+        control point, marked with them (:func:`sync4d.sim.control.control_of`), when the run had them.
+
+        ``trajectory.npz`` holds x, F (and v) of what was simulated with its ``part``; with control
+        points also ``gaussian_to_point`` (N,), ``control_rest`` (P, 3) and ``gaussian_part`` (N,).
         """
+        self.wait_for_frames()
         full_F = None if self.frames_F[0] is None else np.stack(self.frames_F)
-        trajectory = Trajectory(
+        trajectory = with_control(Trajectory(
             x=np.stack(self.frames_x), F=full_F, frame_dt=trajectory.frame_dt,
             v=trajectory.v if trajectory.v is not None and len(trajectory.v) == len(self.frames_x) else None,
             global_transforms=self.motion.global_transforms[: len(self.frames_x)],
-        ).validate()
+        ).validate(), self.control)
+        control = {} if self.control is None else {
+            "gaussian_to_point": self.control.gaussian_to_point, "control_rest": self.control.rest,
+            "gaussian_part": part_map.tgt_part}
         atomic_save_npz(
             self.run_dir / "trajectory.npz",
             x=trajectory.x.astype(np.float32),
             v=np.zeros(0) if trajectory.v is None else trajectory.v.astype(np.float32),
             F=np.zeros(0) if trajectory.F is None else trajectory.F.astype(np.float32),
             global_transforms=self.motion.global_transforms[: trajectory.num_frames],
-            part=part_map.tgt_part,
+            part=part_map.tgt_part if self.control is None else self.control.point_parts(part_map.tgt_part),
             frame_dt=np.float64(trajectory.frame_dt),
+            **control,
         )
         result = compute_metrics(
             trajectory, self.target, part_map, self.motion, reference,
@@ -200,6 +253,23 @@ def read_frame_states(folder: Path, last: int, resume: str) -> tuple[list[np.nda
             ) from None
         Fs.append(None if F.size == 0 else F)
     return xs, Fs
+
+
+def read_control(folder: Path, resume: str) -> ControlPoints | None:
+    """The control points of an interrupted run (``state/control.npz``), or None if it had none.
+
+    Raises:
+        ConfigError: the file is there but unreadable.
+    """
+    path = Path(folder) / "state" / CONTROL
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as data:
+            return ControlPoints(np.asarray(data["rest"], dtype=np.float64),
+                                 np.asarray(data["gaussian_to_point"], dtype=np.int64))
+    except (OSError, KeyError, ValueError) as err:
+        raise ConfigError(f"resume={resume}: {path} is unreadable ({type(err).__name__}); start the run again") from None
 
 
 def load_checkpoint(folder: Path, resume: str) -> dict[str, Any]:
@@ -291,16 +361,23 @@ def compute_metrics(
 ) -> dict[str, Any]:
     """All metrics of a run, overall (frames 1..T) and per frame (see :mod:`sync4d.metrics`).
 
+    A control-point trajectory is carried to the Gaussians first; beyond ``METRIC_GAUSSIANS`` Gaussians
+    every metric but the bounding-box diagonal is computed on that many, evenly by stride.
+
     Args:
         truth: (T, N, 3) independent ground-truth positions, or None; with ``self_transfer`` and no
             ``truth`` it is :func:`self_transfer_truth`.
         loop: the driving motion loops the reference (for the self-transfer truth's frame indices).
         dx: the simulator's grid cell [m] (sets the fragment gap; None: the default grid's).
     """
+    diagonal = M.bbox_diagonal(target.means)
+    index = bounded_subset(target.num, METRIC_GAUSSIANS)
+    trajectory = gaussian_trajectory(trajectory, target.means, index)
+    if index is not None and truth is not None:
+        truth = np.asarray(truth)[:, index]
     x = trajectory.x
     T = len(x)
-    parts, B = part_map.tgt_part, part_map.num_parts
-    diagonal = M.bbox_diagonal(target.means)
+    parts, B = part_map.tgt_part if index is None else part_map.tgt_part[index], part_map.num_parts
     accumulated = np.concatenate([np.zeros((1, B, 3)), np.cumsum(motion.part_displacements[: T - 1], axis=0)])
     if truth is None and self_transfer:
         truth = self_transfer_truth(reference, x[0], T, loop=loop)

@@ -8,6 +8,9 @@
   reconstructed reference's Gaussians over time with their part labels, compact (:mod:`sync4d.io.seq4d`);
   together with ``trajectory.npz`` these are what ``python -m sync4d.view`` shows.
 * ``sequence.glb`` (animated glTF points), ``sequence.usda`` and ``sequence.npz`` (:mod:`sync4d.io.export`).
+
+Renders and these files hold every frame of every Gaussian at once, so beyond ``RENDER_GAUSSIANS`` they
+show that many, evenly by stride (a preview; every Gaussian of every frame is in ``frames/*.ply``).
 """
 
 from __future__ import annotations
@@ -22,13 +25,18 @@ from omegaconf import DictConfig
 from sync4d.io.mesh import mesh_to_gaussians
 from sync4d.metrics import skinned_positions
 from sync4d.registry import build, effective_config
+from sync4d.sim.control import bounded_subset, gaussian_trajectory
 from sync4d.types import Camera, DrivingMotion, PartMap, Reference, TargetGaussians, Trajectory, VideoClip
 
 log = logging.getLogger(__name__)
+#: Most target Gaussians rendered and exported per frame (evenly by stride beyond it).
+RENDER_GAUSSIANS = 100_000
 
 
 def sequence_gaussians(target: TargetGaussians, trajectory: Trajectory, globals_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World means (T, N, 3) and covariances (T, N, 3, 3): F Sigma F^T, then the global transform G_t."""
+    """World means (T, N, 3) and covariances (T, N, 3, 3): F Sigma F^T, then the global transform G_t.
+
+    ``trajectory`` is per Gaussian (see :func:`sync4d.sim.control.gaussian_trajectory`)."""
     rest_cov = target.covariances()
     rot = globals_[:, :3, :3]
     means = np.einsum("tij,tnj->tni", rot, trajectory.x) + globals_[:, None, :3, 3]
@@ -138,8 +146,13 @@ def render_run_outputs(
     fps = rc.fps or motion.fps
     num = trajectory.num_frames
     globals_ = motion.global_transforms[:num]
-    means, covs = sequence_gaussians(target, trajectory, globals_)
-    frames = render_sequence(renderer, means, covs, target.sh, target.opacities, motion_camera(means, rc),
+    index = bounded_subset(target.num, RENDER_GAUSSIANS)
+    shown = target if index is None else target.subset(index)
+    if index is not None:
+        log.info("renders and exports show %d of the %d Gaussians (every %d-th); frames/*.ply hold all",
+                 shown.num, target.num, index[1] - index[0])
+    means, covs = sequence_gaussians(shown, gaussian_trajectory(trajectory, target.means, index), globals_)
+    frames = render_sequence(renderer, means, covs, shown.sh, shown.opacities, motion_camera(means, rc),
                              desc="render target")
     ref_rest, ref_means, ref_covs = reference_gaussians(reference, num)
     ref_frames = render_sequence(renderer, ref_means, ref_covs, ref_rest.sh, ref_rest.opacities,
@@ -152,15 +165,15 @@ def render_run_outputs(
         files["input.mp4"] = write_mp4(run_dir / "input.mp4", clip.frames, clip.fps)
     files.update(write_videos(run_dir, panels, fps, logger=logger))
     if rc.turntable_frames:
-        files["turntable.mp4"] = write_turntable(run_dir / "turntable.mp4", renderer, means[-1], covs[-1], target, fps)
+        files["turntable.mp4"] = write_turntable(run_dir / "turntable.mp4", renderer, means[-1], covs[-1], shown, fps)
     store = Seq4DConfig()
-    files["sequence.s4d"] = write_seq4d(run_dir / "sequence.s4d", means, covs, target.colors(), target.opacities,
-                                        fps=motion.fps, cfg=store, sh=target.sh,
-                                        parts=None if part_map is None else part_map.tgt_part)
+    parts = None if part_map is None else part_map.tgt_part if index is None else part_map.tgt_part[index]
+    files["sequence.s4d"] = write_seq4d(run_dir / "sequence.s4d", means, covs, shown.colors(), shown.opacities,
+                                        fps=motion.fps, cfg=store, sh=shown.sh, parts=parts)
     files["reference.s4d"] = write_seq4d(
         run_dir / "reference.s4d", ref_means, ref_covs, ref_rest.colors(), ref_rest.opacities, fps=motion.fps,
         cfg=store, parts=reference.part_labels()[reference_nearest(reference, ref_rest.means)])
-    files.update(write_exports(run_dir, means, covs, target, reference, globals_, fps=motion.fps))
+    files.update(write_exports(run_dir, means, covs, shown, reference, globals_, fps=motion.fps))
     log.info("wrote %s", ", ".join(files))
     return files
 

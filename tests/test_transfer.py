@@ -34,7 +34,7 @@ def test_loss_decreases_in_every_frame(tiny_scene):
     stats = []
     velocity = {"type": "per_part", "iterations": 15, "lr": 0.5, "patience": 15, "velocity_scale": 0.3}
     sim.run(target, part_map, motion, velocity_cfg=velocity, num_frames=3, transfer=PAPER,
-            on_frame=lambda t, x, F, s, checkpoint=None: stats.append(s))
+            on_frame=lambda t, x, F, s, checkpoint=None, control=None: stats.append(s))
     assert len(stats) == 3
     for s in stats[1:]:
         assert s["loss/displacement"] < 0.5 * s["loss/initial"], s

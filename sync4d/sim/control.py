@@ -12,12 +12,14 @@ one lattice cell, and for a rigid motion F is a rotation, so Gaussians in a cell
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from sync4d.errors import ConfigError, InputError
-from sync4d.types import TargetGaussians, quat_to_matrix
+from sync4d.types import TargetGaussians, Trajectory, quat_to_matrix
 
 
 def make_control_points(means: np.ndarray, control_grid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -126,3 +128,87 @@ def carry_frame(
     offset = target.means.astype(np.float64) - np.asarray(points0, dtype=np.float64)[g2p]
     means_t = np.asarray(points_t, dtype=np.float64)[g2p] + (F[g2p] @ offset[..., None])[..., 0]
     return deform_gaussians(target, means_t, F, global_transform, index=g2p)
+
+
+@dataclass(frozen=True)
+class ControlPoints:
+    """The simulated control points at rest and the point each Gaussian follows.
+
+    A simulator that runs on control points hands these to ``on_frame`` (``control=``) with the points'
+    positions and deformation gradients, so the Gaussians are carried one frame at a time and nothing
+    per Gaussian is held across frames.
+
+    Attributes:
+        rest: (P, 3) control points at rest [m], float64.
+        gaussian_to_point: (N,) int64 control point of each Gaussian.
+    """
+
+    rest: np.ndarray
+    gaussian_to_point: np.ndarray
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(len(self.gaussian_to_point))
+
+    def carry(self, target: TargetGaussians, points_t: np.ndarray, F_t: np.ndarray,
+              global_transform: np.ndarray | None = None) -> TargetGaussians:
+        """Every Gaussian of one frame carried by its point (:func:`carry_frame`)."""
+        return carry_frame(target, self.gaussian_to_point, self.rest, points_t, F_t, global_transform)
+
+    def point_parts(self, gaussian_parts: np.ndarray) -> np.ndarray:
+        """(P,) part of each point from its Gaussians' (N,) parts (a point never mixes parts)."""
+        parts = np.zeros(len(self.rest), dtype=np.asarray(gaussian_parts).dtype)
+        parts[self.gaussian_to_point] = gaussian_parts
+        return parts
+
+
+#: ``Trajectory.extras`` keys of a trajectory simulated on control points (x and F are then (T, P, ...)).
+CONTROL_REST, GAUSSIAN_TO_POINT = "control_rest", "gaussian_to_point"
+
+
+def with_control(trajectory: Trajectory, control: ControlPoints | None) -> Trajectory:
+    """``trajectory`` (x and F per control point) marked with the points it moves (in its extras)."""
+    if control is None:
+        return trajectory
+    trajectory.extras[CONTROL_REST] = control.rest
+    trajectory.extras[GAUSSIAN_TO_POINT] = control.gaussian_to_point
+    return trajectory
+
+
+def control_of(trajectory: Trajectory) -> ControlPoints | None:
+    """The control points a trajectory was simulated on, or None when its x and F are per Gaussian."""
+    extras = trajectory.extras or {}
+    if GAUSSIAN_TO_POINT not in extras:
+        return None
+    return ControlPoints(np.asarray(extras[CONTROL_REST], dtype=np.float64),
+                         np.asarray(extras[GAUSSIAN_TO_POINT], dtype=np.int64))
+
+
+def bounded_subset(n: int, limit: int) -> np.ndarray | None:
+    """Indices of at most ``limit`` of ``n`` Gaussians, evenly by stride (file order); None: all of them.
+
+    Used where every Gaussian of every frame would be held at once (metrics, renders, exports).
+    """
+    if n <= limit:
+        return None
+    return np.arange(0, n, -(-n // int(limit)), dtype=np.int64)
+
+
+def gaussian_trajectory(trajectory: Trajectory, means0: np.ndarray, index: np.ndarray | None = None) -> Trajectory:
+    """The trajectory of the Gaussians ``index`` (all when None): x (T, n, 3) [m] and F (T, n, 3, 3).
+
+    A control-point trajectory is carried (:func:`carry_gaussians`: x_c + F_c (mu_g - x_c(0)), F_c) for
+    those Gaussians only; a per-Gaussian one is sliced. Args: ``means0`` (N, 3) rest centres [m].
+    """
+    control = control_of(trajectory)
+    if control is None:
+        if index is None:
+            return trajectory
+        return dataclasses.replace(
+            trajectory, x=trajectory.x[:, index], F=None if trajectory.F is None else trajectory.F[:, index],
+            v=None if trajectory.v is None else trajectory.v[:, index], extras={})
+    g2p = control.gaussian_to_point if index is None else control.gaussian_to_point[index]
+    mu = np.asarray(means0, dtype=np.float64)
+    offset = (mu if index is None else mu[index]) - control.rest[g2p]
+    x = np.stack([xt[g2p] + (Ft[g2p] @ offset[..., None])[..., 0] for xt, Ft in zip(trajectory.x, trajectory.F)])
+    return dataclasses.replace(trajectory, x=x, F=trajectory.F[:, g2p], v=None, extras={})

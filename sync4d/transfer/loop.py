@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from sync4d.registry import build
-from sync4d.sim.control import carry_gaussians, gaussian_covariances, make_control_points
+from sync4d.sim.control import ControlPoints, make_control_points, with_control
 from sync4d.transfer.config import TransferConfig
 from sync4d.types import DrivingMotion, PartMap, TargetGaussians, Trajectory
 
@@ -178,21 +178,16 @@ def run_mpm_transfer(
     C = torch.zeros(len(rest), 3, 3)
     part_t = torch.as_tensor(particles.part)
     rest_anchor_w = anchor_weights(rest, particles.part, B, options.loss_points)
-    means0 = target.means.astype(np.float64)
-    cov0 = gaussian_covariances(target.scales, target.quats)
+    # Through control points, on_frame gets the points' x and F with the points (control=) and carries
+    # the Gaussians itself, one frame at a time; the returned trajectory is per point (with_control).
+    control = None if cfg.control_grid is None else ControlPoints(rest, particles.gaussian_to_point)
     frames_x: list[np.ndarray] = []
     frames_F: list[np.ndarray] = []
 
-    def gaussians_of(xp: torch.Tensor, Fp: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-        """The Gaussians' centres (N, 3) and deformation gradients (N, 3, 3) carried by the particles."""
-        means_t, _ = carry_gaussians(means0, cov0, particles.gaussian_to_point, rest, xp.double().numpy(),
-                                     Fp.double().numpy())
-        return means_t, Fp.double().numpy()[particles.gaussian_to_point]
-
     def emit(t: int, xp: torch.Tensor, Fp: torch.Tensor, stats: dict[str, float]) -> None:
-        means_t, Fg = gaussians_of(xp, Fp)
-        frames_x.append(means_t)
-        frames_F.append(Fg)
+        x_np, F_np = xp.double().numpy(), Fp.double().numpy()
+        frames_x.append(x_np)
+        frames_F.append(F_np)
         if on_frame is not None:
             checkpoint = {
                 "x": xp.numpy().copy(), "F": Fp.numpy().copy(), "C": C.numpy().copy(),
@@ -200,7 +195,7 @@ def run_mpm_transfer(
                 "optimizer": None if optimizer is None else optimizer.state_dict(),
                 "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
             }
-            on_frame(t, means_t, Fg, stats, checkpoint)
+            on_frame(t, x_np, F_np, stats, checkpoint, **({} if control is None else {"control": control}))
 
     start = 0
     if resume is not None:
@@ -214,9 +209,8 @@ def run_mpm_transfer(
         random.setstate(resume["rng"]["python"])
         # The restored frame (already written by the caller) opens the returned trajectory, so a run
         # resumed after its last frame still returns one.
-        restored_x, restored_F = gaussians_of(x, F)
-        frames_x.append(restored_x)
-        frames_F.append(restored_F)
+        frames_x.append(x.double().numpy())
+        frames_F.append(F.double().numpy())
         log.info("transfer: resumed after frame %d", start)
     else:
         emit(0, x, F, {"time/frame_s": 0.0})
@@ -289,7 +283,8 @@ def run_mpm_transfer(
         emit(t + 1, x, F, stats)
 
     # After a resume this holds the restored frame and the new ones; the pipeline's writer holds all of them.
-    return Trajectory(x=np.stack(frames_x), F=np.stack(frames_F), frame_dt=1.0 / motion.fps)
+    # Per control point: (T, P) arrays, however many Gaussians follow them.
+    return with_control(Trajectory(x=np.stack(frames_x), F=np.stack(frames_F), frame_dt=1.0 / motion.fps), control)
 
 
 def initial_velocity(
