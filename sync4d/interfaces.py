@@ -55,9 +55,11 @@ class Simulator(Protocol):
     """Group ``sim``: built with ``(cfg, device=...)``; animates the target with the driving motion.
 
     ``velocity_cfg`` selects the velocity field (ignored by ``sim=lbs``); ``on_frame(t, x, F, stats,
-    checkpoint=None)`` is called after every completed frame with the Gaussians' positions (N, 3) [m]
-    and deformation gradients (N, 3, 3), so the pipeline writes outputs as the run goes; ``checkpoint``
-    is the simulator's state to resume from. ``resume`` is that state (plus ``frame``) when resuming.
+    checkpoint=None, control=None)`` is called after every completed frame with the Gaussians' positions
+    (N, 3) [m] and deformation gradients (N, 3, 3), or, with ``control`` (a
+    :class:`sync4d.sim.control.ControlPoints`), those of the P control points the Gaussians follow, so the
+    pipeline writes outputs as the run goes; ``checkpoint`` is the simulator's state to resume from.
+    ``resume`` is that state (plus ``frame``) when resuming.
     """
 
     def run(

@@ -296,7 +296,7 @@ def run_method(pair: GTPair, method: str, num_frames: int, mpm: dict[str, Any] |
     seconds: list[float] = []
     last = [time.perf_counter()]
 
-    def on_frame(t: int, x: Any, F: Any, stats: dict[str, float], checkpoint: Any = None) -> None:
+    def on_frame(t: int, x: Any, F: Any, stats: dict[str, float], checkpoint: Any = None, **_: Any) -> None:
         now = time.perf_counter()
         seconds.append(now - last[0])
         last[0] = now
