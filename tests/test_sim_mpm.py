@@ -4,6 +4,7 @@ differences, and the stability / divergence guards. CPU, tiny scenes."""
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -147,7 +148,9 @@ def test_rigid_translation_keeps_pairwise_distances():
     d1 = torch.cdist(x.double(), x.double())
     size = 0.1
     assert float((d1 - d0).abs().max()) <= 1e-5 * size
-    np.testing.assert_allclose(x.double().mean(0).numpy(), (st["x"].double().mean(0) + 0.2 * vel.double()).numpy(), atol=1e-5 * size)
+    np.testing.assert_allclose(
+        x.double().mean(0).numpy(), (st["x"].double().mean(0) + 0.2 * vel.double()).numpy(), atol=1e-5 * size
+    )
     assert float((F - torch.eye(3)).abs().max()) < 1e-5 and float(C.abs().max()) < 1e-3
 
 
@@ -196,7 +199,9 @@ def test_stretched_bar_oscillates_with_longitudinal_wave_period():
     assert min(lengths) < lengths[0] - 0.5 * (stretch - 1) * 0.8 * L
     # crossings of the mid-length: at T/4 (going down) and 3T/4 (going up) for the d'Alembert solution
     crossings = [
-        t[i] - ell[i] * (t[i + 1] - t[i]) / (ell[i + 1] - ell[i]) for i in range(len(ell) - 1) if ell[i] * ell[i + 1] < 0
+        t[i] - ell[i] * (t[i + 1] - t[i]) / (ell[i + 1] - ell[i])
+        for i in range(len(ell) - 1)
+        if ell[i] * ell[i + 1] < 0
     ]
     assert len(crossings) >= 2
     measured = 2.0 * (crossings[1] - crossings[0])
@@ -223,8 +228,8 @@ def test_fixed_region_holds_particles():
 # --------------------------------------------------------------------------------------------------
 
 
-def _grad_scene(checkpoint_every: int = 10):
-    sim = make_sim(E=2e3, nu=0.3, n_grid=16, checkpoint_every=checkpoint_every)
+def _grad_scene(checkpoint_every: int = 10, cpu_threads: int | None = None):
+    sim = make_sim(E=2e3, nu=0.3, n_grid=16, checkpoint_every=checkpoint_every, cpu_threads=cpu_threads)
     rng = np.random.default_rng(0)
     pts = rng.uniform(0.0, 0.1, (300, 3))
     model = sim.prepare(pts, volume=1e-3)
@@ -235,9 +240,10 @@ def _grad_scene(checkpoint_every: int = 10):
     return sim, model, st, v0, part, target
 
 
-@pytest.mark.parametrize("substeps", [5, 100])
-def test_velocity_gradient_matches_finite_differences(substeps):
-    sim, model, st, v0, part, target = _grad_scene()
+@pytest.mark.parametrize("substeps,threads", [(5, None), (100, None), (100, 2)])
+def test_velocity_gradient_matches_finite_differences(substeps, threads):
+    """(threads None: this small scene runs on one thread; 2: the particle chunks on two threads.)"""
+    sim, model, st, v0, part, target = _grad_scene(cpu_threads=threads)
     dt = 1e-3
     assert model.wave_speed * dt / model.grid.dx < 0.3
 
@@ -265,8 +271,9 @@ def test_velocity_gradient_matches_finite_differences(substeps):
             assert abs(fd) > 1e-7
 
 
-def test_position_F_C_gradients_match_finite_differences():
-    sim, model, st, v0, part, target = _grad_scene()
+@pytest.mark.parametrize("threads", [None, 2])
+def test_position_F_C_gradients_match_finite_differences(threads):
+    sim, model, st, v0, part, target = _grad_scene(cpu_threads=threads)
     rng = np.random.default_rng(3)
     F0 = st["F"] + torch.tensor(0.02 * rng.normal(size=(300, 3, 3)), dtype=torch.float32)
     C0 = torch.tensor(0.5 * rng.normal(size=(300, 3, 3)), dtype=torch.float32)
@@ -317,6 +324,71 @@ def test_two_chained_rollouts_backpropagate_to_the_first_frame():
     with torch.no_grad():
         fd = (float(loss(v0 + 3e-3 * d)) - float(loss(v0 - 3e-3 * d))) / 6e-3
     assert float((v.grad.double() * d.double()).sum()) == pytest.approx(fd, rel=5e-2)
+
+
+# --------------------------------------------------------------------------------------------------
+# both cores: particle chunks on several threads
+# --------------------------------------------------------------------------------------------------
+
+
+def _threaded_run(threads: int, *, substeps: int = 30):
+    """Forward + backward of a 1000-particle blob on ``threads`` threads: (x, F, dL/dv0, dL/dF0, sim)."""
+    sim = make_sim(E=2e3, nu=0.3, n_grid=16, cpu_threads=threads, checkpoint_every=7)
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(0.0, 0.1, (1001, 3))  # odd: the chunks differ in size
+    model = sim.prepare(pts, volume=1e-3)
+    st = sim.initial_state(model)
+    v = torch.tensor(rng.normal(0.0, 0.3, (1001, 3)), dtype=torch.float32).requires_grad_(True)
+    F = (st["F"] + torch.tensor(0.02 * rng.normal(size=(1001, 3, 3)), dtype=torch.float32)).requires_grad_(True)
+    x, vo, Fo, Co = sim.rollout(model, st["x"], v, F, st["C"], substeps=substeps, dt=1e-3)
+    part = torch.as_tensor(pts[:, 0] < 0.05)
+    loss = (x[part].mean(0) ** 2).sum() + ((Fo - torch.eye(3)) ** 2).mean() + 0.1 * (vo**2).mean() + (Co**2).mean()
+    loss.backward()
+    return x.detach(), Fo.detach(), v.grad, F.grad, sim
+
+
+def test_threads_match_one_thread_and_are_deterministic():
+    x1, F1, gv1, gF1, sim1 = _threaded_run(1)
+    assert sim1._ws.threads == 1
+    for threads in (2, 3):
+        x, F, gv, gF, sim = _threaded_run(threads)
+        ws = sim._ws
+        assert ws.threads == threads and ws.grids.shape[0] == threads
+        assert sorted(hi - lo for lo, hi in ws.bounds) == ([500, 501] if threads == 2 else [333, 334, 334])
+        # the node sums are added in another order: equal up to float rounding, not bit for bit
+        torch.testing.assert_close(x, x1, rtol=0, atol=1e-6)
+        torch.testing.assert_close(F, F1, rtol=0, atol=1e-5)
+        torch.testing.assert_close(gv, gv1, rtol=1e-3, atol=1e-6 * float(gv1.abs().max()))
+        torch.testing.assert_close(gF, gF1, rtol=1e-3, atol=1e-6 * float(gF1.abs().max()))
+    # and the threaded result does not depend on which thread finishes first
+    x2, F2, gv2, gF2, _ = _threaded_run(2)
+    x2b, F2b, gv2b, gF2b, _ = _threaded_run(2)
+    assert torch.equal(x2, x2b) and torch.equal(F2, F2b) and torch.equal(gv2, gv2b) and torch.equal(gF2, gF2b)
+
+
+def test_particles_leaving_the_grid_in_the_second_thread_raise_diverged():
+    sim = make_sim(n_grid=16, cpu_threads=2)
+    pts = blob(400)
+    model = sim.prepare(pts, volume=1e-3)
+    st = sim.initial_state(model)
+    v0 = torch.zeros(400, 3)
+    v0[torch.as_tensor(pts[:, 0] > 0.09), 0] = 200.0  # the highest-x cells: the last chunk after sorting
+    with pytest.raises(SimulationDiverged, match=r"frame 2, substep \d of 10: particles left the grid"):
+        sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=10, dt=1e-3, frame_index=2, check_cfl=False)
+    assert sim._ws.threads == 2
+    assert int(sim._ws.status_of[0].numpy()[0]) == 2147483647 and int(sim._ws.status_of[1].numpy()[0]) < 10
+
+
+def test_thread_count_rules():
+    sim = make_sim()
+    cores = len(os.sched_getaffinity(0))
+    assert sim.threads_for(100) == 1  # tiny scenes stay on one thread
+    assert sim.threads_for(50_000) == min(cores, 50_000 // 4096)
+    assert make_sim(cpu_threads=3).threads_for(100) == 3 and make_sim(cpu_threads=3).threads_for(2) == 2
+    sim.wp_device = "cuda:0"  # never split on CUDA
+    assert sim.threads_for(50_000) == 1
+    with pytest.raises(ConfigError, match=r"sim.cpu_threads=0"):
+        make_sim(cpu_threads=0)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -477,15 +549,26 @@ def _one_particle_grid(F: np.ndarray, *, scale: float = 1.0):
     sim = make_sim(n_grid=16)
     model = sim.prepare(np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.1]]))
     xp = np.array([[0.0437, 0.0512, 0.0581]])  # off-centre in its cell: asymmetric weights
-    model = dataclasses.replace(model, rest_points=xp, mass=np.array([0.7]), volume=np.array([2e-4]),
-                                mu=model.mu * scale, lam=model.lam * scale)
+    model = dataclasses.replace(
+        model, rest_points=xp, mass=np.array([0.7]), volume=np.array([2e-4]), mu=model.mu * scale, lam=model.lam * scale
+    )
     dt = 1e-3
-    launch = mw._Launch(model=model, ws=sim._workspace(1, model.grid.dims),
-                        mass=wp.array(np.array([0.7], np.float32), dtype=float, device="cpu"),
-                        volume=wp.array(np.array([2e-4], np.float32), dtype=float, device="cpu"), dt=dt, mass_eps=1e-12)
+    launch = mw._Launch(
+        model=model,
+        ws=sim._workspace(1, model.grid.dims),
+        mass=wp.array(np.array([0.7], np.float32), dtype=float, device="cpu"),
+        volume=wp.array(np.array([2e-4], np.float32), dtype=float, device="cpu"),
+        dt=dt,
+        mass_eps=1e-12,
+    )
     t = torch.as_tensor
-    mw._load(launch.ws.ping, t(xp, dtype=torch.float32), torch.zeros(1, 3), t(F[None], dtype=torch.float32),
-             torch.zeros(1, 3, 3))
+    mw._load(
+        launch.ws.ping,
+        t(xp, dtype=torch.float32),
+        torch.zeros(1, 3),
+        t(F[None], dtype=torch.float32),
+        torch.zeros(1, 3, 3),
+    )
     launch.ws.grid.zero_()
     i, o = launch.p2g_args(launch.ws.ping, 0)
     wp.launch(K.p2g, dim=1, inputs=i, outputs=o, device="cpu")

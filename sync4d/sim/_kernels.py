@@ -245,8 +245,20 @@ def p2g(
 
 @wp.func
 def boundary_mask(
-    i: int, j: int, k: int, n0: int, n1: int, n2: int, vi: wp.vec3, wall: int, sticky: int,
-    origin: wp.vec3, dx: float, fixed_lo: wp.vec3, fixed_hi: wp.vec3, use_fixed: int,
+    i: int,
+    j: int,
+    k: int,
+    n0: int,
+    n1: int,
+    n2: int,
+    vi: wp.vec3,
+    wall: int,
+    sticky: int,
+    origin: wp.vec3,
+    dx: float,
+    fixed_lo: wp.vec3,
+    fixed_hi: wp.vec3,
+    use_fixed: int,
 ) -> wp.vec3:
     """Per-component 0/1 mask the boundary conditions apply to a node velocity ``vi`` (before masking).
 
@@ -284,9 +296,19 @@ def boundary_mask(
     return wp.vec3(mx, my, mz)
 
 
+@wp.func
+def node_sum(grids: wp.array4d(dtype=wp.vec4), i: int, j: int, k: int) -> wp.vec4:
+    """Node (i, j, k) of the per-thread P2G grids summed: grids[0] + grids[1] + ... (one grid: itself)."""
+    g = grids[0, i, j, k]
+    for t in range(1, grids.shape[0]):
+        g = g + grids[t, i, j, k]
+    return g
+
+
 @wp.kernel
 def grid_update(
-    grid: wp.array3d(dtype=wp.vec4),
+    grids: wp.array4d(dtype=wp.vec4),
+    i0: int,
     gravity: wp.vec3,
     dt: float,
     mass_eps: float,
@@ -301,8 +323,12 @@ def grid_update(
 ):
     """Node velocities v_i = (m v)_i / m_i + dt g, then boundary conditions (:func:`boundary_mask`).
 
+    Launched over the slab of nodes i0 <= i < i0 + dim[0] (the whole grid, or one thread's share).
+
     Args:
-        grid: (nx, ny, nz) vec4(m v, m) from :func:`p2g`.
+        grids: (T, nx, ny, nz) vec4(m v, m) from :func:`p2g`, one grid per thread that scattered
+            (summed here, so the threads never write the same node).
+        i0: first x-index of the slab this launch covers.
         gravity: [m/s^2]; dt: substep [s].
         mass_eps: nodes lighter than this [kg] are empty (avoids 1/m blow-ups in value and gradient).
         wall: nodes within this many of a face are walls; sticky: 1 zeroes the whole velocity there,
@@ -312,13 +338,27 @@ def grid_update(
         grid_v: (nx, ny, nz) node velocities [m/s] (output).
     """
     i, j, k = wp.tid()
-    g = grid[i, j, k]
+    i = i + i0
+    g = node_sum(grids, i, j, k)
     m = g[3]
     vi = wp.vec3(0.0)
     if m > mass_eps:
         vi = wp.vec3(g[0], g[1], g[2]) / m + dt * gravity
         mask = boundary_mask(
-            i, j, k, grid.shape[0], grid.shape[1], grid.shape[2], vi, wall, sticky, origin, dx, fixed_lo, fixed_hi, use_fixed
+            i,
+            j,
+            k,
+            grids.shape[1],
+            grids.shape[2],
+            grids.shape[3],
+            vi,
+            wall,
+            sticky,
+            origin,
+            dx,
+            fixed_lo,
+            fixed_hi,
+            use_fixed,
         )
         vi = wp.cw_mul(vi, mask)
     grid_v[i, j, k] = vi
@@ -326,7 +366,8 @@ def grid_update(
 
 @wp.kernel(enable_backward=False)
 def grid_update_adjoint(
-    grid: wp.array3d(dtype=wp.vec4),
+    grids: wp.array4d(dtype=wp.vec4),
+    i0: int,
     gravity: wp.vec3,
     dt: float,
     mass_eps: float,
@@ -337,7 +378,7 @@ def grid_update_adjoint(
     fixed_lo: wp.vec3,
     fixed_hi: wp.vec3,
     use_fixed: int,
-    adj_grid_v: wp.array3d(dtype=wp.vec3),
+    adj_grid_v: wp.array4d(dtype=wp.vec3),
     adj_grid: wp.array3d(dtype=wp.vec4),
 ):
     """Hand-written adjoint of :func:`grid_update`: dL/d(m v)_i and dL/dm_i from dL/dv_i.
@@ -345,10 +386,12 @@ def grid_update_adjoint(
     v = M (p / m + dt g) with p = (m v)_i and the boundary mask M (piecewise constant):
     dL/dp = M dL/dv / m and dL/dm = -(M dL/dv) . p / m^2. The node mass gets its gradient here; it is
     what carries the weights' position dependence back correctly over many substeps. ``adj_grid`` is
-    written, not accumulated (no zeroing needed).
+    written, not accumulated (no zeroing needed). ``grids`` and ``adj_grid_v`` (T, nx, ny, nz) hold one
+    grid per thread (P2G's and G2P-adjoint's scatters), summed here; the slab is as in :func:`grid_update`.
     """
     i, j, k = wp.tid()
-    g = grid[i, j, k]
+    i = i + i0
+    g = node_sum(grids, i, j, k)
     m = g[3]
     out = wp.vec4(0.0)
     if m > mass_eps:
@@ -356,9 +399,25 @@ def grid_update_adjoint(
         inv_m = 1.0 / m
         vi = p * inv_m + dt * gravity
         mask = boundary_mask(
-            i, j, k, grid.shape[0], grid.shape[1], grid.shape[2], vi, wall, sticky, origin, dx, fixed_lo, fixed_hi, use_fixed
+            i,
+            j,
+            k,
+            grids.shape[1],
+            grids.shape[2],
+            grids.shape[3],
+            vi,
+            wall,
+            sticky,
+            origin,
+            dx,
+            fixed_lo,
+            fixed_hi,
+            use_fixed,
         )
-        a = wp.cw_mul(adj_grid_v[i, j, k], mask)
+        av = adj_grid_v[0, i, j, k]
+        for t in range(1, adj_grid_v.shape[0]):
+            av = av + adj_grid_v[t, i, j, k]
+        a = wp.cw_mul(av, mask)
         ap = a * inv_m
         out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, p) * inv_m)
     adj_grid[i, j, k] = out
@@ -596,7 +655,11 @@ def kirchhoff_stress(F: wp.array(dtype=wp.mat33), mu: float, lam: float, tau: wp
 
 @wp.kernel(enable_backward=False)
 def kirchhoff_stress_adjoint(
-    F: wp.array(dtype=wp.mat33), mu: float, lam: float, adj_tau: wp.array(dtype=wp.mat33), adj_F: wp.array(dtype=wp.mat33)
+    F: wp.array(dtype=wp.mat33),
+    mu: float,
+    lam: float,
+    adj_tau: wp.array(dtype=wp.mat33),
+    adj_F: wp.array(dtype=wp.mat33),
 ):
     """(P,) dL/dF from dL/dtau by :func:`kirchhoff_adjoint` (tests compare it with Warp's generated adjoint)."""
     p = wp.tid()

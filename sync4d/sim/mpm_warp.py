@@ -13,6 +13,13 @@ gravity, boundary) and :func:`step` ``(model, state_in, state_out, dt)``, which 
 
 Memory of a forward+backward rollout is therefore O(P (substeps / k + k)) + one grid with its adjoint.
 
+Both cores (CPU only): Warp's CPU backend runs a launch on one thread, and its ctypes call releases the
+GIL. With ``cpu_threads`` T > 1 every particle kernel is launched as T contiguous chunks of the
+(cell-sorted) particles from T Python threads, each P2G and each G2P adjoint scattering into its own
+grid (the grid update and its adjoint sum the T grids, split into T slabs of nodes), so no two threads
+ever write the same memory. Results equal the one-thread path up to float rounding (the node sums are
+added in another order) and do not depend on thread timing. On CUDA nothing is split.
+
 Guards: material and dt validation, the CFL bound (auto sub-stepping or :class:`SimulationUnstable`),
 and a NaN/inf/off-grid check at the end of every rollout (one per frame), raised as
 :class:`SimulationDiverged` naming the frame, the substep, the largest speed and what to change.
@@ -23,6 +30,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -41,6 +51,9 @@ from sync4d.types import validate_material
 log = logging.getLogger(__name__)
 
 _STATUS_OK = 2147483647
+# auto cpu_threads: a thread gets at least this many particles (below, the ~0.1 ms of handing a launch
+# to another thread outweighs the halved kernel time)
+_MIN_PARTICLES_PER_THREAD = 4096
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -104,6 +117,17 @@ class WarpState:
     v: wp.array
     C: wp.array
     F: wp.array
+    _parts: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def parts(self, bounds: tuple[tuple[int, int], ...]) -> list[WarpState]:
+        """The state as views of the particle ranges ``bounds`` (itself for one range; views are cached)."""
+        if len(bounds) == 1:
+            return [self]
+        views = self._parts.get(bounds)
+        if views is None:
+            views = [WarpState(*(a[lo:hi] for a in self.arrays())) for lo, hi in bounds]
+            self._parts[bounds] = views
+        return views
 
     @staticmethod
     def empty(n: int, device: str) -> WarpState:
@@ -126,25 +150,45 @@ class WarpState:
             wp.copy(dst, src)
 
 
-class _Workspace:
-    """Preallocated scratch of one (particle count, grid shape, device): reused by every rollout.
+def _split(n: int, parts: int) -> tuple[tuple[int, int], ...]:
+    """``parts`` contiguous ranges [lo, hi) covering 0..n, as equal as possible."""
+    edges = [n * t // parts for t in range(parts + 1)]
+    return tuple((edges[t], edges[t + 1]) for t in range(parts))
 
+
+class _Workspace:
+    """Preallocated scratch of one (particle count, grid shape, device, threads): reused by every rollout.
+
+    With ``threads`` T > 1 (CPU), thread t handles particles ``bounds[t]`` and node slab ``slabs[t]``,
+    and owns P2G grid ``grids[t]``, G2P-adjoint grid ``adj_grid_v[t]`` and failure record ``status_of[t]``.
     Not thread-safe: one simulator object runs one rollout (forward or backward) at a time.
     """
 
-    def __init__(self, n: int, dims: tuple[int, int, int], device: str) -> None:
-        self.n, self.dims, self.device = n, dims, device
-        self.grid = wp.zeros(dims, dtype=wp.vec4, device=device)
+    def __init__(
+        self, n: int, dims: tuple[int, int, int], device: str, threads: int = 1, pool: ThreadPoolExecutor | None = None
+    ) -> None:
+        self.n, self.dims, self.device, self.threads, self.pool = n, dims, device, threads, pool
+        if threads > 1 and pool is None:
+            raise ValueError("_Workspace: a thread pool is needed for threads > 1")
+        self.bounds = _split(n, threads)
+        self.slabs = _split(dims[0], threads)
+        self.grids = wp.zeros((threads, *dims), dtype=wp.vec4, device=device)
+        self.grid_of = [self.grids[t] for t in range(threads)]
+        self.grid = self.grid_of[0]
         self.grid_v = wp.zeros(dims, dtype=wp.vec3, device=device)
-        self.status = wp.full(1, _STATUS_OK, dtype=wp.int32, device=device)
+        self.status_all = wp.full(threads, _STATUS_OK, dtype=wp.int32, device=device)
+        self.status_of = [self.status_all[t : t + 1] for t in range(threads)]
+        self.status = self.status_of[0]
         # polar rotations of the substep being reversed: written by the P2G that rebuilds its grid,
         # read by the P2G adjoint (one substep at a time, so one buffer)
         self.rotation = wp.zeros(n, dtype=wp.mat33, device=device)
+        self.rotation_of = [self.rotation[lo:hi] for lo, hi in self.bounds] if threads > 1 else [self.rotation]
         self.ping = WarpState.empty(n, device)
         self.pong = WarpState.empty(n, device)
         # backward-only buffers, allocated on first use
         self.adj_grid: wp.array | None = None
-        self.adj_grid_v: wp.array | None = None
+        self.adj_grid_v: wp.array | None = None  # (T, nx, ny, nz)
+        self.adj_grid_v_of: list[wp.array] = []
         self.adj_a: WarpState | None = None
         self.adj_b: WarpState | None = None
 
@@ -153,11 +197,29 @@ class _Workspace:
     def ensure_backward(self, k: int) -> None:
         if self.adj_grid is None:
             self.adj_grid = wp.zeros(self.dims, dtype=wp.vec4, device=self.device)
-            self.adj_grid_v = wp.zeros(self.dims, dtype=wp.vec3, device=self.device)
+            self.adj_grid_v = wp.zeros((self.threads, *self.dims), dtype=wp.vec3, device=self.device)
+            self.adj_grid_v_of = [self.adj_grid_v[t] for t in range(self.threads)]
             self.adj_a = WarpState.empty(self.n, self.device)
             self.adj_b = WarpState.empty(self.n, self.device)
         while len(self.segment) < k:
             self.segment.append(WarpState.empty(self.n, self.device))
+
+    def status_value(self) -> int:
+        """The earliest substep any thread recorded a failure at (``_STATUS_OK`` when none did)."""
+        return int(self.status_all.numpy().min())
+
+    def run(self, task: Callable[[int], None]) -> None:
+        """``task(t)`` for every thread t: t = 0 here, the others on the pool; returns when all are done."""
+        if self.threads == 1:
+            task(0)
+            return
+        assert self.pool is not None
+        futures = [self.pool.submit(task, t) for t in range(1, self.threads)]
+        try:
+            task(0)
+        finally:
+            for f in futures:
+                f.result()
 
 
 @dataclass
@@ -170,34 +232,73 @@ class _Launch:
     volume: wp.array
     dt: float
     mass_eps: float
+    _mass_of: list[wp.array] = field(default_factory=list, repr=False)
+    _volume_of: list[wp.array] = field(default_factory=list, repr=False)
 
-    def p2g_args(self, s: WarpState, substep: int, *, store_rotation: bool = False) -> tuple[list[Any], list[Any]]:
+    def __post_init__(self) -> None:
+        if self.ws.threads > 1:
+            self._mass_of = [self.mass[lo:hi] for lo, hi in self.ws.bounds]
+            self._volume_of = [self.volume[lo:hi] for lo, hi in self.ws.bounds]
+        else:
+            self._mass_of, self._volume_of = [self.mass], [self.volume]
+
+    def p2g_args(
+        self, s: WarpState, substep: int, *, store_rotation: bool = False, t: int = 0
+    ) -> tuple[list[Any], list[Any]]:
+        """P2G of thread t's particles (``s`` is that thread's view of the state) into its own grid."""
         g = self.model.grid
         inputs = [
-            s.x, s.v, s.C, s.F, self.mass, self.volume,
+            s.x, s.v, s.C, s.F, self._mass_of[t], self._volume_of[t],
             float(self.model.mu), float(self.model.lam),
             wp.vec3(*g.origin), float(g.dx), float(1.0 / g.dx), float(self.dt),
             int(g.dims[0]), int(g.dims[1]), int(g.dims[2]), int(substep), int(store_rotation),
         ]  # fmt: skip
-        return inputs, [self.ws.grid, self.ws.status, self.ws.rotation]
+        return inputs, [self.ws.grid_of[t], self.ws.status_of[t], self.ws.rotation_of[t]]
 
-    def grid_args(self) -> tuple[list[Any], list[Any]]:
+    def grid_args(self, t: int = 0) -> tuple[list[Any], list[Any]]:
+        """Grid update of thread t's slab of nodes (the launch dimension is :meth:`slab_dim`)."""
         m, g = self.model, self.model.grid
         box = m.fixed_box if m.fixed_box is not None else np.zeros((2, 3))
         inputs = [
-            self.ws.grid, wp.vec3(*m.gravity), float(self.dt), float(self.mass_eps), int(g.wall),
+            self.ws.grids, int(self.ws.slabs[t][0]), wp.vec3(*m.gravity), float(self.dt), float(self.mass_eps), int(g.wall),
             int(m.sticky), wp.vec3(*g.origin), float(g.dx), wp.vec3(*box[0]), wp.vec3(*box[1]),
             int(m.fixed_box is not None),
         ]  # fmt: skip
         return inputs, [self.ws.grid_v]
 
-    def g2p_args(self, s: WarpState, out: WarpState, substep: int) -> tuple[list[Any], list[Any]]:
+    def slab_dim(self, t: int) -> tuple[int, int, int]:
+        lo, hi = self.ws.slabs[t]
+        return (hi - lo, self.ws.dims[1], self.ws.dims[2])
+
+    def g2p_args(self, s: WarpState, out: WarpState, substep: int, t: int = 0) -> tuple[list[Any], list[Any]]:
         g = self.model.grid
         inputs = [s.x, s.F, self.ws.grid_v, wp.vec3(*g.origin), float(1.0 / g.dx), float(self.dt), int(substep)]
-        return inputs, [out.x, out.v, out.C, out.F, self.ws.status]
+        return inputs, [out.x, out.v, out.C, out.F, self.ws.status_of[t]]
+
+    def count(self, t: int) -> int:
+        lo, hi = self.ws.bounds[t]
+        return hi - lo
+
+    def p2g(self, s: WarpState, substep: int, t: int, *, store_rotation: bool = False) -> None:
+        """Zero thread t's grid and scatter its particles (``s`` the whole state) into it."""
+        ws = self.ws
+        ws.grid_of[t].zero_()
+        i, o = self.p2g_args(s.parts(ws.bounds)[t], substep, store_rotation=store_rotation, t=t)
+        wp.launch(K.p2g, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
+
+    def grid_update(self, t: int) -> None:
+        i, o = self.grid_args(t)
+        wp.launch(K.grid_update, dim=self.slab_dim(t), inputs=i, outputs=o, device=self.ws.device)
+
+    def g2p(self, s: WarpState, out: WarpState, substep: int, t: int) -> None:
+        ws = self.ws
+        i, o = self.g2p_args(s.parts(ws.bounds)[t], out.parts(ws.bounds)[t], substep, t)
+        wp.launch(K.g2p, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
 
 
-def step(launch: _Launch, state_in: WarpState, state_out: WarpState, substep: int, *, timers: dict | None = None) -> None:
+def step(
+    launch: _Launch, state_in: WarpState, state_out: WarpState, substep: int, *, timers: dict | None = None
+) -> None:
     """One MLS-MPM substep ``state_in -> state_out`` (``state_in`` is only read).
 
     Args:
@@ -208,25 +309,21 @@ def step(launch: _Launch, state_in: WarpState, state_out: WarpState, substep: in
         timers: when given, accumulates wall time [s] per kernel under 'p2g', 'grid', 'g2p' (synchronises
             after each launch, so only for profiling).
     """
-    ws, dev, n = launch.ws, launch.ws.device, launch.model.num_particles
-    ws.grid.zero_()
+    ws, dev = launch.ws, launch.ws.device
     if timers is not None:
         import time
 
         wp.synchronize_device(dev)
         t0 = time.perf_counter()
-    i, o = launch.p2g_args(state_in, substep)
-    wp.launch(K.p2g, dim=n, inputs=i, outputs=o, device=dev)
+    ws.run(lambda t: launch.p2g(state_in, substep, t))
     if timers is not None:
         wp.synchronize_device(dev)
         t1 = time.perf_counter()
-    i, o = launch.grid_args()
-    wp.launch(K.grid_update, dim=ws.dims, inputs=i, outputs=o, device=dev)
+    ws.run(launch.grid_update)
     if timers is not None:
         wp.synchronize_device(dev)
         t2 = time.perf_counter()
-    i, o = launch.g2p_args(state_in, state_out, substep)
-    wp.launch(K.g2p, dim=n, inputs=i, outputs=o, device=dev)
+    ws.run(lambda t: launch.g2p(state_in, state_out, substep, t))
     if timers is not None:
         wp.synchronize_device(dev)
         t3 = time.perf_counter()
@@ -244,29 +341,42 @@ def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: War
     were 3-6x slower). The grid mass is differentiated like every other input. No buffer needs zeroing
     except the scattered node-velocity adjoint.
     """
-    ws, dev, n = launch.ws, launch.ws.device, launch.model.num_particles
+    ws, dev = launch.ws, launch.ws.device
     assert ws.adj_grid is not None and ws.adj_grid_v is not None
     g = launch.model.grid
     # forward part: the grid this substep saw
-    ws.grid.zero_()
-    p2g_in, p2g_out = launch.p2g_args(s, substep, store_rotation=True)
-    wp.launch(K.p2g, dim=n, inputs=p2g_in, outputs=p2g_out, device=dev)
-    grid_in, grid_out = launch.grid_args()
-    wp.launch(K.grid_update, dim=ws.dims, inputs=grid_in, outputs=grid_out, device=dev)
+    ws.run(lambda t: launch.p2g(s, substep, t, store_rotation=True))
+    ws.run(launch.grid_update)
 
     origin, inv_dx, dt = wp.vec3(*g.origin), float(1.0 / g.dx), float(launch.dt)
-    ws.adj_grid_v.zero_()
-    wp.launch(
-        K.g2p_adjoint, dim=n,
-        inputs=[s.x, s.F, ws.grid_v, origin, inv_dx, dt, adj_out.x, adj_out.v, adj_out.C, adj_out.F],
-        outputs=[ws.adj_grid_v, adj_in.x, adj_in.F], device=dev,
-    )  # fmt: skip
-    wp.launch(K.grid_update_adjoint, dim=ws.dims, inputs=grid_in + [ws.adj_grid_v], outputs=[ws.adj_grid], device=dev)
-    wp.launch(
-        K.p2g_adjoint, dim=n,
-        inputs=p2g_in[:15] + [ws.rotation, ws.adj_grid],
-        outputs=[adj_in.x, adj_in.v, adj_in.C, adj_in.F], device=dev,
-    )  # fmt: skip
+    sp, op, ip = s.parts(ws.bounds), adj_out.parts(ws.bounds), adj_in.parts(ws.bounds)
+
+    def g2p_adjoint(t: int) -> None:
+        ws.adj_grid_v_of[t].zero_()
+        wp.launch(
+            K.g2p_adjoint, dim=launch.count(t),
+            inputs=[sp[t].x, sp[t].F, ws.grid_v, origin, inv_dx, dt, op[t].x, op[t].v, op[t].C, op[t].F],
+            outputs=[ws.adj_grid_v_of[t], ip[t].x, ip[t].F], device=dev,
+        )  # fmt: skip
+
+    def grid_update_adjoint(t: int) -> None:
+        grid_in, _ = launch.grid_args(t)
+        wp.launch(
+            K.grid_update_adjoint, dim=launch.slab_dim(t), inputs=grid_in + [ws.adj_grid_v], outputs=[ws.adj_grid],
+            device=dev,
+        )  # fmt: skip
+
+    def p2g_adjoint(t: int) -> None:
+        p2g_in, _ = launch.p2g_args(sp[t], substep, t=t)
+        wp.launch(
+            K.p2g_adjoint, dim=launch.count(t),
+            inputs=p2g_in[:15] + [ws.rotation_of[t], ws.adj_grid],
+            outputs=[ip[t].x, ip[t].v, ip[t].C, ip[t].F], device=dev,
+        )  # fmt: skip
+
+    ws.run(g2p_adjoint)
+    ws.run(grid_update_adjoint)
+    ws.run(p2g_adjoint)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -310,16 +420,23 @@ class _RolloutPlan:
     checkpoints: list[WarpState] = field(default_factory=list)
 
     def forward(
-        self, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *, store: bool, timers: dict | None = None
+        self,
+        x: torch.Tensor,
+        v: torch.Tensor,
+        F: torch.Tensor,
+        C: torch.Tensor,
+        *,
+        store: bool,
+        timers: dict | None = None,
     ) -> WarpState:
         ws = self.launch.ws
-        ws.status.fill_(_STATUS_OK)
+        ws.status_all.fill_(_STATUS_OK)
         _load(ws.ping, x, v, F, C)
         cur, nxt = ws.ping, ws.pong
         k = self.checkpoint_every
         for s in range(self.substeps):
             if s % k == 0:
-                if s > 0 and int(ws.status.numpy()[0]) != _STATUS_OK:
+                if s > 0 and ws.status_value() != _STATUS_OK:
                     break  # diverged: stop early, the caller raises SimulationDiverged
                 if store:
                     self.checkpoints.append(_clone_state(cur))
@@ -427,6 +544,9 @@ class MPMWarp:
                 results beyond float rounding).
             refit_grid: when particles come near the walls, re-centre and grow the grid (same dx) before
                 a rollout instead of letting the walls act on them.
+            cpu_threads: threads of a rollout on the CPU (each launch split into particle chunks that
+                scatter into their own grids; equal to one thread up to float rounding); null = the usable
+                cores, one per 4096 particles at most. Ignored on CUDA.
         """
 
         E: float = 1e4
@@ -448,12 +568,15 @@ class MPMWarp:
         checkpoint_budget_mb: float = 512.0
         sort_particles: bool = True
         refit_grid: bool = True
+        cpu_threads: int | None = None
 
         def validate(self) -> None:
             """Raise :class:`ConfigError` naming the offending ``sim.*`` key."""
             validate_material(self.E, self.nu, self.density, where="sim")
             if self.n_grid < 2 * self.wall_cells + 4:
-                raise ConfigError(f"sim.n_grid={self.n_grid}: needs >= {2 * self.wall_cells + 4} (2 walls of sim.wall_cells + 4)")
+                raise ConfigError(
+                    f"sim.n_grid={self.n_grid}: needs >= {2 * self.wall_cells + 4} (2 walls of sim.wall_cells + 4)"
+                )
             if self.wall_cells < 1:
                 raise ConfigError(f"sim.wall_cells={self.wall_cells}: must be >= 1 to keep particles on the grid")
             if not (self.grid_padding >= 0 and math.isfinite(self.grid_padding)):
@@ -463,7 +586,9 @@ class MPMWarp:
             if self.fixed_box is not None:
                 box = np.asarray(self.fixed_box, dtype=float)
                 if box.shape != (6,) or not np.all(box[:3] <= box[3:]):
-                    raise ConfigError(f"sim.fixed_box={self.fixed_box}: expected [xlo, ylo, zlo, xhi, yhi, zhi] with lo <= hi")
+                    raise ConfigError(
+                        f"sim.fixed_box={self.fixed_box}: expected [xlo, ylo, zlo, xhi, yhi, zhi] with lo <= hi"
+                    )
             if self.frame_time is not None and not (self.frame_time > 0 and math.isfinite(self.frame_time)):
                 raise ConfigError(f"sim.frame_time={self.frame_time}: must be > 0 s, or null for the frame interval")
             if self.substeps < 1:
@@ -473,11 +598,17 @@ class MPMWarp:
             if self.max_substeps < self.substeps:
                 raise ConfigError(f"sim.max_substeps={self.max_substeps}: must be >= sim.substeps={self.substeps}")
             if self.control_grid is not None and self.control_grid < 1:
-                raise ConfigError(f"sim.control_grid={self.control_grid}: must be >= 1, or null to simulate every Gaussian")
+                raise ConfigError(
+                    f"sim.control_grid={self.control_grid}: must be >= 1, or null to simulate every Gaussian"
+                )
             if len(self.gravity) != 3:
                 raise ConfigError(f"sim.gravity={self.gravity}: expected 3 values [m/s^2]")
             if self.checkpoint_every is not None and self.checkpoint_every < 1:
-                raise ConfigError(f"sim.checkpoint_every={self.checkpoint_every}: must be >= 1, or null (from the budget)")
+                raise ConfigError(
+                    f"sim.checkpoint_every={self.checkpoint_every}: must be >= 1, or null (from the budget)"
+                )
+            if self.cpu_threads is not None and self.cpu_threads < 1:
+                raise ConfigError(f"sim.cpu_threads={self.cpu_threads}: must be >= 1, or null (the usable cores)")
             if not self.checkpoint_budget_mb > 0:
                 raise ConfigError(f"sim.checkpoint_budget_mb={self.checkpoint_budget_mb}: must be > 0 MB")
 
@@ -488,6 +619,8 @@ class MPMWarp:
         self.wp_device = warp_device(device)
         self.torch_device = torch_device(device)
         self._ws: _Workspace | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_size = 0
 
     # -- building ---------------------------------------------------------------------------------
 
@@ -553,11 +686,15 @@ class MPMWarp:
             return self.prepare(means, volume=volume), np.arange(len(means), dtype=np.int64)
         points, g2p, counts = make_control_points(means, self.cfg.control_grid)
         if volume is None:
-            probe = physics.fit_grid(means, n_grid=self.cfg.n_grid, padding=self.cfg.grid_padding, wall=self.cfg.wall_cells)
+            probe = physics.fit_grid(
+                means, n_grid=self.cfg.n_grid, padding=self.cfg.grid_padding, wall=self.cfg.wall_cells
+            )
             box = np.prod(np.maximum(means.max(0) - means.min(0), probe.dx))
             volume = physics.voxel_volume(means, max(probe.dx, (8.0 * box / len(means)) ** (1.0 / 3.0)))
         model = self.prepare(points, volume=volume, weights=counts.astype(np.float64))
-        log.info("sim: %d Gaussians -> %d control points (control_grid=%d)", len(means), len(points), self.cfg.control_grid)
+        log.info(
+            "sim: %d Gaussians -> %d control points (control_grid=%d)", len(means), len(points), self.cfg.control_grid
+        )
         return model, g2p
 
     def initial_state(self, model: MPMModel) -> dict[str, torch.Tensor]:
@@ -582,8 +719,10 @@ class MPMWarp:
         if self.cfg.frame_time is not None:
             return float(self.cfg.frame_time)
         if fps is None or not fps > 0:
-            raise ConfigError("sim.frame_time is null (the reference's frame interval) but no frame rate is known; "
-                              "set sim.frame_time=<seconds>")
+            raise ConfigError(
+                "sim.frame_time is null (the reference's frame interval) but no frame rate is known; "
+                "set sim.frame_time=<seconds>"
+            )
         return 1.0 / float(fps)
 
     def substeps_for(self, model: MPMModel, v_max: float = 0.0, *, fps: float | None = None) -> tuple[int, float]:
@@ -603,7 +742,13 @@ class MPMWarp:
         if cfg.auto_substep:
             n, dt = physics.substeps_for(frame_time, dt_max, min_substeps=cfg.substeps)
             if n > cfg.substeps:
-                log.info("sim: %d substeps of dt=%.3g s per frame (CFL bound %.3g s; sim.substeps=%d)", n, dt, dt_max, cfg.substeps)
+                log.info(
+                    "sim: %d substeps of dt=%.3g s per frame (CFL bound %.3g s; sim.substeps=%d)",
+                    n,
+                    dt,
+                    dt_max,
+                    cfg.substeps,
+                )
             return n, dt
         dt = frame_time / cfg.substeps
         if dt > dt_max:
@@ -692,7 +837,11 @@ class MPMWarp:
                 # capped: a particle that would fly further than the object's size is a blow-up to report
                 padding = min(max(self.cfg.grid_padding, reach / longest), max(self.cfg.grid_padding, 1.0))
                 grid = physics.fit_grid(
-                    xn, n_grid=self.cfg.n_grid, padding=padding, wall=self.cfg.wall_cells, dx=model.grid.dx,
+                    xn,
+                    n_grid=self.cfg.n_grid,
+                    padding=padding,
+                    wall=self.cfg.wall_cells,
+                    dx=model.grid.dx,
                     anchor=model.grid.origin,
                 )
                 log.debug("sim: frame %d: grid re-fitted to %s nodes", frame_index, grid.dims)
@@ -766,22 +915,39 @@ class MPMWarp:
         )  # fmt: skip
         ws = launch.ws
         _load(ws.ping, x, v, F, C)
-        ws.grid.zero_()
-        i, o = launch.p2g_args(ws.ping, 0)
-        wp.launch(K.p2g, dim=n, inputs=i, outputs=o, device=self.wp_device)
-        g = ws.grid.numpy().astype(np.float64).reshape(-1, 4).sum(0)
+        ws.run(lambda t: launch.p2g(ws.ping, 0, t))
+        g = ws.grids.numpy().astype(np.float64).reshape(-1, 4).sum(0)
         return float(g[3]), g[:3]
+
+    def threads_for(self, n_particles: int) -> int:
+        """Threads a rollout of ``n_particles`` runs on: 1 on CUDA, else ``cpu_threads`` or the usable cores.
+
+        Automatic (``cpu_threads`` null): the cores this process may run on, but at most one thread per
+        ``_MIN_PARTICLES_PER_THREAD`` particles (tiny scenes stay on one thread).
+        """
+        if not self.wp_device.startswith("cpu"):
+            return 1
+        if self.cfg.cpu_threads is not None:
+            return max(1, min(int(self.cfg.cpu_threads), n_particles))
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        return max(1, min(cores, n_particles // _MIN_PARTICLES_PER_THREAD))
 
     def _workspace(self, n: int, dims: tuple[int, int, int]) -> _Workspace:
         ws = self._ws
-        if ws is None or ws.n != n or ws.dims != tuple(dims):
-            ws = _Workspace(n, tuple(dims), self.wp_device)  # type: ignore[arg-type]
+        threads = self.threads_for(n)
+        if ws is None or ws.n != n or ws.dims != tuple(dims) or ws.threads != threads:
+            if threads > 1 and (self._pool is None or self._pool_size != threads - 1):
+                if self._pool is not None:
+                    self._pool.shutdown(wait=True)
+                self._pool = ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="sync4d-mpm")
+                self._pool_size = threads - 1
+            ws = _Workspace(n, tuple(dims), self.wp_device, threads, self._pool)  # type: ignore[arg-type]
             self._ws = ws
         return ws
 
     def _check_status(self, plan: _RolloutPlan, final: WarpState) -> None:
         """Raise SimulationDiverged if any substep recorded a NaN/inf or an off-grid particle."""
-        first = int(plan.launch.ws.status.numpy()[0])
+        first = plan.launch.ws.status_value()
         if first == _STATUS_OK:
             return
         v = final.v.numpy()
