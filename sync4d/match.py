@@ -725,11 +725,11 @@ def _match_by_structure(
         )
     else:
         alignment = AlignResult(Similarity.identity(), float("nan"), np.zeros(0), "none")
-    ref_norm = normalization(reference.rest_vertices)
     # the reference's surface is enough: its parts give the trunk, and distances are taken from it
     ref_samples = skeleton_points(
         reference.rest_vertices, reference.rest_faces, replace(cfg.structure.skeleton, volume=False), rng
     )
+    ref_norm = normalization(reference.rest_vertices)
     _, nearest = cKDTree(reference.rest_vertices).query(ref_samples)
     ref_labels = reference.part_labels()[nearest]
     pre = alignment.transform

@@ -45,6 +45,8 @@ class StructureConfig:
         skeleton: curve skeleton options.
         yaw_steps: turns of the target about the up axis tried (360 / yaw_steps degrees apart).
         miss_cost: cost of leaving a reference limb unmatched.
+        base_weight: weight of the horizontal base offset term of :func:`limb_cost`.
+
         length_weight: weight of the squared log length ratio in the limb cost.
         direction_weight: weight of the squared difference of unit limb directions.
         tip_weight: weight of the tip-direction term (the base term has weight 1: where a limb leaves the
@@ -57,7 +59,7 @@ class StructureConfig:
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
     yaw_steps: int = 24
     base_weight: float = 0.5
-    miss_cost: float = 2.0
+    miss_cost: float = 3.0
     length_weight: float = 0.1
     direction_weight: float = 0.5
     tip_weight: float = 1.0
@@ -76,7 +78,7 @@ class LimbSet:
         tip: (L, 3) centroid of its farthest level.
         base_level: (L,) geodesic distance of the base from the centre.
         length: (L,) geodesic extent from the base to the tip.
-        area: (L,) fraction of the shape's points in the limb (~ its share of the surface area).
+        area: (L,) the limb's share of the shape's surface points (for voxels: of the outer layer).
     """
 
     members: tuple[np.ndarray, ...]
@@ -116,8 +118,9 @@ class StructureMatch:
     cost: float
 
 
-def limb_descriptors(skeleton: CurveSkeleton, members: list[np.ndarray]) -> LimbSet:
-    """Descriptors of limbs given as point index sets of ``skeleton``."""
+def limb_descriptors(skeleton: CurveSkeleton, members: list[np.ndarray], depth: np.ndarray | None = None) -> LimbSet:
+    """Descriptors of limbs given as point index sets of ``skeleton``; ``depth`` (M,) marks a solid's
+    points (voxels), whose outer layer then stands for the surface in the limbs' shares."""
     geo, pts, h = skeleton.geodesic, skeleton.points, skeleton.level_width
     base, tip, base_level, length = [], [], [], []
     for m in members:
@@ -127,7 +130,12 @@ def limb_descriptors(skeleton: CurveSkeleton, members: list[np.ndarray]) -> Limb
         tip.append(pts[m[g >= hi - h]].mean(axis=0))
         base_level.append(lo)
         length.append(max(hi - lo, 1e-9))
-    area = np.array([len(m) / max(len(pts), 1) for m in members])
+    surface = np.ones(len(pts), dtype=bool)
+    if depth is not None:
+        # the solid's outer layer of voxels stands for its surface: shares and radii then compare with
+        # those of a reference given by surface samples
+        surface = depth <= 1.5 * float(depth[depth > 0].min() if (depth > 0).any() else 1.0)
+    area = np.array([surface[m].sum() / max(surface.sum(), 1) for m in members])
     return LimbSet(
         tuple(members),
         np.array(base).reshape(-1, 3),
@@ -405,7 +413,7 @@ def match_structure(
     ref_sk = distance_from_trunk(ref_sk, np.isin(ref_labels, trunk), cfg.skeleton)
     ref_limbs = limb_descriptors(ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts])
     cand = np.arange(1, len(tgt_sk.branches))
-    tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand])
+    tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand], tgt_depth)
     rng = np.random.default_rng(0)
     ref_sub = ref_points[rng.choice(len(ref_points), min(800, len(ref_points)), replace=False)]
     tgt_sub = tgt_points[rng.choice(len(tgt_points), min(800, len(tgt_points)), replace=False)]
