@@ -46,6 +46,8 @@ class StructureConfig:
         yaw_steps: turns of the target about the up axis tried (360 / yaw_steps degrees apart).
         miss_cost: cost of leaving a reference limb unmatched.
         base_weight: weight of the horizontal base offset term of :func:`limb_cost`.
+        reference_base_share: a reference limb's base is the centroid of its first this share of its
+            length (:func:`limb_descriptors`).
 
         length_weight: weight of the squared log length ratio in the limb cost.
         direction_weight: weight of the squared difference of unit limb directions.
@@ -59,6 +61,7 @@ class StructureConfig:
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
     yaw_steps: int = 24
     base_weight: float = 0.5
+    reference_base_share: float = 0.4
     miss_cost: float = 3.0
     length_weight: float = 0.1
     direction_weight: float = 0.5
@@ -118,15 +121,22 @@ class StructureMatch:
     cost: float
 
 
-def limb_descriptors(skeleton: CurveSkeleton, members: list[np.ndarray], depth: np.ndarray | None = None) -> LimbSet:
+def limb_descriptors(
+    skeleton: CurveSkeleton, members: list[np.ndarray], depth: np.ndarray | None = None, base_share: float = 0.0
+) -> LimbSet:
     """Descriptors of limbs given as point index sets of ``skeleton``; ``depth`` (M,) marks a solid's
-    points (voxels), whose outer layer then stands for the surface in the limbs' shares."""
+    points (voxels), whose outer layer then stands for the surface in the limbs' shares.
+
+    The base is the centroid of the limb's first level, or of its first ``base_share`` of its length if
+    that is longer (for a reference limb, whose first level is where it touches the trunk: a thigh's
+    inner side, near the body's midline, not its hip).
+    """
     geo, pts, h = skeleton.geodesic, skeleton.points, skeleton.level_width
     base, tip, base_level, length = [], [], [], []
     for m in members:
         g = geo[m]
         lo, hi = float(g.min()), float(g.max())
-        base.append(pts[m[g <= lo + h]].mean(axis=0))
+        base.append(pts[m[g <= lo + max(h, base_share * (hi - lo))]].mean(axis=0))
         tip.append(pts[m[g >= hi - h]].mean(axis=0))
         base_level.append(lo)
         length.append(max(hi - lo, 1e-9))
@@ -411,7 +421,9 @@ def match_structure(
     tgt_sk = curve_skeleton(tgt_points, cfg.skeleton, tgt_depth)
     limb_parts, trunk = reference_limbs(ref_sk, ref_labels, num_parts, part_parents)
     ref_sk = distance_from_trunk(ref_sk, np.isin(ref_labels, trunk), cfg.skeleton)
-    ref_limbs = limb_descriptors(ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts])
+    ref_limbs = limb_descriptors(
+        ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts], base_share=cfg.reference_base_share
+    )
     cand = np.arange(1, len(tgt_sk.branches))
     tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand], tgt_depth)
     rng = np.random.default_rng(0)
@@ -484,8 +496,9 @@ def label_target(
     # solid, each point taking the part of its geodesically nearest labelled point: the boundary between
     # a limb and the trunk lies halfway between the limb's branch and the trunk's core
     core = np.intersect1d(tgt.core, rest)
-    _, j = cKDTree(ref.points[pool]).query(tgt.points[core] @ rotation.T) if len(core) else (None, [])
-    out[core] = ref_labels[pool[np.asarray(j, dtype=np.int64)]] if len(core) else out[core]
+    if len(core):
+        _, j = cKDTree(ref.points[pool]).query(tgt.points[core] @ rotation.T)
+        out[core] = ref_labels[pool[j]]
     seeds = np.flatnonzero(out >= 0)
     rest = np.flatnonzero(out < 0)
     if len(rest) and len(seeds) and tgt.graph is not None:
