@@ -746,6 +746,7 @@ def _match_by_structure(
         up_axis=cfg.up_axis,
         part_parents=reference.bone_parents,
         tgt_depth=None if tgt_depth is None else tgt_depth * pre.scale * tgt_norm.scale,
+        turn_cost=cfg.structure.aligned_turn_cost if cfg.align in ("pca", "pca_icp") else 0.0,
     )
     frame = pre.then(tgt_norm).then(Similarity(sm.rotation, 1.0, np.zeros(3)))
     sample_pts = tgt_norm.apply(tgt_samples) @ sm.rotation.T

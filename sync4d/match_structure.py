@@ -55,6 +55,8 @@ class StructureConfig:
             trunk does not change with the pose, where it ends does).
         area_weight: weight of the squared log ratio of the limbs' shares of the surface.
         chamfer_weight: weight of the chamfer distance of the turned shapes in the choice of the turn.
+        aligned_turn_cost: with ``match.align`` = ``pca``/``pca_icp`` (the target was fitted to the
+            reference), the cost of turning it half a turn away from the fitted heading.
         profile_bins: bins of relative position along a limb in the part profile.
     """
 
@@ -68,6 +70,7 @@ class StructureConfig:
     tip_weight: float = 1.0
     area_weight: float = 0.5
     chamfer_weight: float = 2.0
+    aligned_turn_cost: float = 4.0
     profile_bins: int = 20
 
 
@@ -401,6 +404,7 @@ def match_structure(
     up_axis: str = "y",
     part_parents: np.ndarray | None = None,
     tgt_depth: np.ndarray | None = None,
+    turn_cost: float = 0.0,
 ) -> StructureMatch:
     """Match the target's skeleton branches to the reference's limbs and label the target points.
 
@@ -413,6 +417,8 @@ def match_structure(
         up_axis: the shared up axis of both normalised frames.
         part_parents: (B,) the reference's bone tree if known (see :func:`reference_limbs`).
         tgt_depth: (M,) depth of each target point inside its solid, or None (see :func:`curve_skeleton`).
+        turn_cost: added to a turn's score times (1 - cos(turn)) / 2: a prior for the given heading, for
+            a target already aligned to the reference (by ICP) rather than merely upright.
 
     Returns:
         StructureMatch (``point_part`` labels the target points).
@@ -448,6 +454,8 @@ def match_structure(
         else:
             pairs, total = [], cfg.miss_cost * len(limb_parts)
         score = total + cfg.chamfer_weight * chamfer_distance(tgt_sub @ rot.T, ref_sub, tree_b=tree)
+        cos_turn = (float(np.trace(rot)) - 1.0) / 2.0
+        score += turn_cost * (1.0 - cos_turn) / 2.0
         if best is None or score < best[0]:
             best = (score, rot, pairs, total)
     assert best is not None
