@@ -21,8 +21,12 @@ def animal(leg: float = 0.35, head: float = 0.12, body: float = 0.6) -> tuple[np
     """A box animal facing -x (Y up): trunk, four legs of length ``leg``, a head of size ``head``, a tail."""
     top, w = leg + 0.2, 0.05
     boxes = [("trunk", (-body / 2, leg, -0.12), (body / 2, top, 0.12))]
-    for name, x, z in (("leg_fl", -body / 2, 0.07), ("leg_fr", -body / 2, -0.12), ("leg_bl", body / 2 - w, 0.07),
-                       ("leg_br", body / 2 - w, -0.12)):
+    for name, x, z in (
+        ("leg_fl", -body / 2, 0.07),
+        ("leg_fr", -body / 2, -0.12),
+        ("leg_bl", body / 2 - w, 0.07),
+        ("leg_br", body / 2 - w, -0.12),
+    ):
         boxes.append((name, (x, 0.0, z), (x + w, leg + 0.01, z + w)))
     boxes.append(("head", (-body / 2 - head - 0.05, top - 0.05, -head / 2), (-body / 2 + 0.01, top + head, head / 2)))
     boxes.append(("tail", (body / 2 - 0.01, top - 0.05, -0.02), (body / 2 + 0.3, top - 0.01, 0.02)))
@@ -33,17 +37,28 @@ def animal(leg: float = 0.35, head: float = 0.12, body: float = 0.6) -> tuple[np
 def box_reference(v: np.ndarray, f: np.ndarray, part: np.ndarray, *, parents: bool = True) -> Reference:
     b = len(PARTS)
     return Reference(
-        rest_vertices=v, rest_faces=f, bone_centers=np.stack([v[part == i].mean(0) for i in range(b)]),
-        bone_covariances=np.tile(np.eye(3) * 1e-3, (b, 1, 1)), skinning=np.eye(b)[part],
-        bone_transforms=np.tile(np.eye(4), (1, b, 1, 1)), global_transforms=np.eye(4)[None], fps=30.0,
-        bone_names=PARTS, bone_parents=np.array([-1, 0, 0, 0, 0, 0, 0]) if parents else None,
+        rest_vertices=v,
+        rest_faces=f,
+        bone_centers=np.stack([v[part == i].mean(0) for i in range(b)]),
+        bone_covariances=np.tile(np.eye(3) * 1e-3, (b, 1, 1)),
+        skinning=np.eye(b)[part],
+        bone_transforms=np.tile(np.eye(4), (1, b, 1, 1)),
+        global_transforms=np.eye(4)[None],
+        fps=30.0,
+        bone_names=PARTS,
+        bone_parents=np.array([-1, 0, 0, 0, 0, 0, 0]) if parents else None,
     ).validate()
 
 
 def gaussians_at(points: np.ndarray) -> TargetGaussians:
     n = len(points)
-    return TargetGaussians(means=points, quats=np.tile([1.0, 0, 0, 0], (n, 1)), log_scales=np.full((n, 3), -4.0),
-                           opacity_logits=np.full(n, 3.0), sh=np.zeros((n, 1, 3))).validate()
+    return TargetGaussians(
+        means=points,
+        quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+        log_scales=np.full((n, 3), -4.0),
+        opacity_logits=np.full(n, 3.0),
+        sh=np.zeros((n, 1, 3)),
+    ).validate()
 
 
 def test_volume_points_fill_the_solid_and_the_skeleton_separates_the_limbs() -> None:
@@ -68,6 +83,44 @@ def test_volume_points_fill_the_solid_and_the_skeleton_separates_the_limbs() -> 
     assert len(set(legs)) == 4
 
 
+def test_solid_depth_and_the_trunk_core() -> None:
+    """Depth: one voxel at the skin, half the thickness at the middle; the core sits in the trunk and the
+    levels measured from it give every leg its own terminal branch holding most of the leg (levels from
+    the centre point also separate this long-legged box; on Spot they do not: docs/matching.md)."""
+    from sync4d.skeleton import fill_solid, trunk_core
+
+    box = np.random.default_rng(0).random((20000, 3)) * [1.0, 0.4, 0.4]
+    skin = np.concatenate(
+        [np.column_stack([box[:, 0], np.full(len(box), y), box[:, 2]]) for y in (0.0, 0.4)]
+        + [np.column_stack([box[:, 0], box[:, 1], np.full(len(box), z)]) for z in (0.0, 0.4)]
+        + [np.column_stack([np.full(len(box), x), box[:, 1], box[:, 2]]) for x in (0.0, 1.0)]
+    )
+    pts, depth = fill_solid(skin, 0.02, with_depth=True)
+    assert depth.min() == pytest.approx(0.02)
+    assert depth.max() == pytest.approx(0.2, abs=0.03)
+
+    v, f, part = animal()
+    from sync4d.match import skeleton_points_depth
+    from scipy.spatial import cKDTree
+
+    pts, depth = skeleton_points_depth(v, f, SkeletonConfig(), np.random.default_rng(0))
+    centre, size = pts.mean(0), np.sqrt(((pts - pts.mean(0)) ** 2).sum(1).mean())
+    norm = (pts - centre) / size
+    owner = part[cKDTree(v).query(pts)[1]]
+    sk = curve_skeleton(norm, SkeletonConfig(), depth / size)
+    from sync4d.skeleton import neighbour_graph
+
+    core = trunk_core(neighbour_graph(norm, 10, 4.0), norm, depth / size, 0.8, 2.0)
+    assert (owner[core] == 0).all()
+    leg_branches = []
+    for leg in (1, 2, 3, 4):
+        b = np.bincount(sk.branch[owner == leg]).argmax()
+        assert not sk.branches[b].children
+        assert (sk.branch[owner == leg] == b).mean() > 0.6
+        leg_branches.append(b)
+    assert len(set(leg_branches)) == 4
+
+
 def test_reference_limbs_from_the_bone_tree() -> None:
     v, f, part = animal()
     pts = skeleton_points(v, f, SkeletonConfig(volume=False, samples=2000), np.random.default_rng(0))
@@ -79,18 +132,18 @@ def test_reference_limbs_from_the_bone_tree() -> None:
     assert trunk == [0] and sorted(limbs) == [[1], [2], [3], [4], [5], [6]]
 
 
-def test_structure_match_follows_limbs_across_proportions_and_heading() -> None:
-    """Target: longer legs, a bigger head, facing the other way (turned 180 deg about the up axis).
-
-    (Turned by 90 deg instead, one front leg takes the other front leg's parts: docs/matching.md.)
-    """
+@pytest.mark.parametrize("quarter_turns", [1, 2])
+def test_structure_match_follows_limbs_across_proportions_and_heading(quarter_turns: int) -> None:
+    """Target: longer legs, a bigger head, facing another way (turned 90 or 180 deg about the up axis);
+    left and right legs included (a narrow body: the lateral offset counts per axis spread)."""
     v, f, part = animal()
     reference = box_reference(v, f, part)
     tv, tf, tpart = animal(leg=0.5, head=0.2, body=0.7)
-    turn = yaw_rotations("y", 4)[2]
+    turn = yaw_rotations("y", 4)[quarter_turns]
     tv = tv @ turn.T
-    result = match_parts(reference, gaussians_at(tv), None, MatchConfig(method="structure"), target_vertices=tv,
-                         target_faces=tf)
+    result = match_parts(
+        reference, gaussians_at(tv), None, MatchConfig(method="structure"), target_vertices=tv, target_faces=tf
+    )
     got = result.part_map.tgt_part
     limbs = tpart > 0
     assert (got[limbs] == tpart[limbs]).mean() > 0.85
@@ -101,6 +154,7 @@ def test_structure_match_follows_limbs_across_proportions_and_heading() -> None:
 
 def test_assignment_leaves_a_limb_unmatched_rather_than_nesting() -> None:
     """Two reference limbs, two candidates where candidate 1 is inside candidate 0: only one is used."""
+
     class Tree:
         @staticmethod
         def is_ancestor(a: int, b: int) -> bool:
@@ -115,21 +169,41 @@ def test_labels_score_the_expected_parts_and_fail_when_they_are_wrong(tmp_path) 
     from sync4d_tools.match_labels.labels import limb_accuracy, read_label_file, vertex_areas, vertex_labels
     from sync4d_tools.match_labels.procedural import chair
 
-    spec = read_label_file(next(p for p in __import__("sync4d_tools.match_labels.labels", fromlist=["x"])
-                                .default_label_files() if p.name == "chair.json"))
+    spec = read_label_file(
+        next(
+            p
+            for p in __import__("sync4d_tools.match_labels.labels", fromlist=["x"]).default_label_files()
+            if p.name == "chair.json"
+        )
+    )
     v, f, names = chair()
     labels = vertex_labels(spec, v, names)
-    dog = ("torso", "head_neck", "leg_a_upper", "leg_a_lower", "leg_b_upper", "leg_b_lower", "leg_c_upper",
-           "leg_c_lower", "leg_d_upper", "leg_d_lower", "tail")
-    right = np.where(np.char.startswith(names.astype(str), "leg"), dog.index("leg_a_lower"),
-                     np.where(names == "back", dog.index("tail"), 0))
+    dog = (
+        "torso",
+        "head_neck",
+        "leg_a_upper",
+        "leg_a_lower",
+        "leg_b_upper",
+        "leg_b_lower",
+        "leg_c_upper",
+        "leg_c_lower",
+        "leg_d_upper",
+        "leg_d_lower",
+        "tail",
+    )
+    right = np.where(
+        np.char.startswith(names.astype(str), "leg"),
+        dog.index("leg_a_lower"),
+        np.where(names == "back", dog.index("tail"), 0),
+    )
     acc, per = limb_accuracy(spec, labels, vertex_areas(v, f), right, dog)
     assert acc == pytest.approx(1.0) and set(per) == {"legs", "back"}
     wrong = np.zeros(len(v), dtype=np.int64)  # everything 'torso'
     assert limb_accuracy(spec, labels, vertex_areas(v, f), wrong, dog)[0] == 0.0
     bad = tmp_path / "bad.json"
-    bad.write_text(json.dumps({"name": "x", "reference": "dog", "target": "procedural:chair", "kind": "nope",
-                               "labels": []}))
+    bad.write_text(
+        json.dumps({"name": "x", "reference": "dog", "target": "procedural:chair", "kind": "nope", "labels": []})
+    )
     with pytest.raises(InputError, match="kind"):
         read_label_file(bad)
     with pytest.raises(InputError, match="not parts of"):
@@ -139,8 +213,17 @@ def test_labels_score_the_expected_parts_and_fail_when_they_are_wrong(tmp_path) 
 
 def _typo_file(tmp_path):
     path = tmp_path / "typo.json"
-    path.write_text(json.dumps({"name": "x", "reference": "dog", "target": "procedural:chair", "kind": "cross",
-                                "labels": [{"name": "legs", "where": {"part": ["leg_fl"]}, "expect": ["leg_z"]}]}))
+    path.write_text(
+        json.dumps(
+            {
+                "name": "x",
+                "reference": "dog",
+                "target": "procedural:chair",
+                "kind": "cross",
+                "labels": [{"name": "legs", "where": {"part": ["leg_fl"]}, "expect": ["leg_z"]}],
+            }
+        )
+    )
     return path
 
 
@@ -174,5 +257,6 @@ def test_structure_match_refuses_a_bad_target_before_any_work() -> None:
     bad = v.copy()
     bad[3] = np.nan
     with pytest.raises(InputError, match="finite"):
-        match_parts(reference, gaussians_at(v), None, MatchConfig(method="structure"), target_vertices=bad,
-                    target_faces=f)
+        match_parts(
+            reference, gaussians_at(v), None, MatchConfig(method="structure"), target_vertices=bad, target_faces=f
+        )
