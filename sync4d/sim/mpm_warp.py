@@ -297,7 +297,15 @@ class _Launch:
 
 
 def step(
-    launch: _Launch, state_in: WarpState, state_out: WarpState, substep: int, *, timers: dict | None = None
+    launch: _Launch,
+    state_in: WarpState,
+    state_out: WarpState,
+    substep: int,
+    *,
+    p2g_done: bool = False,
+    prefetch: bool = False,
+    prefetch_rotation: bool = False,
+    timers: dict | None = None,
 ) -> None:
     """One MLS-MPM substep ``state_in -> state_out`` (``state_in`` is only read).
 
@@ -306,8 +314,12 @@ def step(
         state_in: particle state at the start of the substep.
         state_out: receives the state at the end of the substep (must not alias ``state_in``).
         substep: global substep index (recorded if a particle leaves the grid or turns non-finite).
+        p2g_done: the grids already hold this substep's P2G (a previous call's ``prefetch``).
+        prefetch: also run the next substep's P2G of ``state_out`` (each thread right after its own G2P,
+            whose chunk it reads: one hand-over between threads fewer per substep).
+        prefetch_rotation: the prefetched P2G stores the polar rotations (for the backward pass).
         timers: when given, accumulates wall time [s] per kernel under 'p2g', 'grid', 'g2p' (synchronises
-            after each launch, so only for profiling).
+            after each launch, so only for profiling; no prefetching then).
     """
     ws, dev = launch.ws, launch.ws.device
     if timers is not None:
@@ -315,7 +327,9 @@ def step(
 
         wp.synchronize_device(dev)
         t0 = time.perf_counter()
-    ws.run(lambda t: launch.p2g(state_in, substep, t))
+        p2g_done = prefetch = False
+    if not p2g_done:
+        ws.run(lambda t: launch.p2g(state_in, substep, t))
     if timers is not None:
         wp.synchronize_device(dev)
         t1 = time.perf_counter()
@@ -323,7 +337,13 @@ def step(
     if timers is not None:
         wp.synchronize_device(dev)
         t2 = time.perf_counter()
-    ws.run(lambda t: launch.g2p(state_in, state_out, substep, t))
+
+    def g2p(t: int) -> None:
+        launch.g2p(state_in, state_out, substep, t)
+        if prefetch:
+            launch.p2g(state_out, substep + 1, t, store_rotation=prefetch_rotation)
+
+    ws.run(g2p)
     if timers is not None:
         wp.synchronize_device(dev)
         t3 = time.perf_counter()
@@ -332,8 +352,21 @@ def step(
         timers["g2p"] = timers.get("g2p", 0.0) + (t3 - t2)
 
 
-def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: WarpState, substep: int) -> None:
+def _step_adjoint(
+    launch: _Launch,
+    s: WarpState,
+    adj_out: WarpState,
+    adj_in: WarpState,
+    substep: int,
+    *,
+    p2g_done: bool = False,
+    prefetch: WarpState | None = None,
+) -> None:
     """Reverse one substep: given dL/d(state_out) in ``adj_out``, write dL/d(state_in) into ``adj_in``.
+
+    ``p2g_done``: the grids and rotations already hold this substep's P2G of ``s``; ``prefetch``: the
+    state of the substep reversed next, whose P2G (with rotations) each thread runs right after its P2G
+    adjoint.
 
     Rebuilds the substep's grid from ``s`` (P2G + grid update), then runs the adjoints in reverse order:
     G2P, grid update, and P2G fused with the fixed-corotated stress, all by hand-written kernels (checked
@@ -345,7 +378,8 @@ def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: War
     assert ws.adj_grid is not None and ws.adj_grid_v is not None
     g = launch.model.grid
     # forward part: the grid this substep saw
-    ws.run(lambda t: launch.p2g(s, substep, t, store_rotation=True))
+    if not p2g_done:
+        ws.run(lambda t: launch.p2g(s, substep, t, store_rotation=True))
     ws.run(launch.grid_update)
 
     origin, inv_dx, dt = wp.vec3(*g.origin), float(1.0 / g.dx), float(launch.dt)
@@ -373,6 +407,8 @@ def _step_adjoint(launch: _Launch, s: WarpState, adj_out: WarpState, adj_in: War
             inputs=p2g_in[:15] + [ws.rotation_of[t], ws.adj_grid],
             outputs=[ip[t].x, ip[t].v, ip[t].C, ip[t].F], device=dev,
         )  # fmt: skip
+        if prefetch is not None:  # after this thread's adjoint has read its chunk's rotations
+            launch.p2g(prefetch, substep - 1, t, store_rotation=True)
 
     ws.run(g2p_adjoint)
     ws.run(grid_update_adjoint)
@@ -434,13 +470,16 @@ class _RolloutPlan:
         _load(ws.ping, x, v, F, C)
         cur, nxt = ws.ping, ws.pong
         k = self.checkpoint_every
+        p2g_done = False
         for s in range(self.substeps):
             if s % k == 0:
                 if s > 0 and ws.status_value() != _STATUS_OK:
                     break  # diverged: stop early, the caller raises SimulationDiverged
                 if store:
                     self.checkpoints.append(_clone_state(cur))
-            step(self.launch, cur, nxt, self.first_substep + s, timers=timers)
+            prefetch = s + 1 < self.substeps
+            step(self.launch, cur, nxt, self.first_substep + s, p2g_done=p2g_done, prefetch=prefetch, timers=timers)
+            p2g_done = prefetch and timers is None
             cur, nxt = nxt, cur
         return cur
 
@@ -455,6 +494,9 @@ class _RolloutPlan:
         }  # fmt: skip
         gx, gv, gF, gC = (g if g is not None else zeros[name] for g, name in zip(grads, ("x", "v", "F", "C")))
         _load(adj_next, gx, gv, gF, gC)
+        # Every P2G is run ahead, by the threads that finish the step before it: the grids (and rotations)
+        # then hold the P2G of the state used next, and p2g_done says so.
+        p2g_done = False
         for seg_id in reversed(range(len(self.checkpoints))):
             s0 = seg_id * k
             s1 = min(s0 + k, self.substeps)
@@ -462,10 +504,19 @@ class _RolloutPlan:
             states = [self.checkpoints[seg_id]]
             for j in range(1, s1 - s0):
                 out = ws.segment[j]
-                step(self.launch, states[-1], out, self.first_substep + s0 + j - 1)
+                step(
+                    self.launch, states[-1], out, self.first_substep + s0 + j - 1, p2g_done=p2g_done, prefetch=True,
+                    prefetch_rotation=True,
+                )  # fmt: skip
+                p2g_done = True
                 states.append(out)
             for j in reversed(range(s1 - s0)):
-                _step_adjoint(self.launch, states[j], adj_next, adj_cur, self.first_substep + s0 + j)
+                nxt = states[j - 1] if j > 0 else (self.checkpoints[seg_id - 1] if seg_id > 0 else None)
+                _step_adjoint(
+                    self.launch, states[j], adj_next, adj_cur, self.first_substep + s0 + j, p2g_done=p2g_done,
+                    prefetch=nxt,
+                )  # fmt: skip
+                p2g_done = nxt is not None
                 adj_next, adj_cur = adj_cur, adj_next
         gx, gv, gF, gC = _state_to_torch(adj_next)
         out = [g.to(like.device) for g in (gx, gv, gF, gC)]
