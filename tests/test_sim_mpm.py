@@ -383,7 +383,8 @@ def test_thread_count_rules():
     sim = make_sim()
     cores = len(os.sched_getaffinity(0))
     assert sim.threads_for(100) == 1  # tiny scenes stay on one thread
-    assert sim.threads_for(50_000) == min(cores, 50_000 // 4096)
+    assert sim.threads_for(50_000) == min(cores, 50_000 // 8192)
+    assert sim.threads_for(9_400) == 1  # the default pipeline's control points: one thread
     assert make_sim(cpu_threads=3).threads_for(100) == 3 and make_sim(cpu_threads=3).threads_for(2) == 2
     sim.wp_device = "cuda:0"  # never split on CUDA
     assert sim.threads_for(50_000) == 1

@@ -51,9 +51,10 @@ from sync4d.types import validate_material
 log = logging.getLogger(__name__)
 
 _STATUS_OK = 2147483647
-# auto cpu_threads: a thread gets at least this many particles (below, the ~0.1 ms of handing a launch
-# to another thread outweighs the halved kernel time)
-_MIN_PARTICLES_PER_THREAD = 4096
+# auto cpu_threads: a thread gets at least this many particles. Each extra chunk adds Python launch
+# overhead (measured: splitting 9.4k particles on 32^3 in two costs 20-28 % more CPU per substep), which
+# only larger chunks amortise (docs/scale.md, "Both cores for the simulator").
+_MIN_PARTICLES_PER_THREAD = 8192
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -597,7 +598,7 @@ class MPMWarp:
                 a rollout instead of letting the walls act on them.
             cpu_threads: threads of a rollout on the CPU (each launch split into particle chunks that
                 scatter into their own grids; equal to one thread up to float rounding); null = the usable
-                cores, one per 4096 particles at most. Ignored on CUDA.
+                cores, one per 8192 particles at most. Ignored on CUDA.
         """
 
         E: float = 1e4
