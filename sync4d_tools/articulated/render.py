@@ -5,7 +5,8 @@
 Each clip folder holds ``rgb.mp4``, ``masks/%05d.png`` (255 = object, from the exact labels) and ``gt.npz``:
 ``part_labels`` (T, H, W) uint8 (0 background, 1 the static base, j + 2 the part moved by joint j),
 ``part_names``, ``joint_type`` (J,) ``hinge``/``slide``, ``joint_value`` (T, J) [rad or m], ``joint_axis``
-(J, 3) world, ``part_depth_m`` (P,) mean camera depth of each part's visible pixels in frame 0 [m]
+(J, 3) world, ``joint_pos`` (J, 3) a world point on each joint's axis in frame 0 [m], ``depth_m`` (H, W)
+frame-0 camera depth of the object's pixels [m] (0 elsewhere; for diagnostics only), ``part_depth_m`` (P,) mean camera depth of each part's visible pixels in frame 0 [m]
 (label 1 first), ``fps``, ``K``, ``cam_pos``, ``cam_forward``, ``cam_up`` (the projection convention of
 ``rendered/metaworld_laptop_hinge``), and for one-hinge objects ``hinge_angle_rad`` (T,) as that render has.
 
@@ -138,6 +139,8 @@ def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: 
             renderer.update_scene(data, camera=cam)
             depth0 = renderer.render().copy()
             renderer.disable_depth_rendering()
+            axes = np.stack([data.xaxis[j] for j in joint_ids]).copy()
+            anchors = np.stack([data.xanchor[j] for j in joint_ids]).copy()
     gl = renderer.scene.camera  # the two eyes of the GL camera: their mean is the view
     pos = np.mean([gl[i].pos for i in range(2)], 0)
     fwd = np.mean([gl[i].forward for i in range(2)], 0)
@@ -150,10 +153,10 @@ def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: 
     # MuJoCo's depth buffer holds distance along the view axis, as our z = (p - c).fwd
     part_depth = np.array([float(depth0[labels_a[0] == p + 1].mean()) if (labels_a[0] == p + 1).any() else np.nan
                            for p in range(n_parts)])
-    axes = np.stack([data.xaxis[j] for j in joint_ids])
     kinds = np.array(["hinge" if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE else "slide" for j in joint_ids])
     gt = {"part_labels": labels_a, "part_names": np.array(["background", "base"] + [f"part{j + 1}" for j in range(len(joint_ids))]),
-          "joint_type": kinds, "joint_value": values.astype(np.float64), "joint_axis": axes, "part_depth_m": part_depth,
+          "joint_type": kinds, "joint_value": values.astype(np.float64), "joint_axis": axes, "joint_pos": anchors, "part_depth_m": part_depth,
+          "depth_m": np.where(labels_a[0] > 0, depth0, 0.0).astype(np.float32),
           "fps": np.int64(12), "K": K, "cam_pos": pos.astype(np.float32), "cam_forward": fwd.astype(np.float32),
           "cam_up": up.astype(np.float32)}
     if kinds.tolist() == ["hinge"]:

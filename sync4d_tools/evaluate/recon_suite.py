@@ -97,7 +97,7 @@ def joint_errors(fit: VideoFit, gt: dict[str, np.ndarray], mapping: np.ndarray, 
             err = np.abs(rotation_angle_deg(rel[:, :3, :3]) - np.degrees(np.abs(value - value[0])))
             row["error"] = float(err.mean())
         else:
-            own = fit.joints.labels == bone
+            own = ref.part_labels() == bone
             centroid = fit.means[own].mean(0)
             travel = np.linalg.norm(rel[:, :3, :3] @ centroid + rel[:, :3, 3] - centroid, axis=1)
             depth = (fit.means[own] @ fit.camera.world_to_cam[2, :3] + fit.camera.world_to_cam[2, 3]).mean()

@@ -32,6 +32,7 @@ from sync4d.types import Camera
 
 log = logging.getLogger(__name__)
 
+FLOW_WEIGHT = 1.0  # frame-to-frame flow term against the chained-track term
 SLIDE_PREFERENCE = 0.05  # relative data-loss margin by which a slide beats a hinge
 AXIS_STARTS = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 0], [1.0, 0, 1.0], [0, 1.0, 1.0]])
 
@@ -71,6 +72,7 @@ class Scene:
         outside: (T, H, W) distance to the mask [px] (0 inside).
         cover_px: list of T (M_t, 2) sampled mask pixels [px].
         root_motion: (T, 4, 4) the root's rigid motion (identity when static).
+        flow: (T-1, 3, H, W) forward flow u, v [px] and its consistency (1 or 0), for the flow term.
         stride: grid spacing [px]; width: object width [m]; z_ref: depth that fixes the scale [m].
     """
 
@@ -86,6 +88,7 @@ class Scene:
     stride: float
     width: float
     z_ref: float
+    flow: torch.Tensor | None = None
 
 
 @dataclass
@@ -154,8 +157,13 @@ def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit
     rays = (np.linalg.inv(camera.K) @ homo.T).T @ c2w[:3, :3].T
     outside = np.stack([cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, 3) for m in masks])
     cover = []
-    for m in masks:  # every frame's mask pixels, to be near some projected point (root's included)
-        vv, uu = np.nonzero(m)
+    # a static root cannot reach pixels that were background in frame 0, so those must be covered by the
+    # frame-0 surface of the moving parts; other mask pixels may show surface frame 0 never saw (a laptop's
+    # keyboard under its lid), which the cover term would otherwise pull the parts over
+    seen = cv2.dilate(masks[0].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    static = bool(np.allclose(root_motion, np.eye(4)))
+    for m in masks:
+        vv, uu = np.nonzero(m & ~seen if static else m)
         pick = rng.choice(len(vv), size=min(cover_samples, len(vv)), replace=False)
         cover.append(torch.as_tensor(np.stack([uu[pick], vv[pick]], 1) + 0.5, dtype=torch.float64))
     span = np.ptp(tracks.uv0, axis=0).max() + tracks.stride
@@ -165,7 +173,15 @@ def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit
                  tracks=torch.as_tensor(tracks.uv, dtype=d), trusted=torch.as_tensor(tracks.trusted),
                  outside=torch.as_tensor(outside, dtype=d), cover_px=cover,
                  root_motion=torch.as_tensor(root_motion, dtype=d), stride=float(tracks.stride),
-                 width=float(span * z_ref / camera.K[0, 0]), z_ref=z_ref)
+                 width=float(span * z_ref / camera.K[0, 0]), z_ref=z_ref, flow=_flow_tensor(tracks))
+
+
+def _flow_tensor(tracks: Tracks) -> torch.Tensor | None:
+    """(T-1, 3, H, W) float64: flow u, v [px] and 1 where it is consistent (for bilinear sampling)."""
+    if tracks.flow is None or tracks.flow_ok is None:
+        return None
+    both = np.concatenate([tracks.flow, tracks.flow_ok[..., None].astype(np.float32)], -1)
+    return torch.as_tensor(both, dtype=torch.float64).permute(0, 3, 1, 2).contiguous()
 
 
 def project(scene: Scene, x: torch.Tensor) -> torch.Tensor:
@@ -242,14 +258,49 @@ class Articulation(torch.nn.Module):
         return torch.einsum("tnij,nj->tni", j[..., :3], self.rest()) + j[..., 3]
 
 
-def data_terms(model: Articulation, frames: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Track, inside and cover terms over frames 1..frames-1, in strides (see the module docstring)."""
+def visible(uv: torch.Tensor, depth: torch.Tensor, stride: float) -> torch.Tensor:
+    """(F, N) bool: points (F, N) pixels uv, camera depths [m], nearest the camera in their stride cell
+    (within 2 % of the depth), i.e. not hidden behind another modelled point."""
+    cell = torch.floor(uv / stride).long()
+    key = cell[..., 0] * 100003 + cell[..., 1]
+    out = torch.zeros(key.shape, dtype=torch.bool)
+    for f in range(len(key)):
+        uniq, inv = torch.unique(key[f], return_inverse=True)
+        near = torch.full((len(uniq),), np.inf, dtype=depth.dtype).scatter_reduce(0, inv, depth[f], "amin")
+        out[f] = depth[f] <= near[inv] * 1.02
+    return out
+
+
+def flow_term(model: Articulation, uv: torch.Tensor, frames: int) -> torch.Tensor:
+    """Frame-to-frame image motion of the posed moving points against the flow at their pixel, where the
+    flow is consistent and the point visible (Charbonnier, strides); uv (frames, N, 2) includes frame 0."""
     sc = model.scene
-    uv = project(sc, model.posed()[1:frames])
+    if sc.flow is None or frames < 2:
+        return torch.zeros((), dtype=uv.dtype)
+    _, _, h, w = sc.flow.shape
+    with torch.no_grad():
+        at = uv[:-1].detach()
+        grid = torch.stack([at[..., 0] / w * 2 - 1, at[..., 1] / h * 2 - 1], -1)[:, None]
+        fl = torch.nn.functional.grid_sample(sc.flow[: frames - 1], grid, align_corners=False)[:, :, 0]  # (F, 3, N)
+        pc = model.posed()[: frames - 1].detach() @ sc.w2c[:3, :3].T + sc.w2c[:3, 3]
+        ok = (fl[:, 2] > 0.99) & visible(at, pc[..., 2], sc.stride) & (model.labels != model.root)[None]
+    if not ok.any():
+        return torch.zeros((), dtype=uv.dtype)
+    err = ((uv[1:] - uv[:-1] - fl[:, :2].transpose(1, 2)) ** 2).sum(-1) / sc.stride**2
+    return (torch.sqrt(err + 1.0) - 1.0)[ok].mean()
+
+
+def data_terms(model: Articulation, frames: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Track (chained tracks + frame-to-frame flow), inside and cover terms over frames 1..frames-1, in
+    strides (see the module docstring)."""
+    sc = model.scene
+    uv_all = project(sc, model.posed()[:frames])
+    uv = uv_all[1:]
     moving = model.labels != model.root
     trusted = sc.trusted[1:frames] & moving[None]
     err = ((uv - sc.tracks[1:frames]) ** 2).sum(-1) / sc.stride**2
     track = (torch.sqrt(err + 1.0) - 1.0)[trusted].mean() if trusted.any() else torch.zeros((), dtype=uv.dtype)
+    track = track + FLOW_WEIGHT * flow_term(model, uv_all, frames)
     inside = (sample_outside(sc, uv, 1) / sc.stride).clamp(max=10.0)[:, moving].mean()
     cover = []
     for t in range(1, frames):

@@ -61,12 +61,16 @@ class Tracks:
         uv: (T, N, 2) their tracks [px].
         trusted: (T, N) bool, the track is still forward-backward consistent and inside the masks.
         stride: grid spacing of the points [px].
+        flow: (T-1, H, W, 2) forward flow between consecutive frames [px] (None when not kept).
+        flow_ok: (T-1, H, W) bool, the forward flow is forward-backward consistent.
     """
 
     uv0: np.ndarray
     uv: np.ndarray
     trusted: np.ndarray
     stride: int
+    flow: np.ndarray | None = None
+    flow_ok: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -116,7 +120,7 @@ def track_grid(frames: np.ndarray, masks: np.ndarray, cfg: TrackConfig) -> Track
     fwd, bwd = optical_flow(frames, cfg.flow)
     valid = flow_consistency(fwd, bwd, tol_px=cfg.check_px)
     uv, ok = trusted_tracks(uv0, fwd, valid, masks)
-    return Tracks(uv0=uv0, uv=uv, trusted=ok, stride=stride)
+    return Tracks(uv0=uv0, uv=uv, trusted=ok, stride=stride, flow=fwd, flow_ok=valid & masks[:-1])
 
 
 def affine_labels(tracks: Tracks, labels: np.ndarray, *, iterations: int = 8) -> np.ndarray:
