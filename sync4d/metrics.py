@@ -191,7 +191,18 @@ def count_fragments(
     order = np.argsort(label, kind="stable")
     starts = np.concatenate([[0], np.cumsum(sizes)])
     main = int(np.argmax(sizes))
-    for c in range(n_comp):
+    # Pieces of at most SMALL_PIECE points, all at once: a point's nearest point outside its piece is
+    # among its (size + 1) nearest, so one tree answers them (a tree per piece cost minutes for the
+    # thousands of small pieces of a large splat). Larger pieces: a tree of the points outside each.
+    small = (sizes <= SMALL_PIECE) & (np.arange(n_comp) != main)
+    points = np.flatnonzero(small[label])
+    if len(points):
+        d, j = cKDTree(x).query(x[points], k=min(SMALL_PIECE + 1, n), distance_upper_bound=gap)
+        outside = np.isfinite(d) & (label[np.minimum(j, n - 1)] != label[points][:, None])
+        touching = np.zeros(n_comp, dtype=bool)
+        touching[label[points][outside.any(axis=1)]] = True
+        count += int((small & ~touching).sum())
+    for c in np.flatnonzero(~small):
         if c == main:
             continue
         inside = order[starts[c]: starts[c + 1]]
@@ -201,6 +212,10 @@ def count_fragments(
         if np.all(~np.isfinite(d)):
             count += 1
     return count
+
+
+#: Pieces up to this many points are tested for contact in one neighbour query (count_fragments).
+SMALL_PIECE = 32
 
 
 def part_volumes(x: np.ndarray, parts: np.ndarray, num_parts: int) -> np.ndarray:
