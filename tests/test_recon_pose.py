@@ -69,17 +69,38 @@ def synthetic_track(joints_cam: np.ndarray, K: np.ndarray, rng: np.random.Genera
             lm3[:, idx[1]] = joints_cam[:, k] - [0.07, 0, 0]
     uv = lm3[..., :2] / lm3[..., 2:] * K[0, 0] + K[:2, 2] + rng.normal(0, noise_px, (t, 33, 2))
     world = lm3 - 0.5 * (lm3[:, 23:24] + lm3[:, 24:25])
-    return bp.PoseTrack(landmarks_2d=uv, landmarks_z=lm3[..., 2], world=world, visibility=np.ones((t, 33)),
-                        presence=np.ones(t), masks=np.zeros((t, 4, 4), bool), found=np.ones(t, bool))
+    return bp.PoseTrack(
+        landmarks_2d=uv,
+        landmarks_z=lm3[..., 2],
+        world=world,
+        visibility=np.ones((t, 33)),
+        presence=np.ones(t),
+        masks=np.zeros((t, 4, 4), bool),
+        found=np.ones(t, bool),
+    )
 
 
 def standing_body(t: int) -> np.ndarray:
     """(T, 17, 3) camera-frame joints of a person 3 m away raising the left arm (y down)."""
-    rest = {"pelvis": (0, 0, 0), "l_hip": (0.1, 0, 0), "r_hip": (-0.1, 0, 0), "l_knee": (0.1, 0.42, 0.02),
-            "r_knee": (-0.1, 0.42, 0.02), "l_ankle": (0.1, 0.82, 0), "r_ankle": (-0.1, 0.82, 0),
-            "l_toe": (0.1, 0.88, -0.14), "r_toe": (-0.1, 0.88, -0.14), "neck": (0, -0.52, 0), "head": (0, -0.72, 0),
-            "l_shoulder": (0.18, -0.5, 0), "r_shoulder": (-0.18, -0.5, 0), "l_elbow": (0.2, -0.22, 0),
-            "r_elbow": (-0.2, -0.22, 0), "l_wrist": (0.21, 0.03, 0), "r_wrist": (-0.21, 0.03, 0)}
+    rest = {
+        "pelvis": (0, 0, 0),
+        "l_hip": (0.1, 0, 0),
+        "r_hip": (-0.1, 0, 0),
+        "l_knee": (0.1, 0.42, 0.02),
+        "r_knee": (-0.1, 0.42, 0.02),
+        "l_ankle": (0.1, 0.82, 0),
+        "r_ankle": (-0.1, 0.82, 0),
+        "l_toe": (0.1, 0.88, -0.14),
+        "r_toe": (-0.1, 0.88, -0.14),
+        "neck": (0, -0.52, 0),
+        "head": (0, -0.72, 0),
+        "l_shoulder": (0.18, -0.5, 0),
+        "r_shoulder": (-0.18, -0.5, 0),
+        "l_elbow": (0.2, -0.22, 0),
+        "r_elbow": (-0.2, -0.22, 0),
+        "l_wrist": (0.21, 0.03, 0),
+        "r_wrist": (-0.21, 0.03, 0),
+    }
     base = np.array([rest[n] for n in JOINT_NAMES], dtype=np.float64)
     out = np.repeat(base[None], t, axis=0)
     for i in range(t):
@@ -121,8 +142,20 @@ def test_fit_on_a_rendered_clip(tmp_path: Path) -> None:
 
     clip = tmp_path / "cmu"
     write_clip(clip, "cmu", "front", frames=4, stride=60, width=200, height=300, fov_deg=50.0)
-    out = main(["--video", str(clip / "rgb.mp4"), "--masks", str(clip / "masks"), "--camera", str(clip / "camera.npz"),
-                "--subject", "human", "--gt", str(clip / "gt.npz")])
+    out = main(
+        [
+            "--video",
+            str(clip / "rgb.mp4"),
+            "--masks",
+            str(clip / "masks"),
+            "--camera",
+            str(clip / "camera.npz"),
+            "--subject",
+            "human",
+            "--gt",
+            str(clip / "gt.npz"),
+        ]
+    )
     assert out["frames"] == 4 and out["joints"] == 13
     assert out["mpjpe_pct_height"] < 12.0 and out["pck10"] > 0.6  # measured 7-10 % on 30-frame clips
     assert out["mask_iou"] > 0.8
@@ -137,7 +170,7 @@ def test_body_video_reference_and_configs(tmp_path: Path) -> None:
     clip = tmp_path / "clip"
     write_clip(clip, "deepmimic", "oblique", frames=4, stride=6, width=200, height=300, fov_deg=50.0)
     source = build("reference", {"type": "video", "video": str(clip / "rgb.mp4"), "masks": "", "camera": ""}).load()
-    fast = {"type": "body_video", "figures": False, "human": {"mask_weight": 0.0}}  # the mask term: test above
+    fast = {"type": "body_video", "figures": False}
     ref = build("recon", fast).reconstruct(source).validate()
     assert ref.num_bones == 11 and ref.num_frames == 4
     assert build("recon", {**fast, "bones": 6}).reconstruct(source).num_bones == 6
@@ -147,26 +180,105 @@ def test_body_video_reference_and_configs(tmp_path: Path) -> None:
         make_config("recon", {"type": "body_video", **{k: v for k, v in cfg.items() if k != "type"}})
 
 
-@pytest.mark.slow
-def test_quadruped_fit_on_template_silhouettes() -> None:
-    """Masks of the dog template itself in three trot poses: the fit explains the silhouettes (IoU 0.63-0.71 per
-    frame measured). Its joints are not bounded here: from silhouettes alone they are far off (48 % of the
-    height on the rendered side-view trot, docs/people_animals.md)."""
-    from sync4d.io.mocap import read_joint_positions
+def _template_clip(frames: int = 4):
+    """The dog template posed by known joint rotations (a knee-and-hip swing), its camera and silhouettes."""
+    import torch
+
     from sync4d.recon.pose import quadruped_fit as qf
     from sync4d.recon.sources import camera_from_look
+
+    from scipy.spatial.transform import Rotation
+
+    # the camera frame is the world here (y down): the template (y up) turned over, then 0.3 rad about up
+    upright = (Rotation.from_rotvec([math.pi, 0, 0]) * Rotation.from_rotvec([0, 0.3, 0])).as_rotvec()
+    nj = len(qf.DOG_PARENTS)
+    local = torch.zeros(frames, nj, 3, dtype=qf.DTYPE)
+    for t in range(frames):  # legs swing about the lateral axis at a steady rate, the twins in opposite phase
+        phase = 0.15 * t - 0.2
+        for name, sign in (("fl_upper", 1), ("fr_upper", -1), ("hl_upper", -1), ("hr_upper", 1)):
+            local[t, qf.DOG_NAMES.index(name), 2] = sign * phase
+    truth = {
+        "root_rot": torch.tensor([upright] * frames, dtype=qf.DTYPE),
+        "root_pos": torch.tensor([[0.05 * t, 0.0, 2.0] for t in range(frames)], dtype=qf.DTYPE),
+        "local": local,
+        "log_len": torch.zeros(nj, dtype=qf.DTYPE),
+        "log_scale": torch.tensor(math.log(0.6), dtype=qf.DTYPE),
+        "log_thick": torch.zeros((), dtype=qf.DTYPE),
+    }
+    joints = (
+        qf.forward_kinematics(
+            qf.torch.tensor(qf.dog_template(), dtype=qf.DTYPE),
+            qf.DOG_PARENTS,
+            truth["root_rot"],
+            truth["root_pos"],
+            local,
+            truth["log_len"],
+            truth["log_scale"].exp(),
+        )
+        .numpy()
+        .astype(np.float64)
+    )
+    K = np.array([[300.0, 0, 120], [0, 300.0, 80], [0, 0, 1]])
+    camera = camera_from_look(K, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0], 240, 160)
+    masks = qf.render_silhouettes(joints, qf.DOG_PARENTS, camera)
+    return truth, joints, camera, masks
+
+
+def test_quadruped_template_is_mirror_symmetric() -> None:
+    """Swapping a leg pair twice is the identity, and a swapped pose is the mirror image of the legs."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    tmpl = qf.dog_template()
+    twin = np.array([qf._twin(n) for n in qf.DOG_NAMES])
+    assert np.allclose(tmpl[twin] * [1, 1, -1], tmpl, atol=1e-9)
+    local = torch.randn(2, len(qf.DOG_PARENTS), 3, dtype=qf.DTYPE) * 0.3
+    local[:, [j for j, n in enumerate(qf.DOG_NAMES) if n[:3] not in ("fl_", "fr_", "hl_", "hr_")]] = (
+        0.0  # midline fixed
+    )
+    assert torch.allclose(qf.swap_legs(qf.swap_legs(local, ("f", "h")), ("f", "h")), local)
+    zero = torch.zeros(2, 3, dtype=qf.DTYPE)
+
+    def fk(loc):
+        lengths = torch.zeros(len(qf.DOG_PARENTS), dtype=qf.DTYPE)
+        template = torch.tensor(tmpl, dtype=qf.DTYPE)
+        return qf.forward_kinematics(template, qf.DOG_PARENTS, zero, zero, loc, lengths, torch.tensor(1.0))
+
+    legs = [qf.DOG_NAMES.index(n) for n in qf.DOG_NAMES if n[:3] in ("fl_", "fr_", "hl_", "hr_")]
+    a, b = fk(local).numpy(), fk(qf.swap_legs(local, ("f", "h"))).numpy()
+    assert np.allclose((a[:, twin] * [1, 1, -1])[:, legs], b[:, legs], atol=1e-5)
+
+
+def test_quadruped_fit_started_at_the_truth_stays_there() -> None:
+    """The objective's minimum is at the truth: silhouettes of the template posed by known rotations, the
+    fit started there drifts by under 3 % of the body length after one similarity (depth and size trade
+    off along the camera rays; measured 1.3 %, 2.4 % on a 32-cell grid)."""
+    from sync4d.recon.pose import quadruped_fit as qf
     from sync4d_tools.evaluate.recon_joints import joint_errors
 
-    pos = read_joint_positions(qf.DOG_FILE)[[0, 8, 16]]
-    K = np.array([[300.0, 0, 120], [0, 300.0, 80], [0, 0, 1]])
-    centre = pos[0].mean(0)
-    camera = camera_from_look(K, centre + [0.2, 0.1, 2.0], [-0.1, -0.05, -1.0], [0, 1, 0], 240, 160)
-    cam = pos @ camera.world_to_cam[:3, :3].T + camera.world_to_cam[:3, 3]
-    masks = qf.render_silhouettes(cam, qf.DOG_PARENTS, camera)
-    cfg = qf.QuadrupedFitConfig(grid=40, start_iterations=60, iterations=120, starts=4, start_frames=1)
+    truth, joints, camera, masks = _template_clip()
+    cfg = qf.QuadrupedFitConfig()
+    prob = qf._Problem(masks, camera, cfg)
+    params = {k: v.clone().requires_grad_(True) for k, v in truth.items()}
+    _, fitted, _ = qf._run(prob, np.arange(len(masks)), params, cfg, 60)
+    length = 0.6
+    assert joint_errors(fitted, joints).mean() < 0.03 * length
+
+
+@pytest.mark.slow
+def test_quadruped_fit_on_template_silhouettes() -> None:
+    """Silhouettes of the template in three known poses: the fit from scratch explains them (IoU > 0.6) and
+    its joints, after one similarity, are within 12 % of the body length on average (measured IoU 0.8,
+    5.7 %; no video frames, so no flow: the hypotheses are ranked by the clip loss)."""
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d_tools.evaluate.recon_joints import joint_errors
+
+    _, joints, camera, masks = _template_clip()
+    cfg = qf.QuadrupedFitConfig(grid=32, start_iterations=60, frame_iterations=30, iterations=60, tracks=2)
     fit = qf.fit_quadruped(masks, camera, cfg, source="template")
-    assert fit.iou.mean() > 0.6 and fit.joints.shape == cam.shape and np.isfinite(fit.joints).all()
-    assert np.isfinite(joint_errors(fit.joints, cam)).all()
+    assert fit.iou.mean() > 0.6 and fit.joints.shape == joints.shape and np.isfinite(fit.joints).all()
+    assert joint_errors(fit.joints, joints).mean() < 0.12 * 0.6
 
 
 def test_reference_video_auto_companions(tmp_path: Path) -> None:

@@ -5,8 +5,9 @@ person (``subject: human``) or a four-legged animal (``subject: quadruped``).
   landmarks, metric 3D world landmarks and a person mask per frame; a 17-joint skeleton is fitted to
   them over the clip (:mod:`sync4d.recon.pose.human_fit`: reprojection, world pose, shared bone lengths,
   joint limits, smoothness).
-* quadruped: a template skeleton (the AI4Animation dog mocap's rest pose, 13 bones by default) fitted to
-  the masks (input, or a static-camera background model) with a silhouette and limb-length prior
+* quadruped: a template skeleton (the AI4Animation dog mocap's average pose, 13 bones by default) fitted
+  to the masks (input, or a static-camera background model) with a silhouette and limb-length prior,
+  several heading and leg-swap hypotheses chosen by the video's optical flow
   (:mod:`sync4d.recon.pose.quadruped_fit`).
 
 The fitted joints then go through ``recon=mocap``'s builder (:meth:`MocapReconstructor.from_motion`):
@@ -57,6 +58,7 @@ class BodyVideoFit:
         masks: (T, H, W) bool subject masks used or produced by the fit.
         landmarks_2d: (T, L, 2) detected image landmarks [px] (humans), or None.
         seconds: wall time of detection and fit [s].
+        radii: (J,) fitted capsule radius per segment end [m] (quadrupeds), or None.
     """
 
     joints: np.ndarray
@@ -66,6 +68,7 @@ class BodyVideoFit:
     masks: np.ndarray
     landmarks_2d: np.ndarray | None
     seconds: float
+    radii: np.ndarray | None = None
 
 
 def assumed_camera(width: int, height: int, fov_deg: float) -> Camera:
@@ -125,8 +128,10 @@ class BodyVideoReconstructor:
     def fit(self, source: ReferenceInput) -> BodyVideoFit:
         """Detect and fit the subject in ``source.video`` (camera frame)."""
         if source.video is None:
-            raise InputError(f"recon=body_video needs a video, but reference '{source.name}' has none; "
-                             "use reference=video reference.video=<file>")
+            raise InputError(
+                f"recon=body_video needs a video, but reference '{source.name}' has none; "
+                "use reference=video reference.video=<file>"
+            )
         clip = source.video
         camera = clip_camera(clip, source.camera, self.cfg.fov_deg)
         started = time.perf_counter()
@@ -137,17 +142,31 @@ class BodyVideoReconstructor:
             detector, landmarks = load_models(self.cfg.model_dir)
             track = track_video(clip.frames, detector, landmarks, source=clip.source or source.name)
             fit = fit_human(track, camera.K, self.cfg.human)
-            return BodyVideoFit(fit.joints, fit.names, fit.parents, camera, track.masks, track.landmarks_2d,
-                                time.perf_counter() - started)
+            return BodyVideoFit(
+                fit.joints,
+                fit.names,
+                fit.parents,
+                camera,
+                track.masks,
+                track.landmarks_2d,
+                time.perf_counter() - started,
+            )
         masks = clip.masks
         if not masks.any():
             from sync4d.recon.video import background_masks
 
             masks = background_masks(clip.frames, threshold=self.cfg.quadruped.background_threshold)
-        qfit = fit_quadruped(masks, camera, self.cfg.quadruped, source=clip.source or source.name,
-                             world_up=source.world_up)
-        return BodyVideoFit(qfit.joints, qfit.names, qfit.parents, camera, masks, None,
-                            time.perf_counter() - started)
+        qfit = fit_quadruped(
+            masks,
+            camera,
+            self.cfg.quadruped,
+            source=clip.source or source.name,
+            world_up=source.world_up,
+            frames=clip.frames,
+        )
+        return BodyVideoFit(
+            qfit.joints, qfit.names, qfit.parents, camera, masks, None, time.perf_counter() - started, qfit.radii
+        )
 
     def reconstruct(self, source: ReferenceInput) -> Reference:
         """The validated :class:`Reference` of the subject in ``source.video``."""
@@ -160,19 +179,33 @@ class BodyVideoReconstructor:
         up = 1
         if source.world_up is not None:
             up = int(np.argmax(np.abs(source.world_up)))
-        motion = SkeletonMotion(fit.names, fit.parents, world, None, float(source.fps or source.video.fps),
-                                up_axis=up, source=source.video.source)
+        motion = SkeletonMotion(
+            fit.names,
+            fit.parents,
+            world,
+            None,
+            float(source.fps or source.video.fps),
+            up_axis=up,
+            source=source.video.source,
+        )
         bones = self.cfg.bones or DEFAULT_BONES[self.cfg.subject]
         mocap = MocapReconstructor(MocapReconstructor.Config(bones=bones), device=self.device)
         reference = mocap.from_motion(motion, name=source.name)
-        log.info("body_video %s: %d joints, %d bones, %d frames in %.1f s", self.cfg.subject, len(fit.names),
-                 reference.num_bones, reference.num_frames, fit.seconds)
+        log.info(
+            "body_video %s: %d joints, %d bones, %d frames in %.1f s",
+            self.cfg.subject,
+            len(fit.names),
+            reference.num_bones,
+            reference.num_frames,
+            fit.seconds,
+        )
         if self.cfg.figures:
             self._write_figures(source.video, fit, reference, np.linalg.inv(cam_to_world))
         return reference
 
-    def _write_figures(self, clip: VideoClip, fit: BodyVideoFit, reference: Reference,
-                       world_to_cam: np.ndarray) -> None:
+    def _write_figures(
+        self, clip: VideoClip, fit: BodyVideoFit, reference: Reference, world_to_cam: np.ndarray
+    ) -> None:
         """Fit pictures into ``<run folder>/recon/`` when running under Hydra."""
         from hydra.core.hydra_config import HydraConfig
 
@@ -183,8 +216,15 @@ class BodyVideoReconstructor:
         log.info("body_video: pictures of the fit in %s", ", ".join(str(p) for p in paths))
 
 
-def write_fit_pictures(folder: Path, clip: VideoClip, fit: BodyVideoFit, reference: Reference,
-                       world_to_cam: np.ndarray, *, max_points: int = 1500) -> list[Path]:
+def write_fit_pictures(
+    folder: Path,
+    clip: VideoClip,
+    fit: BodyVideoFit,
+    reference: Reference,
+    world_to_cam: np.ndarray,
+    *,
+    max_points: int = 1500,
+) -> list[Path]:
     """Draw the fit (mask, parts coloured by bone, skeleton, landmarks) over every frame; write png + mp4."""
     from sync4d.recon.pose.overlay import draw_fit, write_pictures
 
@@ -195,9 +235,16 @@ def write_fit_pictures(folder: Path, clip: VideoClip, fit: BodyVideoFit, referen
     for t in range(min(clip.num_frames, reference.num_frames)):
         posed = reference.posed_vertices(t, apply_global=True)[pick]
         cam = posed @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
-        pictures.append(draw_fit(
-            clip.frames[t], K=fit.camera.K, joints=fit.joints[t], parents=fit.parents, mask=fit.masks[t],
-            part_points=cam, part_labels=labels,
-            landmarks=None if fit.landmarks_2d is None else fit.landmarks_2d[t],
-        ))
+        pictures.append(
+            draw_fit(
+                clip.frames[t],
+                K=fit.camera.K,
+                joints=fit.joints[t],
+                parents=fit.parents,
+                mask=fit.masks[t],
+                part_points=cam,
+                part_labels=labels,
+                landmarks=None if fit.landmarks_2d is None else fit.landmarks_2d[t],
+            )
+        )
     return write_pictures(folder, pictures, clip.fps)

@@ -14,7 +14,7 @@ Prints one JSON object on the last line:
     * ``pck10``: fraction of (frame, joint) pairs within 10% of that height after the same alignment;
     * ``mask_iou``: mean IoU of the fit's masks against ``--masks`` (humans: the learned segmentation;
       quadrupeds: the fitted body's silhouette); null without ``--masks``;
-    * ``frames``, ``joints``, ``seconds``, ``height_m``.
+    * ``frames``, ``joints``, ``seconds`` (wall), ``cpu_seconds`` (this process), ``height_m``.
 """
 
 from __future__ import annotations
@@ -32,8 +32,24 @@ from sync4d.recon.body_video import BodyVideoReconstructor
 from sync4d.recon.sources import VideoSource
 
 # recon_joints vocabulary -> joint name in the fitted skeleton
-HUMAN_MAP = {n: n for n in ("head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist",
-                            "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle")}
+HUMAN_MAP = {
+    n: n
+    for n in (
+        "head",
+        "l_shoulder",
+        "r_shoulder",
+        "l_elbow",
+        "r_elbow",
+        "l_wrist",
+        "r_wrist",
+        "l_hip",
+        "r_hip",
+        "l_knee",
+        "r_knee",
+        "l_ankle",
+        "r_ankle",
+    )
+}
 
 
 def quadruped_map() -> dict[str, str]:
@@ -58,8 +74,11 @@ def mask_iou(pred: np.ndarray, truth: np.ndarray) -> float:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(prog="python -m sync4d.evaluate recon_joints", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m sync4d.evaluate recon_joints",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("--video", required=True)
     parser.add_argument("--masks", default="", help="folder of truth masks (also the quadruped fit's input)")
     parser.add_argument("--camera", default="", help="camera .npz (K, cam_pos, cam_forward, cam_up); default: unknown")
@@ -68,17 +87,28 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--max-frames", type=int, default=0)
     args = parser.parse_args(argv)
 
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     gt = np.load(args.gt)
     truth_all, names = np.asarray(gt["joints"], dtype=np.float64), [str(n) for n in gt["names"]]
-    source = VideoSource(VideoSource.Config(video=args.video, masks=args.masks, camera=args.camera,
-                                            max_frames=args.max_frames)).load()
+    source = VideoSource(
+        VideoSource.Config(video=args.video, masks=args.masks, camera=args.camera, max_frames=args.max_frames)
+    ).load()
     masks_in = source.video.masks if args.masks else None
     if args.subject == "human":
         # the learned model makes its own masks; the truth masks are only for the score
-        source = type(source)(**{**source.__dict__, "video": type(source.video)(
-            source.video.frames, np.zeros_like(source.video.masks), source.video.fps, source.video.intrinsics,
-            None, source.video.source)})
+        source = type(source)(
+            **{
+                **source.__dict__,
+                "video": type(source.video)(
+                    source.video.frames,
+                    np.zeros_like(source.video.masks),
+                    source.video.fps,
+                    source.video.intrinsics,
+                    None,
+                    source.video.source,
+                ),
+            }
+        )
     recon = BodyVideoReconstructor(BodyVideoReconstructor.Config(subject=args.subject, figures=False))
     fit = recon.fit(source)
     mapping = HUMAN_MAP if args.subject == "human" else quadruped_map()
@@ -102,6 +132,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "joints": len(pairs),
         "height_m": round(height, 4),
         "seconds": round(time.perf_counter() - start, 2),
+        "cpu_seconds": round(time.process_time() - cpu, 2),
     }
     print(json.dumps(out))
     return out
@@ -111,7 +142,7 @@ def fit_silhouettes(fit) -> np.ndarray:
     """(T, H, W) bool silhouettes of the fitted quadruped body (capsules projected by the fit's camera)."""
     from sync4d.recon.pose.quadruped_fit import render_silhouettes
 
-    return render_silhouettes(fit.joints, fit.parents, fit.camera)
+    return render_silhouettes(fit.joints, fit.parents, fit.camera, fit.radii)
 
 
 if __name__ == "__main__":

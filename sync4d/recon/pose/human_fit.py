@@ -48,10 +48,6 @@ JOINT_NAMES = tuple(n for n, _, _ in HUMAN_SKELETON)
 PARENTS = np.array([p for _, p, _ in HUMAN_SKELETON], dtype=np.int64)
 # (hip, knee, ankle) and (shoulder, elbow, wrist) triples for the hinge limits
 KNEES = ((1, 3, 5), (2, 4, 6))
-# capsule radius of the segment ending at each joint as a fraction of the pelvis-neck-thigh-shin length
-# (an adult: 0.5 + 0.45 + 0.42 m; torso 0.13 m, thigh 0.075 m, ...): the body's silhouette for the mask term
-BODY_RADII = np.array(
-    [0, .10, .10, .075, .075, .055, .055, .035, .035, .13, .09, .06, .06, .045, .045, .04, .04]) / 1.37
 ELBOWS = ((11, 13, 15), (12, 14, 16))
 
 
@@ -68,8 +64,6 @@ class HumanFitConfig:
         min_hinge_deg: smallest allowed elbow/knee angle [deg] (180 = straight).
         huber_px: reprojection errors beyond this are down-weighted (Huber) [px].
         iterations: L-BFGS iterations.
-        mask_weight: soft capsule silhouette against the person masks (binary cross-entropy); 0 = off.
-        mask_grid: silhouette cells across the longer side of the masks' bounding box.
     """
 
     reprojection_weight: float = 1.0
@@ -80,8 +74,6 @@ class HumanFitConfig:
     min_hinge_deg: float = 30.0
     huber_px: float = 10.0
     iterations: int = 60
-    mask_weight: float = 1.0
-    mask_grid: int = 40
 
 
 @dataclass(frozen=True)
@@ -181,7 +173,6 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig) -> HumanFit:
     focal = float(K[0, 0])
     min_cos = float(np.cos(np.radians(cfg.min_hinge_deg)))
     opt = torch.optim.LBFGS([x, log_len], lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
-    sil = _silhouette_target(track, cfg) if cfg.mask_weight > 0 and track.masks.any() else None
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
@@ -197,10 +188,13 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig) -> HumanFit:
         l_bone = (seg_len - lengths).pow(2).mean()
         l_smooth = (x[2:] - 2 * x[1:-1] + x[:-2]).pow(2).sum(-1).mean() if len(x) > 2 else x.new_zeros(())
         l_limit = _hinge_losses(x, min_cos)
-        loss = (cfg.reprojection_weight * l_rep * 1e2 + cfg.world_weight * l_world + cfg.bone_weight * l_bone
-                + cfg.smooth_weight * l_smooth + cfg.limit_weight * l_limit)
-        if sil is not None:
-            loss = loss + cfg.mask_weight * _silhouette_loss(x, lengths, K_t, sil)
+        loss = (
+            cfg.reprojection_weight * l_rep * 1e2
+            + cfg.world_weight * l_world
+            + cfg.bone_weight * l_bone
+            + cfg.smooth_weight * l_smooth
+            + cfg.limit_weight * l_limit
+        )
         loss.backward()
         return loss
 
@@ -212,31 +206,6 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig) -> HumanFit:
     bone[seg] = np.linalg.norm(joints[:, seg] - joints[:, PARENTS[seg]], axis=-1).mean(0)
     rep = (err_px * vis).sum(1) / np.maximum(vis.sum(1), 1e-9)
     return HumanFit(joints=joints, names=JOINT_NAMES, parents=PARENTS.copy(), bone_lengths=bone, reprojection_px=rep)
-
-
-def _silhouette_target(track: PoseTrack, cfg: HumanFitConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
-    """(cell centres (P, 2) [px], target occupancy (T, P), frame weights (T,), tau [px]) from the person masks."""
-    from sync4d.recon.pose.quadruped_fit import _coarse_masks, _grid, mask_box
-
-    box = mask_box(track.masks)
-    uv, gw, gh = _grid(box, cfg.mask_grid)
-    coarse = _coarse_masks(track.masks, box, gw, gh).reshape(len(track.masks), -1)
-    tau = max(box[2] - box[0], box[3] - box[1]) / cfg.mask_grid * 0.5
-    return (torch.tensor(uv), torch.tensor(coarse, dtype=torch.float64),
-            torch.tensor(track.found, dtype=torch.float64), tau)
-
-
-def _silhouette_loss(x: torch.Tensor, lengths: torch.Tensor, K: torch.Tensor, sil) -> torch.Tensor:
-    """Binary cross-entropy of the capsule body's soft silhouette against the masks (found frames)."""
-    from sync4d.recon.pose.quadruped_fit import soft_silhouette
-
-    uv, target, weight, tau = sil
-    seg = np.flatnonzero(PARENTS >= 0)
-    body = lengths[[list(seg).index(j) for j in (9, 3, 5)]].sum()  # pelvis-neck + thigh + shin
-    radii = torch.tensor(BODY_RADII) * body
-    occ = soft_silhouette(x, PARENTS, radii, K, uv, tau)
-    bce = -(target * torch.log(occ.clamp(1e-5)) + (1 - target) * torch.log((1 - occ).clamp(1e-5))).mean(1)
-    return (bce * weight).sum() / weight.sum().clamp_min(1.0)
 
 
 def _project(x: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
