@@ -58,6 +58,7 @@ class StructureConfig:
         aligned_turn_cost: with ``match.align`` = ``pca``/``pca_icp`` (the target was fitted to the
             reference), the cost of turning it half a turn away from the fitted heading.
         profile_bins: bins of relative position along a limb in the part profile.
+        mirror_repair: apply :func:`mirror_repair` to the chosen assignment.
     """
 
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
@@ -71,6 +72,7 @@ class StructureConfig:
     area_weight: float = 0.5
     chamfer_weight: float = 2.0
     aligned_turn_cost: float = 4.0
+    mirror_repair: bool = True
     profile_bins: int = 20
 
 
@@ -394,6 +396,76 @@ def yaw_rotations(up_axis: str, steps: int) -> list[np.ndarray]:
     return [axis_rotation(axis, 2 * np.pi * k / max(steps, 1)) for k in range(max(steps, 1))]
 
 
+def mirror_plane_pairs(bases: np.ndarray, up: int, scale: np.ndarray) -> tuple[list[tuple[int, int]], np.ndarray]:
+    """The reference's left/right limb pairs and the normal of its vertical plane of symmetry.
+
+    The plane (through the centre, vertical) is the one that best maps the set of limb bases onto
+    itself (each horizontal axis divided by the shape's spread along it); a pair is two limbs that are
+    each other's nearest base after the reflection, nearer than half their distance apart.
+
+    Returns:
+        pairs (i, j), the plane's unit normal (3,) in the scaled frame.
+    """
+    axes = [a for a in range(3) if a != up]
+    pts = bases / scale
+    best, best_n = np.inf, np.zeros(3)
+    for theta in np.linspace(0.0, np.pi, 36, endpoint=False):
+        n = np.zeros(3)
+        n[axes[0]], n[axes[1]] = np.cos(theta), np.sin(theta)
+        refl = pts - 2.0 * (pts @ n)[:, None] * n
+        score = np.linalg.norm(refl[:, None] - pts[None], axis=-1).min(axis=1).sum()
+        if score < best:
+            best, best_n = score, n
+    refl = pts - 2.0 * (pts @ best_n)[:, None] * best_n
+    d = np.linalg.norm(refl[:, None] - pts[None], axis=-1)
+    near = d.argmin(axis=1)
+    apart = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    pairs = [
+        (i, int(near[i]))
+        for i in range(len(pts))
+        if int(near[i]) > i and near[int(near[i])] == i and d[i, near[i]] < 0.5 * apart[i, near[i]]
+    ]
+    return pairs, best_n
+
+
+def mirror_repair(
+    pairs: list[tuple[int, int]],
+    ref: LimbSet,
+    tgt: LimbSet,
+    rotation: np.ndarray,
+    up: int,
+    ref_scale: np.ndarray,
+    tgt_scale: np.ndarray,
+) -> list[tuple[int, int]]:
+    """Give a left/right reference limb whose partner is matched the mirror image of its partner's branch
+    when a limb without a partner (a tail, a head) holds that branch.
+
+    A hanging tail can fit a hind leg's branch better than the reference's (posed) hind leg does; the
+    body's left/right symmetry says the branch opposite the matched partner is the leg. Bases are
+    compared with each horizontal axis divided by the shape's spread (``ref_scale``, ``tgt_scale``), the
+    target's turned by ``rotation``; ``pairs`` are (reference limb, target candidate).
+    """
+    mirror, normal = mirror_plane_pairs(ref.base, up, ref_scale)
+    paired = {i for p in mirror for i in p}
+    held = {r: c for r, c in pairs}
+    owner = {c: r for r, c in pairs}
+    tb = (tgt.base @ rotation.T) / tgt_scale
+    n = normal
+    for i, j in mirror:
+        for a, b in ((i, j), (j, i)):
+            if a not in held or b in held:
+                continue
+            m = tb[held[a]] - 2.0 * (tb[held[a]] @ n) * n
+            c = int(np.argmin(np.linalg.norm(tb - m, axis=1)))
+            q = owner.get(c)
+            if c == held[a] or q is None or q in paired:
+                continue
+            held[b] = c
+            owner[c] = b
+            del held[q]
+    return sorted(held.items())
+
+
 def match_structure(
     ref_points: np.ndarray,
     ref_labels: np.ndarray,
@@ -460,6 +532,8 @@ def match_structure(
             best = (score, rot, pairs, total)
     assert best is not None
     _, rot, pairs, total = best
+    if cfg.mirror_repair and len(pairs):
+        pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, horizontal_scale(tgt_points, rot, up))
     point_part = label_target(ref_sk, ref_limbs, ref_labels, tgt_sk, tgt_limbs, pairs, rot, num_parts, cfg.profile_bins)
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)

@@ -260,3 +260,28 @@ def test_structure_match_refuses_a_bad_target_before_any_work() -> None:
         match_parts(
             reference, gaussians_at(v), None, MatchConfig(method="structure"), target_vertices=bad, target_faces=f
         )
+
+
+def test_mirror_pairs_and_the_repair_give_a_leg_back_from_the_tail() -> None:
+    """Four legs left/right of the plane z = 0 and a tail on it; a tail holding the mirror image of the
+    matched hind-left leg's branch hands it to the hind-right leg."""
+    from sync4d.match_structure import LimbSet, mirror_plane_pairs, mirror_repair
+
+    bases = np.array([[-1.0, 0, 0.3], [-1.0, 0, -0.3], [1.0, 0, 0.3], [1.0, 0, -0.3], [1.2, 0, 0.0]])
+    scale = np.array([1.0, 1.0, 0.3])
+    pairs, normal = mirror_plane_pairs(bases, 1, scale)
+    assert sorted(pairs) == [(0, 1), (2, 3)]
+    assert abs(normal[2]) == pytest.approx(1.0)
+
+    def limbs(base: np.ndarray) -> LimbSet:
+        n = len(base)
+        empty = tuple(np.zeros(0, dtype=np.int64) for _ in range(n))
+        return LimbSet(empty, base, base, np.zeros(n), np.ones(n), np.full(n, 0.1))
+
+    ref = limbs(bases)
+    tgt = limbs(bases[:4] * [1.1, 1, 1.2])  # four leg branches, no tail branch
+    chosen = [(0, 0), (1, 1), (2, 2), (4, 3)]  # the tail took the hind-right branch; leg 3 left over
+    repaired = mirror_repair(chosen, ref, tgt, np.eye(3), 1, scale, scale)  # type: ignore[arg-type]
+    assert repaired == [(0, 0), (1, 1), (2, 2), (3, 3)]
+    # nothing changes when the partner of a left-over limb is itself unmatched
+    assert mirror_repair([(0, 0), (4, 3)], ref, tgt, np.eye(3), 1, scale, scale) == [(0, 0), (4, 3)]  # type: ignore[arg-type]
