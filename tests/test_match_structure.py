@@ -281,7 +281,7 @@ def test_mirror_pairs_and_the_repair_give_a_leg_back_from_the_tail() -> None:
     ref = limbs(bases)
     tgt = limbs(bases[:4] * [1.1, 1, 1.2])  # four leg branches, no tail branch
     chosen = [(0, 0), (1, 1), (2, 2), (4, 3)]  # the tail took the hind-right branch; leg 3 left over
-    repaired = mirror_repair(chosen, ref, tgt, np.eye(3), 1, scale, scale)  # type: ignore[arg-type]
+    repaired = mirror_repair(chosen, ref, tgt, np.eye(3), 1, scale, scale)
     assert repaired == [(0, 0), (1, 1), (2, 2), (3, 3)]
     # nothing changes when the partner of a left-over limb is itself unmatched
-    assert mirror_repair([(0, 0), (4, 3)], ref, tgt, np.eye(3), 1, scale, scale) == [(0, 0), (4, 3)]  # type: ignore[arg-type]
+    assert mirror_repair([(0, 0), (4, 3)], ref, tgt, np.eye(3), 1, scale, scale) == [(0, 0), (4, 3)]
