@@ -59,6 +59,13 @@ STATE_BYTES = 96
 NODE_BYTES = 2 * (16 + 12)
 #: Resident memory of the process before any scene is loaded (torch, Warp, Hydra) [MB].
 BASE_MB = 450.0
+#: While simulating: the simulator's and the transfer's working memory (Warp arrays, torch autograd of
+#: a rollout, the velocity field) [MB], and the bytes per Gaussian of the frame being carried and written
+#: (float64 positions, F Sigma F^T and its eigendecomposition, rotated SH, the .ply table: one frame in
+#: flight, ``outputs.FrameWriter``). Fitted to ``train.py``'s peak while simulating in
+#: ``benchmarks/scale.py`` at 50 k and 500 k Gaussians (828 MB and 1,436 MB; docs/scale.md).
+SIM_WORKING_MB = 260.0
+CARRY_BYTES = 1400
 #: Headroom the transfer gives the reference speed for the optimised delta velocities (sync4d.transfer).
 SPEED_HEADROOM = 2.0
 
@@ -219,7 +226,6 @@ def estimate_cost(
     frames: int,
     iterations: int,
     sh_coeffs: int = 1,
-    held_frames: int | None = None,
 ) -> CostEstimate:
     """Estimate substeps, time and memory of a ``sim=mpm_warp`` run from the scene and the config.
 
@@ -230,7 +236,6 @@ def estimate_cost(
         frames: output frames T.
         iterations: the velocity field's optimisation iterations per frame (0 for none).
         sh_coeffs: SH coefficients per colour channel K (memory of the Gaussians).
-        held_frames: frames of per-Gaussian positions and F the run keeps in memory (None: all T).
 
     Returns:
         The estimate (no simulation is run; costs milliseconds to a second for millions of Gaussians).
@@ -253,9 +258,11 @@ def estimate_cost(
     per_frame = forward + max(int(iterations), 0) * per_iteration
     stored = min(STATE_BYTES * p * (substeps + 1), sim.checkpoint_budget_mb * 2**20 + 2 * STATE_BYTES * p)
     gaussian_bytes = 4 * (3 + 4 + 3 + 1 + 3 * sh_coeffs)
-    held = frames if held_frames is None else held_frames
-    memory = (BASE_MB * 2**20 + stored + NODE_BYTES * nodes + 3 * gaussian_bytes * n  # rest, one frame, a copy
-              + held * n * 8 * (3 + 9))  # per-Gaussian x and F in float64 per held frame
+    # The rest Gaussians, one frame being carried and written, and every frame's simulated x and F in
+    # float64, held twice (the transfer's trajectory and the run writer's): per control point, not per
+    # Gaussian, when the run has control points (P = N without).
+    memory = ((BASE_MB + SIM_WORKING_MB) * 2**20 + stored + NODE_BYTES * nodes + (gaussian_bytes + CARRY_BYTES) * n
+              + 2 * frames * p * 8 * (3 + 9))
     return CostEstimate(
         particles=p, gaussians=n, grid_dims=tuple(int(d) for d in grid.dims), dx=float(grid.dx), wave_speed=c,
         v_max=float(v_max), substeps=int(substeps), dt=float(dt), iterations=int(iterations),

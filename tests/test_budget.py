@@ -106,3 +106,23 @@ def test_train_refuses_a_stiff_material_before_simulating(tmp_path):
     assert proc.returncode == 2
     assert "sim.E=1e+12 Pa" in proc.stderr and "exceed sim.max_substeps" in proc.stderr
     assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+def test_estimated_memory_of_a_control_point_run_does_not_grow_with_frames_times_gaussians():
+    """With control points the run holds per-point frames: 4x the frames adds megabytes, not N x T."""
+    from sync4d.budget import SimSettings, estimate_cost
+    from sync4d.sim.mpm_warp import MPMWarp
+
+    _, motion = _laptop_scene()
+    means = np.random.default_rng(0).random((200_000, 3)) * 0.3
+    settings = SimSettings.of(MPMWarp.Config(control_grid=20))
+    short = estimate_cost(means, motion, settings, frames=24, iterations=0)
+    long = estimate_cost(means, motion, settings, frames=96, iterations=0)
+    assert short.particles <= 20**3
+    assert long.peak_memory_mb - short.peak_memory_mb < 72 * short.particles * 2 * 96 / 2**20 + 1.0
+    # every Gaussian simulated: the frames are per Gaussian and the estimate grows with them
+    every = SimSettings.of(MPMWarp.Config(control_grid=None))
+    few = means[:20_000]
+    grow = estimate_cost(few, motion, every, frames=96, iterations=0).peak_memory_mb - \
+        estimate_cost(few, motion, every, frames=24, iterations=0).peak_memory_mb
+    assert grow > 72 * 20_000 * 96 / 2**20
