@@ -97,10 +97,10 @@ def runs(scene, tmp_path_factory):
 def test_streamed_frames_and_metrics_equal_the_in_memory_ones(scene, runs) -> None:
     _, target, _, motion = scene
     old_dir, new_dir, old_metrics, new_metrics, old_traj, new_traj = runs
-    for t in range(FRAMES):
-        a, b = (read_gaussians_ply(d / "frames" / f"{t:06d}.ply") for d in (old_dir, new_dir))
-        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
-            np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=0, atol=2e-6, err_msg=f"{t} {name}")
+    for t in range(FRAMES):  # the same float64 arithmetic per Gaussian: byte-identical files
+        name = f"{t:06d}.ply"
+        assert (new_dir / "frames" / name).read_bytes() == (old_dir / "frames" / name).read_bytes(), name
+    assert read_gaussians_ply(new_dir / "frames" / "000002.ply").sh.shape[1] == 16
     assert stable(new_metrics) == stable(old_metrics)
     assert json.loads((new_dir / "metrics.json").read_text())["pose_error_pct"] == old_metrics["pose_error_pct"]
     # what is held and stored is per control point: P rows, not N
