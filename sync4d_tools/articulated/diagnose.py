@@ -43,8 +43,16 @@ def gt_motion(gt: dict[str, np.ndarray]) -> np.ndarray:
     return out
 
 
-def model_from(scene: jt.Scene, labels: np.ndarray, root: int, kinds: list[str], axes: np.ndarray,
-               pivots: np.ndarray, values: np.ndarray, depth: np.ndarray) -> jt.Articulation:
+def model_from(
+    scene: jt.Scene,
+    labels: np.ndarray,
+    root: int,
+    kinds: list[str],
+    axes: np.ndarray,
+    pivots: np.ndarray,
+    values: np.ndarray,
+    depth: np.ndarray,
+) -> jt.Articulation:
     """An Articulation holding the given joints (slide values in m) and per-point depths [m] exactly."""
     vals = values.copy()
     for b, kind in enumerate(kinds):
@@ -65,14 +73,19 @@ def losses(model: jt.Articulation, frames: int, cfg: jt.FitConfig) -> dict[str, 
     with torch.no_grad():
         track, inside, cover = jt.data_terms(model, frames)
     data = float(track + cfg.inside_weight * inside + cfg.cover_weight * cover)
-    return {"track": round(float(track), 4), "inside": round(float(inside), 4), "cover": round(float(cover), 4),
-            "data": round(data, 4)}
+    return {
+        "track": round(float(track), 4),
+        "inside": round(float(inside), 4),
+        "cover": round(float(cover), 4),
+        "data": round(data, 4),
+    }
 
 
 def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
     gt = dict(np.load(folder / "gt.npz"))
-    source = VideoSource(VideoSource.Config(video=str(folder / "rgb.mp4"), masks=str(folder / "masks"),
-                                            camera=str(folder / "gt.npz"))).load()
+    source = VideoSource(
+        VideoSource.Config(video=str(folder / "rgb.mp4"), masks=str(folder / "masks"), camera=str(folder / "gt.npz"))
+    ).load()
     n_parts = len(gt["joint_type"]) + 1
     cfg = VideoReconstructor.Config(bones=n_parts, seed=seed)
     clip, camera = source.video.validate(), source.camera
@@ -89,17 +102,22 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
     err = np.linalg.norm(tracks.uv - uv_gt, axis=-1)
     ok = tracks.trusted & (labels >= 1)[None]
     d_tr, d_gt = (tracks.uv - tracks.uv0)[ok], (uv_gt - tracks.uv0)[ok]
-    report = {"clip": folder.name, "points": len(labels), "trusted_moving_frac": round(float(ok[1:].mean() / max((labels >= 1).mean(), 1e-9)), 3),
-              "track_err_px_median": round(float(np.median(err[ok])), 3),
-              "track_err_px_p90": round(float(np.quantile(err[ok], 0.9)), 3),
-              "motion_ratio": round(float((d_tr * d_gt).sum() / max((d_gt**2).sum(), 1e-9)), 3),
-              "gt_max_disp_px": round(float(np.linalg.norm(uv_gt - tracks.uv0, axis=-1).max()), 1)}
+    report = {
+        "clip": folder.name,
+        "points": len(labels),
+        "trusted_moving_frac": round(float(ok[1:].mean() / max((labels >= 1).mean(), 1e-9)), 3),
+        "track_err_px_median": round(float(np.median(err[ok])), 3),
+        "track_err_px_p90": round(float(np.quantile(err[ok], 0.9)), 3),
+        "motion_ratio": round(float((d_tr * d_gt).sum() / max((d_gt**2).sum(), 1e-9)), 3),
+        "gt_max_disp_px": round(float(np.linalg.norm(uv_gt - tracks.uv0, axis=-1).max()), 1),
+    }
     init = init_parts(tracks, n_parts, cfg.init, static_px=cfg.fit.static_root_px)
     agree = max(float((np.array(p)[init.labels] == labels).mean()) for p in _perms(n_parts))
     report["init_label_agreement"] = round(agree, 3)
     z_ref = reference_depth(camera)
-    scene = jt.make_scene(tracks, masks, camera, init, z_ref, np.tile(np.eye(4), (len(masks), 1, 1)),
-                          np.random.default_rng(seed))
+    scene = jt.make_scene(
+        tracks, masks, camera, init, z_ref, np.tile(np.eye(4), (len(masks), 1, 1)), np.random.default_rng(seed)
+    )
     kinds = ["root"] + [str(k) for k in gt["joint_type"]]
     axes = np.concatenate([np.zeros((1, 3)), gt["joint_axis"]])
     pivots = np.concatenate([np.zeros((1, 3)), gt["joint_pos"]])
@@ -121,8 +139,17 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
     return report
 
 
-def oracle_labels(model: jt.Articulation, gt: dict[str, np.ndarray], clip: object, camera: object,
-                  scene: jt.Scene, masks: np.ndarray, tracks: object, *, add_revealed: bool = True) -> float:
+def oracle_labels(
+    model: jt.Articulation,
+    gt: dict[str, np.ndarray],
+    clip: object,
+    camera: object,
+    scene: jt.Scene,
+    masks: np.ndarray,
+    tracks: object,
+    *,
+    add_revealed: bool = True,
+) -> float:
     """The suite's label score of the frame-0 surface with exact labels, depths and joints: the ceiling of
     a method that reconstructs only what frame 0 sees."""
     from types import SimpleNamespace
@@ -138,9 +165,15 @@ def oracle_labels(model: jt.Articulation, gt: dict[str, np.ndarray], clip: objec
         extra, extra_labels = extra[:0], extra_labels[:0]
     means, labels = np.concatenate([means, extra]), np.concatenate([fit.labels, extra_labels])
     ref = build_reference(fit, means, labels, clip, camera, "oracle")
-    sigma = scene.stride * (means @ camera.world_to_cam[2, :3] + camera.world_to_cam[2, 3]) / camera.K[0, 0]
-    view = SimpleNamespace(reference=ref, means=means, sigma=sigma, opacity=np.full(len(means), 0.9),
-                           camera=camera, object_width=scene.width)
+    sigma = 0.5 * scene.stride * (means @ camera.world_to_cam[2, :3] + camera.world_to_cam[2, 3]) / camera.K[0, 0]
+    view = SimpleNamespace(
+        reference=ref,
+        means=means,
+        sigma=sigma,
+        opacity=np.full(len(means), 0.9),
+        camera=camera,
+        object_width=scene.width,
+    )
     rendered = rendered_labels(view, gt["part_labels"])
     return round(part_mapping(rendered, gt["part_labels"], ref.num_bones, len(model.kinds))[2], 4)
 

@@ -271,9 +271,10 @@ def visible(uv: torch.Tensor, depth: torch.Tensor, stride: float) -> torch.Tenso
     return out
 
 
-def flow_term(model: Articulation, uv: torch.Tensor, frames: int) -> torch.Tensor:
+def flow_term(model: Articulation, posed: torch.Tensor, uv: torch.Tensor, frames: int) -> torch.Tensor:
     """Frame-to-frame image motion of the posed moving points against the flow at their pixel, where the
-    flow is consistent and the point visible (Charbonnier, strides); uv (frames, N, 2) includes frame 0."""
+    flow is consistent and the point visible (Charbonnier, strides); posed (frames, N, 3) [m] and their
+    pixels uv (frames, N, 2) include frame 0."""
     sc = model.scene
     if sc.flow is None or frames < 2:
         return torch.zeros((), dtype=uv.dtype)
@@ -282,7 +283,7 @@ def flow_term(model: Articulation, uv: torch.Tensor, frames: int) -> torch.Tenso
         at = uv[:-1].detach()
         grid = torch.stack([at[..., 0] / w * 2 - 1, at[..., 1] / h * 2 - 1], -1)[:, None]
         fl = torch.nn.functional.grid_sample(sc.flow[: frames - 1], grid, align_corners=False)[:, :, 0]  # (F, 3, N)
-        pc = model.posed()[: frames - 1].detach() @ sc.w2c[:3, :3].T + sc.w2c[:3, 3]
+        pc = posed[:-1].detach() @ sc.w2c[:3, :3].T + sc.w2c[:3, 3]
         ok = (fl[:, 2] > 0.99) & visible(at, pc[..., 2], sc.stride) & (model.labels != model.root)[None]
     if not ok.any():
         return torch.zeros((), dtype=uv.dtype)
@@ -294,13 +295,14 @@ def data_terms(model: Articulation, frames: int) -> tuple[torch.Tensor, torch.Te
     """Track (chained tracks + frame-to-frame flow), inside and cover terms over frames 1..frames-1, in
     strides (see the module docstring)."""
     sc = model.scene
-    uv_all = project(sc, model.posed()[:frames])
+    posed = model.posed()[:frames]
+    uv_all = project(sc, posed)
     uv = uv_all[1:]
     moving = model.labels != model.root
     trusted = sc.trusted[1:frames] & moving[None]
     err = ((uv - sc.tracks[1:frames]) ** 2).sum(-1) / sc.stride**2
     track = (torch.sqrt(err + 1.0) - 1.0)[trusted].mean() if trusted.any() else torch.zeros((), dtype=uv.dtype)
-    track = track + FLOW_WEIGHT * flow_term(model, uv_all, frames)
+    track = track + FLOW_WEIGHT * flow_term(model, posed, uv_all, frames)
     inside = (sample_outside(sc, uv, 1) / sc.stride).clamp(max=10.0)[:, moving].mean()
     cover = []
     for t in range(1, frames):

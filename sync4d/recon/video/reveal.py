@@ -37,8 +37,16 @@ def _flow_cost(q: np.ndarray, x0: np.ndarray, motion: np.ndarray, t: int, tracks
     return np.where(ok, np.linalg.norm(pred - flow, axis=1), np.nan)
 
 
-def behind_first_frame(q: np.ndarray, depth: np.ndarray, motion: np.ndarray, first: tuple[cKDTree, np.ndarray],
-                       camera: Camera, stride: float, *, rounds: int = 3) -> np.ndarray:
+def behind_first_frame(
+    q: np.ndarray,
+    depth: np.ndarray,
+    motion: np.ndarray,
+    first: tuple[cKDTree, np.ndarray],
+    camera: Camera,
+    stride: float,
+    *,
+    rounds: int = 3,
+) -> np.ndarray:
     """(M, 3) rest points of a part seen at pixels q (M, 2) of a frame where its motion is ``motion`` (4, 4),
     at camera depths (M,) [m] pushed back along their rays until they lie behind the frame-0 surface where it
     covers them (``first``: k-d tree of its pixels, its depths): a surface revealed later was hidden in frame
@@ -56,8 +64,9 @@ def behind_first_frame(q: np.ndarray, depth: np.ndarray, motion: np.ndarray, fir
     return backproject(q, depth, camera) @ inv[:3, :3].T + inv[:3, 3]
 
 
-def reveal(means: np.ndarray, labels: np.ndarray, motions: np.ndarray, masks: np.ndarray, tracks: Tracks,
-           camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+def reveal(
+    means: np.ndarray, labels: np.ndarray, motions: np.ndarray, masks: np.ndarray, tracks: Tracks, camera: Camera
+) -> tuple[np.ndarray, np.ndarray]:
     """Rest points (M, 3) [m] and their parts (M,) for the mask pixels no posed point covers.
 
     Args:
@@ -93,8 +102,9 @@ def reveal(means: np.ndarray, labels: np.ndarray, motions: np.ndarray, masks: np
             cost[:, b] = dist
             depth[b] = z[own[near]]
             inv = np.linalg.inv(motions[t, b])
-            flow_cost[:, b] = _flow_cost(q, backproject(q, depth[b], camera) @ inv[:3, :3].T + inv[:3, 3],
-                                         motions[:, b], t, tracks, camera)
+            flow_cost[:, b] = _flow_cost(
+                q, backproject(q, depth[b], camera) @ inv[:3, :3].T + inv[:3, 3], motions[:, b], t, tracks, camera
+            )
         use_flow = np.isfinite(flow_cost).all(1)
         best = np.where(use_flow, np.argmin(np.where(use_flow[:, None], flow_cost, 0.0), 1), np.argmin(cost, 1))
         x0 = np.zeros((len(q), 3))
