@@ -141,7 +141,7 @@ class BodyVideoReconstructor:
 
             detector, landmarks = load_models(self.cfg.model_dir)
             track = track_video(clip.frames, detector, landmarks, source=clip.source or source.name)
-            fit = fit_human(track, camera.K, self.cfg.human)
+            fit = fit_human(track, camera.K, self.cfg.human, fps=float(source.fps or clip.fps))
             return BodyVideoFit(
                 fit.joints,
                 fit.names,

@@ -9,7 +9,8 @@ camera frame are optimised jointly over the clip against:
 * the metric world landmarks relative to the pelvis (the model's 3D pose; fixes depth within the body);
 * one set of bone lengths for the whole clip (a variable, left and right tied), so the body is rigid;
 * joint limits: knees bend forward only, elbows and knees never fold below ``min_hinge_deg``;
-* temporal smoothness (squared second differences of every joint).
+* temporal smoothness (squared accelerations of every joint, so the prior does not depend on the frame
+  rate).
 
 The clip's depth comes from the metric world landmarks and the focal length (a 1.7 m person spanning
 h pixels is at z = f 1.7 / h), so the assumed field of view sets the distance, not the pose.
@@ -48,6 +49,8 @@ JOINT_NAMES = tuple(n for n, _, _ in HUMAN_SKELETON)
 PARENTS = np.array([p for _, p, _ in HUMAN_SKELETON], dtype=np.int64)
 # (hip, knee, ankle) and (shoulder, elbow, wrist) triples for the hinge limits
 KNEES = ((1, 3, 5), (2, 4, 6))
+# the smoothness weight is stated for this frame rate; other rates scale the second difference by (fps/10)^2
+SMOOTH_FPS = 10.0
 ELBOWS = ((11, 13, 15), (12, 14, 16))
 
 
@@ -59,7 +62,8 @@ class HumanFitConfig:
         reprojection_weight: 2D landmarks, squared error in focal-length units (~1/f^2 per px^2).
         world_weight: pelvis-relative world landmarks [1/m^2].
         bone_weight: bone lengths against the clip's shared lengths [1/m^2].
-        smooth_weight: squared second differences of joint positions [1/m^2].
+        smooth_weight: squared joint accelerations times (0.1 s)^4, i.e. the squared second difference
+            of positions at 10 frames a second; other frame rates give the same prior [1/m^2].
         limit_weight: joint-limit violations [1/m^2].
         min_hinge_deg: smallest allowed elbow/knee angle [deg] (180 = straight).
         huber_px: reprojection errors beyond this are down-weighted (Huber) [px].
@@ -145,13 +149,14 @@ def _hinge_losses(x: torch.Tensor, min_cos: float) -> torch.Tensor:
     return loss
 
 
-def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig) -> HumanFit:
+def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig, fps: float = 10.0) -> HumanFit:
     """Fit the 17-joint skeleton to a :class:`PoseTrack` seen by a camera with intrinsics ``K``.
 
     Args:
         track: BlazePose output of T frames.
         K: (3, 3) intrinsics [px].
         cfg: weights and schedule.
+        fps: the video's frame rate [1/s]; the smoothness acts on accelerations.
     """
     world = gather_joints(track.world)
     world = world - world[:, :1]
@@ -186,7 +191,8 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig) -> HumanFit:
         seg_len = (x[:, seg_t] - x[:, par_t]).norm(dim=-1)
         lengths = 0.5 * (log_len.exp() + log_len.exp()[mir_t])
         l_bone = (seg_len - lengths).pow(2).mean()
-        l_smooth = (x[2:] - 2 * x[1:-1] + x[:-2]).pow(2).sum(-1).mean() if len(x) > 2 else x.new_zeros(())
+        second = (x[2:] - 2 * x[1:-1] + x[:-2]) * (fps / SMOOTH_FPS) ** 2  # acceleration x (0.1 s)^2
+        l_smooth = second.pow(2).sum(-1).mean() if len(x) > 2 else x.new_zeros(())
         l_limit = _hinge_losses(x, min_cos)
         loss = (
             cfg.reprojection_weight * l_rep * 1e2
