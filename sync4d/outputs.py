@@ -182,6 +182,7 @@ class FrameWriter:
         points also ``gaussian_to_point`` (N,), ``control_rest`` (P, 3) and ``gaussian_part`` (N,).
         """
         self.wait_for_frames()
+        self._writer.shutdown(wait=True)  # every frame is on disk; no idle thread outlives the run
         full_F = None if self.frames_F[0] is None else np.stack(self.frames_F)
         trajectory = with_control(Trajectory(
             x=np.stack(self.frames_x), F=full_F, frame_dt=trajectory.frame_dt,
