@@ -163,6 +163,7 @@ class BodyVideoReconstructor:
             source=clip.source or source.name,
             world_up=source.world_up,
             frames=clip.frames,
+            fps=float(source.fps or clip.fps),
         )
         return BodyVideoFit(
             qfit.joints, qfit.names, qfit.parents, camera, masks, None, time.perf_counter() - started, qfit.radii

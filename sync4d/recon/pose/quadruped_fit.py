@@ -28,6 +28,7 @@ from sync4d.errors import InputError
 from sync4d.types import Camera
 
 log = logging.getLogger(__name__)
+SMOOTH_FPS = 30.0  # the frame rate at which smooth_weight is stated
 DTYPE = torch.float32  # float64 doubles the cost of the silhouette, the dominant term, for no gain at this resolution
 
 DOG_FILE = Path(__file__).resolve().parents[4] / "shared" / "data" / "motion" / "dog_mocap" / "dog_trot_joint_pos.txt"
@@ -136,7 +137,8 @@ class QuadrupedFitConfig:
         joint_limit_deg: rotation of a joint from the template allowed without penalty [deg].
         leg_off_plane_deg: rotation of a leg joint about the axes other than the body's lateral one allowed
             without penalty [deg] (legs swing in the sagittal plane; abduction and twist are small).
-        smooth_weight: squared second differences of the joints and root (template units).
+        smooth_weight: squared second differences of the joints and root (template units) at 30 frames a
+            second; other frame rates scale the differences by (fps / 30)^2, the same acceleration prior.
         background_threshold: colour distance counted as foreground by the background model (0-255),
             when the video has no masks.
     """
@@ -411,6 +413,7 @@ class _Problem:
         self.radii = torch.tensor(DOG_RADII, dtype=dt)
         self.camera = camera
         self.twin = np.array([_twin(n) for n in DOG_NAMES])
+        self.rate = 1.0  # frame rate / SMOOTH_FPS
         self.leg_joints = np.array([j for j, n in enumerate(DOG_NAMES) if n[:3] in ("fl_", "fr_", "hl_", "hr_")])
         self.flow = None if frames is None or len(frames) < 2 else torch.tensor(video_flow(frames, uv), dtype=dt)
 
@@ -478,7 +481,8 @@ def _losses(
     rel = torch.cat([joints - joints[:, :1], joints[:, :1]], 1) / scale
     if history is not None:
         rel = torch.cat([history, rel])
-    smooth = (rel[2:] - 2 * rel[1:-1] + rel[:-2]).pow(2).sum(-1).mean() if len(rel) > 2 else joints.new_zeros(())
+    second = (rel[2:] - 2 * rel[1:-1] + rel[:-2]) * prob.rate**2
+    smooth = second.pow(2).sum(-1).mean() if len(rel) > 2 else joints.new_zeros(())
     total = (
         cfg.silhouette_weight * bce
         + cfg.inside_weight * inside
@@ -597,6 +601,7 @@ def fit_quadruped(
     source: str,
     world_up: np.ndarray | None = None,
     frames: np.ndarray | None = None,
+    fps: float = SMOOTH_FPS,
 ) -> QuadrupedFit:
     """Fit the dog template to (T, H, W) bool masks seen by a static ``camera``.
 
@@ -615,7 +620,9 @@ def fit_quadruped(
         cfg: weights, schedule, starts.
         source: the video's name, for messages.
         world_up: (3,) world up direction, used to orient the starts; None = the camera's -y.
-        frames: (T, H, W, 3) uint8 video frames for the optical flow; None = no flow (no swap test).
+        frames: (T, H, W, 3) uint8 video frames for the optical flow; None = no flow (the clip loss ranks
+            the hypotheses).
+        fps: the video's frame rate [1/s]; the smoothness acts on accelerations.
 
     Raises:
         InputError: a frame's mask is empty.
@@ -628,6 +635,7 @@ def fit_quadruped(
         )
     n = len(masks)
     prob = _Problem(masks, camera, cfg, frames)
+    prob.rate = fps / SMOOTH_FPS
     up_cam = np.array([0.0, -1.0, 0.0])
     if world_up is not None:
         up_cam = camera.world_to_cam[:3, :3] @ np.asarray(world_up, dtype=np.float64)
