@@ -4,7 +4,8 @@ A body of shaded capsules (skin, shirt, trousers, shoes; a sphere for the head) 
 mocap clip (CMU BVH, DeepMimic) and splatted by the project's renderer (``render=splat_torch``) from a
 static look-at camera. Written per clip: ``rgb.mp4``, ``masks/%05d.png`` (rendered opacity > 0.5),
 ``camera.npz`` (``K, cam_pos, cam_forward, cam_up``; the laptop renders' layout) and ``gt.npz``
-(``joints`` (T, J, 3) [m] in the world frame, ``names`` (J,) from the ``recon_joints`` vocabulary).
+(``joints`` (T, J, 3) [m] in the world frame, ``names`` (J,) from the ``recon_joints`` vocabulary, and
+the camera again, so that ``reference=video`` finds it beside the video).
 
     python -m sync4d_tools.body_clips --out outputs/body_clips --clip cmu --view front
 
@@ -26,20 +27,66 @@ SKIN, SHIRT, TROUSERS, SHOE = (0.87, 0.68, 0.55), (0.18, 0.33, 0.62), (0.32, 0.2
 
 # truth vocabulary -> joint name in each clip's skeleton ("head" is the head sphere's centre)
 CLIP_JOINTS = {
-    "cmu": {"l_shoulder": "LeftShoulder", "r_shoulder": "RightShoulder", "l_elbow": "LeftElbow",
-            "r_elbow": "RightElbow", "l_wrist": "LeftWrist", "r_wrist": "RightWrist", "l_hip": "LeftHip",
-            "r_hip": "RightHip", "l_knee": "LeftKnee", "r_knee": "RightKnee", "l_ankle": "LeftAnkle",
-            "r_ankle": "RightAnkle", "pelvis": "Hips", "neck": "lowerneck", "l_toe": "LeftToe", "r_toe": "RightToe",
-            "l_hand": "lhand", "r_hand": "rhand", "head_base": "Head", "head_top": "Head_End"},
-    "deepmimic": {"l_shoulder": "left_shoulder", "r_shoulder": "right_shoulder", "l_elbow": "left_elbow",
-                  "r_elbow": "right_elbow", "l_wrist": "left_wrist", "r_wrist": "right_wrist", "l_hip": "left_hip",
-                  "r_hip": "right_hip", "l_knee": "left_knee", "r_knee": "right_knee", "l_ankle": "left_ankle",
-                  "r_ankle": "right_ankle", "pelvis": "root", "neck": "neck", "l_toe": "left_ankle_end",
-                  "r_toe": "right_ankle_end", "l_hand": "left_wrist_end", "r_hand": "right_wrist_end",
-                  "head_base": "neck", "head_top": "neck_end"},
+    "cmu": {
+        "l_shoulder": "LeftShoulder",
+        "r_shoulder": "RightShoulder",
+        "l_elbow": "LeftElbow",
+        "r_elbow": "RightElbow",
+        "l_wrist": "LeftWrist",
+        "r_wrist": "RightWrist",
+        "l_hip": "LeftHip",
+        "r_hip": "RightHip",
+        "l_knee": "LeftKnee",
+        "r_knee": "RightKnee",
+        "l_ankle": "LeftAnkle",
+        "r_ankle": "RightAnkle",
+        "pelvis": "Hips",
+        "neck": "lowerneck",
+        "l_toe": "LeftToe",
+        "r_toe": "RightToe",
+        "l_hand": "lhand",
+        "r_hand": "rhand",
+        "head_base": "Head",
+        "head_top": "Head_End",
+    },
+    "deepmimic": {
+        "l_shoulder": "left_shoulder",
+        "r_shoulder": "right_shoulder",
+        "l_elbow": "left_elbow",
+        "r_elbow": "right_elbow",
+        "l_wrist": "left_wrist",
+        "r_wrist": "right_wrist",
+        "l_hip": "left_hip",
+        "r_hip": "right_hip",
+        "l_knee": "left_knee",
+        "r_knee": "right_knee",
+        "l_ankle": "left_ankle",
+        "r_ankle": "right_ankle",
+        "pelvis": "root",
+        "neck": "neck",
+        "l_toe": "left_ankle_end",
+        "r_toe": "right_ankle_end",
+        "l_hand": "left_wrist_end",
+        "r_hand": "right_wrist_end",
+        "head_base": "neck",
+        "head_top": "neck_end",
+    },
 }
-TRUTH_NAMES = ("head", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist", "l_hip", "r_hip",
-               "l_knee", "r_knee", "l_ankle", "r_ankle")
+TRUTH_NAMES = (
+    "head",
+    "l_shoulder",
+    "r_shoulder",
+    "l_elbow",
+    "r_elbow",
+    "l_wrist",
+    "r_wrist",
+    "l_hip",
+    "r_hip",
+    "l_knee",
+    "r_knee",
+    "l_ankle",
+    "r_ankle",
+)
 
 
 @dataclass(frozen=True)
@@ -53,17 +100,28 @@ class Capsule:
 
 
 MANNEQUIN = (
-    Capsule("pelvis", "neck", 0.12, SHIRT), Capsule("l_hip", "r_hip", 0.09, TROUSERS),
-    Capsule("l_shoulder", "r_shoulder", 0.06, SHIRT), Capsule("neck", "head_base", 0.045, SKIN),
-    Capsule("head", "head", 0.095, SKIN), Capsule("hair", "hair", 0.092, (0.2, 0.12, 0.06)),
-    Capsule("l_eye", "l_eye", 0.016, (0.05, 0.05, 0.05)), Capsule("r_eye", "r_eye", 0.016, (0.05, 0.05, 0.05)),
-    Capsule("nose", "nose", 0.018, (0.8, 0.55, 0.45)), Capsule("mouth_l", "mouth_r", 0.01, (0.6, 0.2, 0.2)),
-    Capsule("l_shoulder", "l_elbow", 0.048, SHIRT), Capsule("r_shoulder", "r_elbow", 0.048, SHIRT),
-    Capsule("l_elbow", "l_wrist", 0.038, SKIN), Capsule("r_elbow", "r_wrist", 0.038, SKIN),
-    Capsule("l_wrist", "l_hand", 0.035, SKIN), Capsule("r_wrist", "r_hand", 0.035, SKIN),
-    Capsule("l_hip", "l_knee", 0.07, TROUSERS), Capsule("r_hip", "r_knee", 0.07, TROUSERS),
-    Capsule("l_knee", "l_ankle", 0.052, TROUSERS), Capsule("r_knee", "r_ankle", 0.052, TROUSERS),
-    Capsule("l_ankle", "l_toe", 0.04, SHOE), Capsule("r_ankle", "r_toe", 0.04, SHOE),
+    Capsule("pelvis", "neck", 0.12, SHIRT),
+    Capsule("l_hip", "r_hip", 0.09, TROUSERS),
+    Capsule("l_shoulder", "r_shoulder", 0.06, SHIRT),
+    Capsule("neck", "head_base", 0.045, SKIN),
+    Capsule("head", "head", 0.095, SKIN),
+    Capsule("hair", "hair", 0.092, (0.2, 0.12, 0.06)),
+    Capsule("l_eye", "l_eye", 0.016, (0.05, 0.05, 0.05)),
+    Capsule("r_eye", "r_eye", 0.016, (0.05, 0.05, 0.05)),
+    Capsule("nose", "nose", 0.018, (0.8, 0.55, 0.45)),
+    Capsule("mouth_l", "mouth_r", 0.01, (0.6, 0.2, 0.2)),
+    Capsule("l_shoulder", "l_elbow", 0.048, SHIRT),
+    Capsule("r_shoulder", "r_elbow", 0.048, SHIRT),
+    Capsule("l_elbow", "l_wrist", 0.038, SKIN),
+    Capsule("r_elbow", "r_wrist", 0.038, SKIN),
+    Capsule("l_wrist", "l_hand", 0.035, SKIN),
+    Capsule("r_wrist", "r_hand", 0.035, SKIN),
+    Capsule("l_hip", "l_knee", 0.07, TROUSERS),
+    Capsule("r_hip", "r_knee", 0.07, TROUSERS),
+    Capsule("l_knee", "l_ankle", 0.052, TROUSERS),
+    Capsule("r_knee", "r_ankle", 0.052, TROUSERS),
+    Capsule("l_ankle", "l_toe", 0.04, SHOE),
+    Capsule("r_ankle", "r_toe", 0.04, SHOE),
 )
 
 
@@ -76,8 +134,9 @@ def load_clip(clip: str, frames: int, stride: int) -> tuple[dict[str, np.ndarray
     elif clip == "deepmimic":
         from sync4d.io.deepmimic import read_deepmimic
 
-        motion = read_deepmimic(DATA / "deepmimic" / "humanoid3d_walk.txt", DATA / "deepmimic" / "humanoid.urdf",
-                                urdf_scale=0.25)
+        motion = read_deepmimic(
+            DATA / "deepmimic" / "humanoid3d_walk.txt", DATA / "deepmimic" / "humanoid.urdf", urdf_scale=0.25
+        )
     elif clip == "dog":
         return load_dog(frames, stride)
     else:
@@ -108,8 +167,24 @@ def add_face(tracks: dict[str, np.ndarray]) -> None:
     tracks["hair"] = h - 0.02 * fwd + 0.02 * up
 
 
-DOG_TRUTH = ("pelvis", "neck", "head", "tail_base", "fl_upper", "fl_middle", "fl_paw", "fr_upper", "fr_middle",
-             "fr_paw", "hl_upper", "hl_middle", "hl_paw", "hr_upper", "hr_middle", "hr_paw")
+DOG_TRUTH = (
+    "pelvis",
+    "neck",
+    "head",
+    "tail_base",
+    "fl_upper",
+    "fl_middle",
+    "fl_paw",
+    "fr_upper",
+    "fr_middle",
+    "fr_paw",
+    "hl_upper",
+    "hl_middle",
+    "hl_paw",
+    "hr_upper",
+    "hr_middle",
+    "hr_paw",
+)
 
 
 def load_dog(frames: int, stride: int) -> tuple[dict[str, np.ndarray], float]:
@@ -127,13 +202,16 @@ def dog_capsules(tracks: dict[str, np.ndarray]) -> tuple[Capsule, ...]:
 
     length = float(np.linalg.norm(tracks["head"][0] - tracks["tail_base"][0]))
     fur, paw = (0.62, 0.42, 0.24), (0.25, 0.17, 0.1)
-    return tuple(Capsule(DOG_NAMES[p], DOG_NAMES[j], float(DOG_RADII[j] * length),
-                         paw if DOG_NAMES[j].endswith("paw") else fur)
-                 for j, p in enumerate(DOG_PARENTS) if p >= 0)
+    return tuple(
+        Capsule(DOG_NAMES[p], DOG_NAMES[j], float(DOG_RADII[j] * length), paw if DOG_NAMES[j].endswith("paw") else fur)
+        for j, p in enumerate(DOG_PARENTS)
+        if p >= 0
+    )
 
 
-def capsule_gaussians(a: np.ndarray, b: np.ndarray, radius: float, rng: np.random.Generator,
-                      *, density: float = 16000.0) -> tuple[np.ndarray, np.ndarray]:
+def capsule_gaussians(
+    a: np.ndarray, b: np.ndarray, radius: float, rng: np.random.Generator, *, density: float = 16000.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Points on a capsule's surface (uniform by area, ``density`` per m^2) and their outward normals."""
     axis = b - a
     length = float(np.linalg.norm(axis))
@@ -167,7 +245,7 @@ def render_clip(tracks: dict[str, np.ndarray], camera, *, seed: int = 0) -> tupl
     frames, masks = [], []
     for t in range(len(tracks["pelvis"])):
         pts, cols = [], []
-        for part in (dog_capsules(tracks) if "tail_base" in tracks else MANNEQUIN):
+        for part in dog_capsules(tracks) if "tail_base" in tracks else MANNEQUIN:
             p, n = capsule_gaussians(tracks[part.a][t], tracks[part.b][t], part.radius, rng)
             shade = 0.35 + 0.65 * np.clip(n @ light, 0, None)
             pts.append(p)
@@ -207,8 +285,9 @@ def clip_camera(tracks: dict[str, np.ndarray], view: str, width: int, height: in
     return camera_from_look(K, pos, fwd, up, width, height), K, pos, fwd, up
 
 
-def write_clip(out: Path, clip: str, view: str, *, frames: int, stride: int, width: int, height: int,
-               fov_deg: float) -> dict:
+def write_clip(
+    out: Path, clip: str, view: str, *, frames: int, stride: int, width: int, height: int, fov_deg: float
+) -> dict:
     """Render one clip into ``out`` and return a summary."""
     import imageio.v2 as imageio
 
@@ -225,7 +304,10 @@ def write_clip(out: Path, clip: str, view: str, *, frames: int, stride: int, wid
     np.savez(out / "camera.npz", K=K, cam_pos=pos, cam_forward=fwd, cam_up=up)
     names = DOG_TRUTH if clip == "dog" else TRUTH_NAMES
     joints = np.stack([tracks[n] for n in names], axis=1)
-    np.savez(out / "gt.npz", joints=joints, names=np.array(names), fps=fps)
+    # the camera again in gt.npz: reference=video's camera 'auto' reads gt.npz beside the video (laptop layout)
+    np.savez(
+        out / "gt.npz", joints=joints, names=np.array(names), fps=fps, K=K, cam_pos=pos, cam_forward=fwd, cam_up=up
+    )
     return {"clip": clip, "view": view, "frames": len(rgb), "fps": fps, "out": str(out)}
 
 
@@ -240,8 +322,16 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--fov", type=float, default=50.0, help="vertical field of view [deg]")
     args = parser.parse_args(argv)
-    result = write_clip(Path(args.out), args.clip, args.view, frames=args.frames, stride=args.stride,
-                        width=args.width, height=args.height, fov_deg=args.fov)
+    result = write_clip(
+        Path(args.out),
+        args.clip,
+        args.view,
+        frames=args.frames,
+        stride=args.stride,
+        width=args.width,
+        height=args.height,
+        fov_deg=args.fov,
+    )
     print(json.dumps(result))
     return result
 
