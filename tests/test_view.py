@@ -171,3 +171,16 @@ def test_play_advances_frames_at_the_chosen_rate(tmp_path: Path) -> None:
     loop.join(timeout=10)
     assert 3 <= reached <= 21  # 20 frames/s for 1 s, less when the machine is busy
     assert int(viewer.slider.value) == reached  # paused
+
+
+def test_frames_of_a_control_point_run_take_each_gaussians_part(tmp_path: Path) -> None:
+    """A control-point run stores ``part`` per simulated point (P) and ``gaussian_part`` per Gaussian (N):
+    the .ply frames (N Gaussians) are coloured by the latter, not dropped for a length mismatch."""
+    from sync4d.view.data import gaussian_parts
+
+    path = tmp_path / "trajectory.npz"
+    np.savez(path, x=np.zeros((2, 3, 3)), part=np.array([0, 1, 1]), gaussian_part=np.array([0, 0, 1, 1, 1]))
+    assert gaussian_parts(path, np.array([0, 1, 1])).tolist() == [0, 0, 1, 1, 1]
+    np.savez(path, x=np.zeros((2, 3, 3)), part=np.array([0, 1, 1]))
+    assert gaussian_parts(path, np.array([0, 1, 1])).tolist() == [0, 1, 1]
+    assert gaussian_parts(tmp_path / "missing.npz", None) is None

@@ -241,6 +241,16 @@ def read_particles(path: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
     return x, parts
 
 
+def gaussian_parts(path: Path, particle_parts: np.ndarray | None) -> np.ndarray | None:
+    """(N,) part label of every Gaussian of the frames: ``gaussian_part`` of a control-point run (whose
+    ``part`` labels the P simulated points), else the particles' own labels (N = P)."""
+    if path.is_file():
+        with np.load(path) as data:
+            if "gaussian_part" in data.files:
+                return np.asarray(data["gaussian_part"])
+    return particle_parts
+
+
 def scene_up(folder: Path) -> np.ndarray:
     """The run's up axis from its saved config (``render.up``), else +y (the project's scenes)."""
     config = folder / ".hydra" / "config.yaml"
@@ -266,7 +276,7 @@ def load_run(folder: str | Path) -> RunData:
     if (folder / "sequence.s4d").is_file():
         target: FrameSource = Seq4DSource(folder / "sequence.s4d")
     elif (folder / "frames").is_dir():
-        target = PlySource(folder / "frames", particle_parts)
+        target = PlySource(folder / "frames", gaussian_parts(folder / "trajectory.npz", particle_parts))
     else:
         raise InputError(f"{folder}: neither sequence.s4d nor frames/*.ply; pass the folder of a train.py run")
     reference = Seq4DSource(folder / "reference.s4d") if (folder / "reference.s4d").is_file() else None
