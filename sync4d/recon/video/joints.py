@@ -291,9 +291,9 @@ def flow_term(model: Articulation, posed: torch.Tensor, uv: torch.Tensor, frames
     return (torch.sqrt(err + 1.0) - 1.0)[ok].mean()
 
 
-def data_terms(model: Articulation, frames: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Track (chained tracks + frame-to-frame flow), inside and cover terms over frames 1..frames-1, in
-    strides (see the module docstring)."""
+def data_terms(model: Articulation, frames: int, *, with_flow: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Track (chained tracks + frame-to-frame flow unless ``with_flow`` is false), inside and cover terms over
+    frames 1..frames-1, in strides (see the module docstring)."""
     sc = model.scene
     posed = model.posed()[:frames]
     uv_all = project(sc, posed)
@@ -302,7 +302,8 @@ def data_terms(model: Articulation, frames: int) -> tuple[torch.Tensor, torch.Te
     trusted = sc.trusted[1:frames] & moving[None]
     err = ((uv - sc.tracks[1:frames]) ** 2).sum(-1) / sc.stride**2
     track = (torch.sqrt(err + 1.0) - 1.0)[trusted].mean() if trusted.any() else torch.zeros((), dtype=uv.dtype)
-    track = track + FLOW_WEIGHT * flow_term(model, posed, uv_all, frames)
+    if with_flow:
+        track = track + FLOW_WEIGHT * flow_term(model, posed, uv_all, frames)
     inside = (sample_outside(sc, uv, 1) / sc.stride).clamp(max=10.0)[:, moving].mean()
     cover = []
     for t in range(1, frames):
@@ -357,6 +358,14 @@ def optimise(model: Articulation, cfg: FitConfig, steps: int, pairs: torch.Tenso
             loss.backward()
             opt.step()
     return float(data.detach())
+
+
+def kind_loss(model: Articulation, cfg: FitConfig) -> float:
+    """The data loss over all frames by which joint kinds are compared: without the flow term, which shapes
+    the fit but lets a far-pivot hinge out-fit a slide on a plain sliding plate (docs/recon_suite.md)."""
+    with torch.no_grad():
+        track, inside, cover = data_terms(model, model.values.shape[0] + 1, with_flow=False)
+        return float(track + cfg.inside_weight * inside + cfg.cover_weight * cover)
 
 
 def _start(scene: Scene, tracks: Tracks, labels: np.ndarray, root: int, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -429,6 +438,7 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, camera: Camera, cfg
         log.info("recon=video: hinge start %d (axis %s): data loss %.4f", s, AXIS_STARTS[s].tolist(), loss)
         if loss < best_loss:
             best, best_loss = model, loss
+    best_kind_loss = kind_loss(best, cfg)
     for b in moving:  # the same part on a slide instead
         trial_kinds = list(best.kinds)
         trial_kinds[b] = "slide"
@@ -437,11 +447,12 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, camera: Camera, cfg
         model = fresh(trial_kinds, axes)
         loss = optimise(model, cfg, cfg.steps // 3, pairs)
         history.append(loss)
-        log.info("recon=video: part %d as a slide: data loss %.4f (hinge %.4f)", b, loss, best_loss)
+        trial_kind_loss = kind_loss(model, cfg)
+        log.info("recon=video: part %d as a slide: kind loss %.4f (hinge %.4f)", b, trial_kind_loss, best_kind_loss)
         # a hinge whose pivot is far away imitates a slide; the slide, with fewer degrees of freedom,
         # wins unless the hinge explains the images clearly better
-        if loss < best_loss * (1.0 + SLIDE_PREFERENCE):
-            best, best_loss = model, loss
+        if trial_kind_loss < best_kind_loss * (1.0 + SLIDE_PREFERENCE):
+            best, best_loss, best_kind_loss = model, loss, trial_kind_loss
     best_loss = optimise(best, cfg, cfg.steps, pairs, windows=1)
     for _ in range(cfg.relabel_rounds):
         new = relabel(best, tracks)
