@@ -135,7 +135,7 @@ def test_nobody_in_the_video_names_it() -> None:
     assert "\n" not in str(err.value)
 
 
-def test_fit_on_a_rendered_clip(tmp_path: Path) -> None:
+def test_fit_on_a_rendered_clip(tmp_path: Path, shared_data: Path) -> None:
     """A mannequin posed by the CMU clip, rendered by the project's renderer, known camera: joint error bounded."""
     from sync4d_tools.body_clips import write_clip
     from sync4d_tools.evaluate.recon_joints import main
@@ -161,7 +161,7 @@ def test_fit_on_a_rendered_clip(tmp_path: Path) -> None:
     assert out["mask_iou"] > 0.8
 
 
-def test_body_video_reference_and_configs(tmp_path: Path) -> None:
+def test_body_video_reference_and_configs(tmp_path: Path, shared_data: Path) -> None:
     from omegaconf import OmegaConf
 
     from sync4d.registry import build, make_config
@@ -224,7 +224,7 @@ def _template_clip(frames: int = 4):
     return truth, joints, camera, masks
 
 
-def test_quadruped_template_is_mirror_symmetric() -> None:
+def test_quadruped_template_is_mirror_symmetric(shared_data: Path) -> None:
     """Swapping a leg pair twice is the identity, and a swapped pose is the mirror image of the legs."""
     import torch
 
@@ -250,7 +250,7 @@ def test_quadruped_template_is_mirror_symmetric() -> None:
     assert np.allclose((a[:, twin] * [1, 1, -1])[:, legs], b[:, legs], atol=1e-5)
 
 
-def test_quadruped_fit_started_at_the_truth_stays_there() -> None:
+def test_quadruped_fit_started_at_the_truth_stays_there(shared_data: Path) -> None:
     """The objective's minimum is at the truth: silhouettes of the template posed by known rotations, the
     fit started there drifts by under 3 % of the body length after one similarity (depth and size trade
     off along the camera rays; measured 1.3 %, 2.4 % on a 32-cell grid)."""
@@ -281,7 +281,7 @@ def test_quadruped_fit_on_template_silhouettes() -> None:
     assert joint_errors(fit.joints, joints).mean() < 0.12 * 0.6
 
 
-def test_reference_video_auto_companions(tmp_path: Path) -> None:
+def test_reference_video_auto_companions(tmp_path: Path, shared_data: Path) -> None:
     """reference=video with masks/camera 'auto': taken from beside the video when there, else none."""
     from sync4d.io.video import write_video
     from sync4d.registry import build

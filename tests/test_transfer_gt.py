@@ -44,7 +44,7 @@ def test_laptop_pair_truth_turns_the_lid_about_the_targets_own_hinge():
     assert np.abs(pair.truth[5, lid] - pair.truth[0, lid]).max() > 0.02
 
 
-def test_mocap_pair_target_has_other_proportions_and_the_same_bones():
+def test_mocap_pair_target_has_other_proportions_and_the_same_bones(shared_data):
     pair = G.load_pair("dog_trot", 3, 300)
     assert pair.part_map.num_parts == pair.reference.num_bones
     ref_ext = np.ptp(pair.reference.rest_vertices, axis=0)
