@@ -267,7 +267,7 @@ def test_quadruped_fit_started_at_the_truth_stays_there(shared_data: Path) -> No
 
 
 @pytest.mark.slow
-def test_quadruped_fit_on_template_silhouettes() -> None:
+def test_quadruped_fit_on_template_silhouettes(shared_data: Path) -> None:
     """Silhouettes of the template in three known poses: the fit from scratch explains them (IoU > 0.6) and
     its joints, after one similarity, are within 12 % of the body length on average (measured IoU 0.8,
     5.7 %; no video frames, so no flow: the hypotheses are ranked by the clip loss)."""
