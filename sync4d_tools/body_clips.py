@@ -72,21 +72,6 @@ CLIP_JOINTS = {
         "head_top": "neck_end",
     },
 }
-TRUTH_NAMES = (
-    "head",
-    "l_shoulder",
-    "r_shoulder",
-    "l_elbow",
-    "r_elbow",
-    "l_wrist",
-    "r_wrist",
-    "l_hip",
-    "r_hip",
-    "l_knee",
-    "r_knee",
-    "l_ankle",
-    "r_ankle",
-)
 
 
 @dataclass(frozen=True)
@@ -302,7 +287,9 @@ def write_clip(
     for t, m in enumerate(masks):
         imageio.imwrite(out / "masks" / f"{t:05d}.png", (m * 255).astype(np.uint8))
     np.savez(out / "camera.npz", K=K, cam_pos=pos, cam_forward=fwd, cam_up=up)
-    names = DOG_TRUTH if clip == "dog" else TRUTH_NAMES
+    from sync4d_tools.evaluate.recon_joints import HUMAN_VOCABULARY
+
+    names = DOG_TRUTH if clip == "dog" else HUMAN_VOCABULARY
     joints = np.stack([tracks[n] for n in names], axis=1)
     # the camera again in gt.npz: reference=video's camera 'auto' reads gt.npz beside the video (laptop layout)
     np.savez(

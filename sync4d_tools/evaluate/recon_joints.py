@@ -31,25 +31,24 @@ from sync4d.errors import InputError
 from sync4d.recon.body_video import BodyVideoReconstructor
 from sync4d.recon.sources import VideoSource
 
+#: the issue's human vocabulary (gt.npz ``names``); the fitted skeleton uses the same names
+HUMAN_VOCABULARY = (
+    "head",
+    "l_shoulder",
+    "r_shoulder",
+    "l_elbow",
+    "r_elbow",
+    "l_wrist",
+    "r_wrist",
+    "l_hip",
+    "r_hip",
+    "l_knee",
+    "r_knee",
+    "l_ankle",
+    "r_ankle",
+)
 # recon_joints vocabulary -> joint name in the fitted skeleton
-HUMAN_MAP = {
-    n: n
-    for n in (
-        "head",
-        "l_shoulder",
-        "r_shoulder",
-        "l_elbow",
-        "r_elbow",
-        "l_wrist",
-        "r_wrist",
-        "l_hip",
-        "r_hip",
-        "l_knee",
-        "r_knee",
-        "l_ankle",
-        "r_ankle",
-    )
-}
+HUMAN_MAP = {n: n for n in HUMAN_VOCABULARY}
 
 
 def quadruped_map() -> dict[str, str]:

@@ -256,6 +256,21 @@ def forward_kinematics(
     return torch.stack(pos, 1)
 
 
+def segment_ends(
+    joints: torch.Tensor, parents: np.ndarray, radii: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(T, S, 3) parent and child ends [m, camera frame] of every segment and (T, S) its radius divided by
+    its midpoint's depth (times the focal length: the radius in pixels)."""
+    seg = np.flatnonzero(parents >= 0)
+    a, b = joints[:, parents[seg]], joints[:, seg]
+    return a, b, radii[seg] / (0.5 * (a[..., 2] + b[..., 2])).clamp_min(1e-3)
+
+
+def project_points(x: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """(..., 2) pixel positions of camera-frame points x (..., 3) [m] under intrinsics K (3, 3)."""
+    return x[..., :2] / x[..., 2:].clamp_min(1e-3) * K[0, 0] + K[:2, 2]
+
+
 def soft_silhouette(
     joints: torch.Tensor,
     parents: np.ndarray,
@@ -269,13 +284,9 @@ def soft_silhouette(
     Each segment projects to a 2D segment with a radius ``r f / z`` (z at its midpoint); occupancy is the
     union of ``sigmoid((radius - distance) / tau_px)`` over segments.
     """
-    seg = np.flatnonzero(parents >= 0)
-    a, b = joints[:, parents[seg]], joints[:, seg]
-    za, zb = a[..., 2:].clamp_min(1e-3), b[..., 2:].clamp_min(1e-3)
-    f = K[0, 0]
-    ua = a[..., :2] / za * f + K[:2, 2]
-    ub = b[..., :2] / zb * f + K[:2, 2]
-    r_px = radii[seg] * f / (0.5 * (za + zb))[..., 0]
+    a, b, r_px = segment_ends(joints, parents, radii)
+    ua, ub = project_points(a, K), project_points(b, K)
+    r_px = r_px * K[0, 0]
     d = ub - ua  # (T, S, 2)
     rel = grid_uv[None, None] - ua[:, :, None]  # (T, S, P, 2)
     s = ((rel * d[:, :, None]).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)[..., None]).clamp(0, 1)
@@ -299,12 +310,9 @@ def predicted_flow(
     where segments overlap, the nearest in depth wins (a soft z-buffer over ``exp(-dz / depth_tau)``, dz
     [m]). Returns the (T-1, P, 2) flow [px] and (T-1, P) the body's soft occupancy at t.
     """
-    seg = np.flatnonzero(parents >= 0)
-    a, b = joints[:, parents[seg]], joints[:, seg]
-    f, c = K[0, 0], K[:2, 2]
-    proj = lambda x: x[..., :2] / x[..., 2:].clamp_min(1e-3) * f + c  # noqa: E731
-    ua, ub = proj(a), proj(b)
-    r_px = radii[seg] * f / (0.5 * (a[..., 2] + b[..., 2])).clamp_min(1e-3)
+    a, b, r_px = segment_ends(joints, parents, radii)
+    ua, ub = project_points(a, K), project_points(b, K)
+    r_px = r_px * K[0, 0]
     d = (ub - ua)[:-1]
     rel = grid_uv[None, None] - ua[:-1, :, None]  # (T-1, S, P, 2)
     s = ((rel * d[:, :, None]).sum(-1) / (d * d).sum(-1).clamp_min(1e-9)[..., None]).clamp(0, 1)
@@ -313,7 +321,7 @@ def predicted_flow(
     sv = s[..., None]
     p0 = a[:-1, :, None] * (1 - sv) + b[:-1, :, None] * sv  # (T-1, S, P, 3)
     p1 = a[1:, :, None] * (1 - sv) + b[1:, :, None] * sv
-    flow = proj(p1) - proj(p0)
+    flow = project_points(p1, K) - project_points(p0, K)
     z = p0[..., 2]
     w = occ * torch.exp(-(z - z.min(1, keepdim=True).values) / depth_tau)
     body = 1 - torch.exp(torch.log1p(-occ.clamp(max=1 - 1e-6)).sum(1))
