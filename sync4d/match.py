@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 IN_ONE_BOX, IN_SEVERAL_BOXES, ORPHAN = 0, 1, 2
 BOX_FRAMES: tuple[str, ...] = ("aligned", "pca")
 TIE_BREAKS: tuple[str, ...] = ("centroid", "nearest_vertex")
-METHODS: tuple[str, ...] = ("features", "structure")
+METHODS: tuple[str, ...] = ("auto", "features", "structure")
 
 
 @dataclass
@@ -51,8 +51,12 @@ class MatchConfig:
 
     Attributes:
         method: ``structure`` (curve skeletons matched branch by branch, :mod:`sync4d.match_structure`;
-            shapes given upright along ``up_axis``, facing any way) or ``features`` (the paper's cosine
-            assignment of per-vertex features, then part boxes).
+            shapes given upright along ``up_axis``, facing any way), ``features`` (the paper's cosine
+            assignment of per-vertex features, then part boxes) or ``auto``: ``features`` when the
+            aligned target lies on the reference (alignment residual at most ``auto_residual``: the
+            same kind of shape), else ``structure`` (:func:`choose_method`).
+        auto_residual: with ``auto``, the largest alignment residual (symmetric chamfer distance after
+            ``align``, in RMS radii of the reference) at which the features are used.
         up_axis: the up axis shared by the reference and the (aligned) target.
         align: ``none`` | ``pca`` | ``pca_icp`` | ``upright_icp`` (:func:`sync4d.align.align_shapes`). With
             ``structure``, ``pca``/``pca_icp`` first bring an arbitrarily turned target into the
@@ -70,7 +74,8 @@ class MatchConfig:
         structure: options of the structure match.
     """
 
-    method: Literal["features", "structure"] = "features"
+    method: Literal["auto", "features", "structure"] = "features"
+    auto_residual: float = 0.1
     up_axis: Literal["x", "y", "z"] = "y"
     align: Literal["none", "pca", "pca_icp", "upright_icp"] = "upright_icp"
     icp_iterations: int = 100
@@ -97,6 +102,8 @@ class MatchConfig:
             if getattr(self, key) not in allowed:
                 raise ConfigError(f"match.{key}={getattr(self, key)!r}: use one of {', '.join(allowed)}")
         prototype_count(self.prototypes)
+        if not self.auto_residual >= 0.0:
+            raise ConfigError(f"match.auto_residual={self.auto_residual}: use a residual >= 0 (RMS radii)")
         if self.icp_iterations < 1 or self.max_target_vertices < 16 or self.structure.yaw_steps < 1:
             raise ConfigError(
                 "match.icp_iterations, match.structure.yaw_steps must be >= 1 and " "match.max_target_vertices >= 16"
@@ -131,6 +138,8 @@ class MatchDiagnostics:
             all 0 with ``method=structure``.
         structure: the skeleton match with ``method=structure``, else None.
         reference_labels: (V,) part of each of ``reference_points``.
+        method: the method that made the map (``features`` or ``structure``; ``auto`` picks one).
+        auto_residual: with ``method=auto``, the alignment residual the choice was made on, else None.
     """
 
     alignment: AlignResult
@@ -149,6 +158,8 @@ class MatchDiagnostics:
     gaussian_status: np.ndarray
     structure: StructureMatch | None = None
     reference_labels: np.ndarray | None = None
+    method: str = "features"
+    auto_residual: float | None = None
 
     @property
     def vertex_part_final(self) -> np.ndarray:
@@ -613,8 +624,32 @@ def match_parts(
     if cfg.method == "structure":
         return _match_by_structure(reference, target, cfg, target_vertices, target_faces, seed)
     if extractor is None:
-        raise ConfigError("match.method=features needs a features component (features=geometric, ...)")
+        raise ConfigError(f"match.method={cfg.method} needs a features component (features=geometric, ...)")
+    alignment = None
+    if cfg.method == "auto":
+        tgt_vertices = _target_points(target, cfg, target_vertices, target_faces, seed)[0]
+        alignment = align_shapes(
+            tgt_vertices, reference.rest_vertices, method=cfg.align, icp_iterations=cfg.icp_iterations, seed=seed
+        )
+        if choose_method(alignment, cfg.auto_residual) == "structure":
+            result = _match_by_structure(reference, target, cfg, target_vertices, target_faces, seed)
+        else:
+            result = _match_by_features(reference, target, extractor, cfg, target_vertices, target_faces, seed, alignment)
+        return replace(result, diagnostics=replace(result.diagnostics, auto_residual=alignment.residual))
     return _match_by_features(reference, target, extractor, cfg, target_vertices, target_faces, seed)
+
+
+def choose_method(alignment: AlignResult, max_residual: float) -> str:
+    """``features`` if the aligned target lies on the reference (residual <= ``max_residual``), else ``structure``.
+
+    The features transfer parts by what lies where once the surfaces overlap (a copy, other proportions
+    of one kind: residual 0.03-0.05 RMS radii on the benchmark); across categories no rigid fit puts one
+    shape on the other (0.17-0.23), and the skeletons' structure decides (docs/matching.md, "auto").
+    """
+    method = "features" if alignment.residual <= max_residual else "structure"
+    log.info("match: method=auto: alignment residual %.4f %s %.3g -> %s", alignment.residual,
+             "<=" if method == "features" else ">", max_residual, method)
+    return method
 
 
 def match_parts_detailed(
@@ -776,6 +811,7 @@ def _match_by_structure(
         gaussian_status=np.zeros(target.num, dtype=np.int8),
         structure=sm,
         reference_labels=ref_labels,
+        method="structure",
     )
     return _finish(reference, target, tgt_part, confidence, diagnostics)
 
@@ -788,14 +824,16 @@ def _match_by_features(
     target_vertices: np.ndarray | None,
     target_faces: np.ndarray | None,
     seed: int,
+    alignment: AlignResult | None = None,
 ) -> MatchResult:
-    """The paper's part mapping (Sec. 3.3), with alignment first; see the module docstring."""
+    """The paper's part mapping (Sec. 3.3), with alignment first (unless given); see the module docstring."""
     num_parts = reference.num_bones
     ref_labels = reference.part_labels()
     tgt_vertices, index, tgt_faces = _target_points(target, cfg, target_vertices, target_faces, seed)
-    alignment = align_shapes(
-        tgt_vertices, reference.rest_vertices, method=cfg.align, icp_iterations=cfg.icp_iterations, seed=seed
-    )
+    if alignment is None:
+        alignment = align_shapes(
+            tgt_vertices, reference.rest_vertices, method=cfg.align, icp_iterations=cfg.icp_iterations, seed=seed
+        )
     ref_norm = normalization(reference.rest_vertices)
     frame = alignment.transform.then(ref_norm)
     ref_pts = ref_norm.apply(reference.rest_vertices)

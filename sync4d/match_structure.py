@@ -507,31 +507,10 @@ def match_structure(
     rng = np.random.default_rng(0)
     ref_sub = ref_points[rng.choice(len(ref_points), min(800, len(ref_points)), replace=False)]
     tgt_sub = tgt_points[rng.choice(len(tgt_points), min(800, len(tgt_points)), replace=False)]
-    tree = cKDTree(ref_sub)
     up = UP_AXES[up_axis]
     ref_scale = horizontal_scale(ref_points, np.eye(3), up)
-    best = None
-    for rot in yaw_rotations(up_axis, cfg.yaw_steps):
-        if len(limb_parts) and len(cand):
-            cost = limb_cost(
-                ref_limbs,
-                tgt_limbs,
-                rot,
-                cfg,
-                up=up,
-                ref_scale=ref_scale,
-                tgt_scale=horizontal_scale(tgt_points, rot, up),
-            )
-            pairs, total = assign_limbs(cost, tgt_sk, cand, cfg.miss_cost)
-        else:
-            pairs, total = [], cfg.miss_cost * len(limb_parts)
-        score = total + cfg.chamfer_weight * chamfer_distance(tgt_sub @ rot.T, ref_sub, tree_b=tree)
-        cos_turn = (float(np.trace(rot)) - 1.0) / 2.0
-        score += turn_cost * (1.0 - cos_turn) / 2.0
-        if best is None or score < best[0]:
-            best = (score, rot, pairs, total)
-    assert best is not None
-    _, rot, pairs, total = best
+    turns = score_turns(ref_limbs, tgt_limbs, tgt_sk, cand, ref_sub, tgt_sub, cfg, up_axis, ref_scale, turn_cost)
+    _, rot, pairs, total = turns[0]
     if cfg.mirror_repair and len(pairs):
         pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, horizontal_scale(tgt_points, rot, up))
     point_part = label_target(ref_sk, ref_limbs, ref_labels, tgt_sk, tgt_limbs, pairs, rot, num_parts, cfg.profile_bins)
@@ -547,6 +526,43 @@ def match_structure(
         point_part,
         float(total),
     )
+
+
+def score_turns(
+    ref_limbs: LimbSet,
+    tgt_limbs: LimbSet,
+    tgt_sk: CurveSkeleton,
+    cand: np.ndarray,
+    ref_sub: np.ndarray,
+    tgt_sub: np.ndarray,
+    cfg: StructureConfig,
+    up_axis: str,
+    ref_scale: np.ndarray,
+    turn_cost: float,
+) -> list[tuple[float, np.ndarray, list[tuple[int, int]], float]]:
+    """Every turn of the target about the up axis with its assignment, best first.
+
+    Returns:
+        (score, rotation, (reference limb, candidate) pairs, assignment cost) per turn; the score is the
+        assignment cost plus ``chamfer_weight`` x chamfer distance plus the heading prior.
+    """
+    up = UP_AXES[up_axis]
+    tree = cKDTree(ref_sub)
+    tgt_all = tgt_sk.points
+    out = []
+    for rot in yaw_rotations(up_axis, cfg.yaw_steps):
+        if len(ref_limbs.members) and len(cand):
+            cost = limb_cost(
+                ref_limbs, tgt_limbs, rot, cfg, up=up, ref_scale=ref_scale, tgt_scale=horizontal_scale(tgt_all, rot, up)
+            )
+            pairs, total = assign_limbs(cost, tgt_sk, cand, cfg.miss_cost)
+        else:
+            pairs, total = [], cfg.miss_cost * len(ref_limbs.members)
+        score = total + cfg.chamfer_weight * chamfer_distance(tgt_sub @ rot.T, ref_sub, tree_b=tree)
+        cos_turn = (float(np.trace(rot)) - 1.0) / 2.0
+        score += turn_cost * (1.0 - cos_turn) / 2.0
+        out.append((score, rot, pairs, total))
+    return sorted(out, key=lambda t: t[0])
 
 
 def label_target(

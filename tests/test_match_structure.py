@@ -285,3 +285,32 @@ def test_mirror_pairs_and_the_repair_give_a_leg_back_from_the_tail() -> None:
     assert repaired == [(0, 0), (1, 1), (2, 2), (3, 3)]
     # nothing changes when the partner of a left-over limb is itself unmatched
     assert mirror_repair([(0, 0), (4, 3)], ref, tgt, np.eye(3), 1, scale, scale) == [(0, 0), (4, 3)]
+
+
+def test_auto_uses_the_features_on_a_shape_of_the_same_kind_and_structure_across_kinds() -> None:
+    """``method=auto``: an animal of other proportions lies on the reference after the fit (residual
+    ~0.05 RMS radii) and keeps the features' accuracy; a chair does not (~0.27) and gets the structure
+    match: its legs take leg parts, its back the head or the tail."""
+    from sync4d.errors import ConfigError
+    from sync4d.registry import build
+    from sync4d_tools.match_labels.procedural import chair
+
+    extractor = build("features", {"type": "geometric", "n_eigen": 32}, device="cpu")
+    v, f, part = animal()
+    reference = box_reference(v, f, part)
+    tv, tf, tpart = animal(leg=0.5, head=0.2, body=0.7)
+    tv = tv + 0.3
+    same = match_parts(reference, gaussians_at(tv), extractor, MatchConfig(method="auto"), target_vertices=tv, target_faces=tf)
+    assert same.diagnostics.method == "features" and same.diagnostics.auto_residual < 0.1
+    assert (same.part_map.tgt_part == tpart).mean() > 0.95
+    cv, cf, names = chair()
+    other = match_parts(reference, gaussians_at(cv), extractor, MatchConfig(method="auto"), target_vertices=cv, target_faces=cf)
+    assert other.diagnostics.method == "structure" and other.diagnostics.auto_residual > 0.1
+    got = other.part_map.tgt_part
+    legs = np.char.startswith(names.astype(str), "leg_")
+    assert np.isin(got[legs], [PARTS.index(n) for n in PARTS if n.startswith("leg_")]).mean() > 0.9
+    assert np.isin(got[names == "back"], [PARTS.index("head"), PARTS.index("tail")]).mean() > 0.6
+    with pytest.raises(ConfigError, match="auto_residual"):
+        MatchConfig(auto_residual=-1.0).validate()
+    with pytest.raises(ConfigError, match="features component"):
+        match_parts(reference, gaussians_at(tv), None, MatchConfig(method="auto"))

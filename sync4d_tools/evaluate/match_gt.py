@@ -289,10 +289,12 @@ class PairResult:
     truth: np.ndarray           # (N,) true part per Gaussian
     seconds: float
 
-    def details(self) -> dict[str, float]:
+    def details(self) -> dict[str, Any]:
         out = {"accuracy": self.accuracy, "vertex_accuracy": self.vertex_accuracy, "seconds": self.seconds}
         out.update(self.result.diagnostics.summary())
-        return {k: round(float(v), 4) for k, v in out.items()}
+        auto = self.result.diagnostics.auto_residual
+        return {**{k: round(float(v), 4) for k, v in out.items()}, "method": self.result.diagnostics.method,
+                **({} if auto is None else {"auto_residual": round(auto, 4)})}
 
 
 def run_pair(
@@ -420,7 +422,9 @@ def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: M
                          target_vertices=vertices, target_faces=faces, seed=SEED)
     labels = vertex_labels(spec, vertices, names)
     acc, per_label = limb_accuracy(spec, labels, vertex_areas(vertices, faces), result.part_map.tgt_part, body.names)
-    out: dict[str, Any] = {"limb_accuracy": round(acc, 4), "kind": spec.kind, "method": options.method,
+    out: dict[str, Any] = {"limb_accuracy": round(acc, 4), "kind": spec.kind, "method": result.diagnostics.method,
+                           "auto_residual": None if result.diagnostics.auto_residual is None
+                           else round(result.diagnostics.auto_residual, 4),
                            "per_label": {k: round(v, 3) for k, v in per_label.items()},
                            "left_over": [body.names[b] for b in result.leftover_parts],
                            "seconds": round(time.perf_counter() - start, 2)}
@@ -429,7 +433,9 @@ def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: M
             figures / f"match_{spec.name}_{options.method}.png", result.diagnostics, reference.num_bones,
             views=((0.0, 10.0), (90.0, 10.0), (0.0, 80.0)),
             titles=(f"{spec.reference} body (reference)", f"{Path(spec.target).name} (target)"),
-            suptitle=f"{spec.name} [{options.method}]: limb accuracy {acc:.2f}\n"
+            suptitle=f"{spec.name} [{options.method}"
+            + (f" -> {result.diagnostics.method}" if options.method == "auto" else "")
+            + f"]: limb accuracy {acc:.2f}\n"
             + ("CMU mocap (mocap.cs.cmu.edu, NSF EIA-0196217)" if spec.reference == "human"
                else "dog mocap: AI4Animation, CC BY-NC 4.0")
             + ("" if spec.target.startswith("procedural:") else "; mesh: odedstein/meshes, lab4d-org/lab4d"),
@@ -465,7 +471,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m sync4d.evaluate match_gt", description=__doc__.split("\n")[0])
     p.add_argument("--features", default="geometric", help="conf/features/<name>.yaml or a YAML path")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="feature config overrides")
-    p.add_argument("--method", default=MatchConfig.method, choices=("features", "structure"),
+    p.add_argument("--method", default=MatchConfig.method, choices=("auto", "features", "structure"),
                    help="match.method (default: MatchConfig's)")
     p.add_argument("--match", nargs="*", default=[], metavar="KEY=VALUE",
                    help="further MatchConfig overrides, e.g. structure.miss_cost=3")
@@ -508,7 +514,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     SEED = args.seed
     options = match_config(args.method, args.align, args.match)
     extractor = None
-    if options.method == "features":
+    if options.method in ("features", "auto"):
         feat_cfg = OmegaConf.merge(OmegaConf.create(load_features_config(args.features)), OmegaConf.from_dotlist(args.set))
         extractor = build("features", feat_cfg, device="cpu")
     runners = {"self_copy": pair_self_copy, "laptop_proportions": pair_laptop_proportions, "mocap_bodies": pair_mocap_bodies}
@@ -526,7 +532,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         figures = Path(args.cross_category) if args.cross_category else None
         out["cross_category"] = cross_category(extractor, replace(options, align="upright_icp"), label_files, figures)
     out["method"] = options.method
-    out["features"] = args.features if options.method == "features" else None
+    out["features"] = args.features if options.method in ("features", "auto") else None
     out["details"] = details
     print(json.dumps(out))
     return out
