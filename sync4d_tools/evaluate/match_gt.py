@@ -246,6 +246,14 @@ def dog_body() -> Body:
     return grouped_body(joints, parents, joint_part, radii, names)
 
 
+def laptop_body() -> Body:
+    """The pipeline's default laptop (``reference=laptop``'s rest shape): base and lid."""
+    from sync4d.scenes.laptop import laptop_mesh
+
+    vertices, faces, part = laptop_mesh()
+    return Body(vertices, faces, part, ("base", "lid"), np.array([-1, 0]))
+
+
 def sample_labelled_surface(
     vertices: np.ndarray, faces: np.ndarray, part: np.ndarray, count: int, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -436,8 +444,8 @@ def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: M
             suptitle=f"{spec.name} [{options.method}"
             + (f" -> {result.diagnostics.method}" if options.method == "auto" else "")
             + f"]: limb accuracy {acc:.2f}\n"
-            + ("CMU mocap (mocap.cs.cmu.edu, NSF EIA-0196217)" if spec.reference == "human"
-               else "dog mocap: AI4Animation, CC BY-NC 4.0")
+            + {"human": "CMU mocap (mocap.cs.cmu.edu, NSF EIA-0196217)", "dog": "dog mocap: AI4Animation, CC BY-NC 4.0",
+               "laptop": "procedural laptop"}[spec.reference]
             + ("" if spec.target.startswith("procedural:") else "; mesh: odedstein/meshes, lab4d-org/lab4d"),
         )
     log.info("%s [%s]: limb accuracy %.3f %s", spec.name, options.method, acc, per_label)
@@ -450,7 +458,11 @@ def cross_category(extractor: Any, options: MatchConfig, label_files: list[Path]
     from sync4d_tools.match_labels.labels import read_label_file
 
     specs = [read_label_file(p) for p in label_files]  # all files checked before any matching
-    bodies = {"human": human_body(), "dog": dog_body()}
+    builders = {"human": human_body, "dog": dog_body, "laptop": laptop_body}
+    for spec in specs:
+        if spec.reference not in builders:
+            raise DataMissingError(f"--labels {spec.path}: reference {spec.reference!r}: use one of {', '.join(builders)}")
+    bodies = {name: builders[name]() for name in sorted({spec.reference for spec in specs})}
     return {spec.name: labelled_pair(spec, bodies, extractor, options, figures) for spec in specs}
 
 

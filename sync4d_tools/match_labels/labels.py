@@ -4,9 +4,9 @@ A label file is JSON::
 
     {
       "name": "dog_to_spot",                       # the pair's key in the report
-      "reference": "dog",                          # a built-in reference body of match_gt: "human" | "dog"
+      "reference": "dog",                          # a built-in reference body of match_gt: "human" | "dog" | "laptop"
       "target": "targets/meshes/spot_low_resolution.obj",   # a mesh under ../shared/data, an absolute
-                                                   # path, or "procedural:chair|table|lamp|cross"
+                                                   # path, or "procedural:chair|table|lamp|cross|shell"
       "kind": "same_structure",                    # or "cross" (other category)
       "up_axis": "y",                              # the target's up axis ("y" if absent)
       "labels": [

@@ -72,4 +72,12 @@ def cross() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return v, f, names
 
 
-SHAPES = {"chair": chair, "table": table, "lamp": lamp, "cross": cross}
+def shell() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pipeline's default ``target=shell`` (its default sizes), labelled bottom / top."""
+    from sync4d.scenes.shell import shell_mesh
+
+    v, f, part = shell_mesh()
+    return v, f, np.where(part == 0, "bottom", "top")
+
+
+SHAPES = {"chair": chair, "table": table, "lamp": lamp, "cross": cross, "shell": shell}
