@@ -114,7 +114,7 @@ def test_laptop_to_shell_pair_needs_no_shared_data_and_auto_keeps_the_features(c
     shell = next(p for p in default_label_files() if p.name == "shell.json")
     main(["--pairs", "", "--method", "auto", "--labels", str(shell)])
     pair = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["cross_category"]["laptop_to_shell"]
-    assert pair["method"] == "features" and pair["auto_residual"] < 0.13
+    assert pair["method"] == "features" and pair["auto_residual"] < 0.155
     assert pair["limb_accuracy"] > 0.95
     main(["--pairs", "", "--method", "structure", "--labels", str(shell)])
     pair = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["cross_category"]["laptop_to_shell"]

@@ -301,11 +301,11 @@ def test_auto_uses_the_features_on_a_shape_of_the_same_kind_and_structure_across
     tv, tf, tpart = animal(leg=0.5, head=0.2, body=0.7)
     tv = tv + 0.3
     same = match_parts(reference, gaussians_at(tv), extractor, MatchConfig(method="auto"), target_vertices=tv, target_faces=tf)
-    assert same.diagnostics.method == "features" and same.diagnostics.auto_residual < 0.13
+    assert same.diagnostics.method == "features" and same.diagnostics.auto_residual < 0.155
     assert (same.part_map.tgt_part == tpart).mean() > 0.95
     cv, cf, names = chair()
     other = match_parts(reference, gaussians_at(cv), extractor, MatchConfig(method="auto"), target_vertices=cv, target_faces=cf)
-    assert other.diagnostics.method == "structure" and other.diagnostics.auto_residual > 0.13
+    assert other.diagnostics.method == "structure" and other.diagnostics.auto_residual > 0.155
     got = other.part_map.tgt_part
     legs = np.char.startswith(names.astype(str), "leg_")
     assert np.isin(got[legs], [PARTS.index(n) for n in PARTS if n.startswith("leg_")]).mean() > 0.9
