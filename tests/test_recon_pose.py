@@ -292,3 +292,33 @@ def test_reference_video_auto_companions(tmp_path: Path, shared_data: Path) -> N
     assert alone.camera is None and not alone.video.masks.any()
     laptop = build("reference", {"type": "video"}).load()  # the default video has masks/ and gt.npz beside it
     assert laptop.camera is not None and laptop.video.masks.any()
+
+
+def test_shiba_truth_rule_and_static_export_camera(shared_data: Path) -> None:
+    """The shiba-haru-1002 clip's joint truth (vertex groups picked on frame 0) is anatomically ordered in
+    every frame, and the export's moving camera rewritten as a static camera plus a moving dog projects every
+    vertex to the same pixel as the export's own camera of that frame."""
+    from sync4d.io.lab4d import read_lab4d_export
+    from sync4d_tools.body_clips import DOG_TRUTH
+    from sync4d_tools.shiba_clip import METRES_PER_UNIT, export_cameras, joint_groups, truth_joints
+
+    export = read_lab4d_export(shared_data / "lab4d_export" / "shiba-haru-1002")
+    verts = export.posed_vertices * METRES_PER_UNIT
+    groups = joint_groups(verts[0], export.faces)
+    assert set(groups) == set(DOG_TRUTH) and all(len(g) > 20 for g in groups.values())
+    j = dict(zip(DOG_TRUTH, truth_joints(verts, groups, DOG_TRUTH).transpose(1, 0, 2)))
+    for leg in ("fl", "fr", "hl", "hr"):  # y up: paw below elbow/stifle below shoulder/hip, every frame
+        assert (j[f"{leg}_paw"][:, 1] < j[f"{leg}_middle"][:, 1]).all()
+        assert (j[f"{leg}_middle"][:, 1] < j[f"{leg}_upper"][:, 1]).all()
+    assert (j["head"][:, 2] > j["neck"][:, 2]).all() and (j["neck"][:, 2] > j["pelvis"][:, 2]).all()
+    assert (j["pelvis"][:, 2] > j["tail_base"][:, 2]).all()
+    cameras, motion, _ = export_cameras(export)
+    moved = np.einsum("tij,tvj->tvi", motion[:, :3, :3], verts) + motion[:, None, :3, 3]
+    w2c = export.object_to_camera.copy()
+    w2c[:, :3, 3] *= METRES_PER_UNIT
+    for t in (0, 10, 20):
+        cam = cameras[t]
+        a = moved[t] @ cam.world_to_cam[:3, :3].T + cam.world_to_cam[:3, 3]
+        b = verts[t] @ w2c[t, :3, :3].T + w2c[t, :3, 3]
+        # to 1e-6 of the focal length (< 0.001 px): the export stores its rotations to float32 precision
+        assert np.allclose(a[:, :2] / a[:, 2:], b[:, :2] / b[:, 2:], atol=1e-6)
