@@ -7,14 +7,18 @@ by Adam on three image terms, each in units of the tracking grid's stride:
 
     * tracks: projected points against their flow tracks, where the tracks are still trusted;
     * inside: every projected point lies inside its frame's mask (distance transform outside it);
-    * cover: every frame's mask pixels are near some projected point (truncated, so surfaces the first
-      frame never saw cost a bounded amount);
+    * cover: every frame's mask pixels are near some projected point, or a point on a slide's path
+      (truncated, so surfaces the first frame never saw cost a bounded amount);
 
 plus a smoothness prior on neighbouring depths and on the joint values over time. The joint values are
 fitted over a growing window of frames (a part that turns 100 degrees is followed, not jumped to), from a
-few axis starts; each part's joint kind is then chosen by the data terms (hinge, or slide when a slide
-explains the images as well), points are relabelled to the part whose motion explains their track and
-silhouette best, and the fit is refined.
+few axis starts. Each part's joint kind is then chosen by the data terms: the hinge reading is relabelled
+(points to the part whose motion explains their track and silhouette best) and refined, the part is put on
+a slide from five 3D direction starts (the hinge's 3D displacement, the image motion lifted, that tilted
+45 degrees towards and away from the camera, the view ray), each with its travel matched to the hinge's
+image motion; the two best are fitted, relabelled and refined the same way, and the slide wins unless the
+hinge explains the images 5 % better. A slide's path (its outline extruded along its direction: a
+drawer's box) also covers mask pixels. The winner is refined, relabelled and refined again.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ log = logging.getLogger(__name__)
 
 FLOW_WEIGHT = 1.0  # frame-to-frame flow term against the chained-track term
 SLIDE_PREFERENCE = 0.05  # relative data-loss margin by which a slide beats a hinge
+SWEEP = (0.25, 0.5, 0.75)  # fractions of a joint's value whose poses also cover mask pixels
 AXIS_STARTS = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 0], [1.0, 0, 1.0], [0, 1.0, 1.0]])
 
 
@@ -235,10 +240,11 @@ class Articulation(torch.nn.Module):
     def pivots(self) -> torch.Tensor:
         return self.pivot0 + self.scene.width * self.pivot_delta
 
-    def part_transforms(self) -> torch.Tensor:
-        """(T, B, 3, 4) rest -> frame t motion of every part (root motion included)."""
+    def part_transforms(self, fraction: float = 1.0) -> torch.Tensor:
+        """(T, B, 3, 4) rest -> frame t motion of every part (root motion included), at ``fraction`` of each
+        joint value."""
         n_parts = len(self.kinds)
-        vals = torch.cat([torch.zeros(1, n_parts, dtype=self.values.dtype), self.values], 0)
+        vals = torch.cat([torch.zeros(1, n_parts, dtype=self.values.dtype), self.values], 0) * fraction
         out = []
         for b, kind in enumerate(self.kinds):
             if kind == "hinge":
@@ -251,6 +257,20 @@ class Articulation(torch.nn.Module):
             g = self.scene.root_motion
             out.append(torch.cat([g[:, :3, :3] @ rot, (g[:, :3, :3] @ trans[..., None])[..., 0:1] + g[:, :3, 3:]], -1))
         return torch.stack(out, 1)
+
+    def swept(self, kinds: tuple[str, ...] = ("slide",)) -> torch.Tensor:
+        """(T, M, 3) world points of the parts of ``kinds`` at fractions SWEEP of each frame's joint value. A
+        sliding part's sides (a drawer's box) are the extrusion of its outline along its direction: the
+        surface a slide reveals lies on its own path, so the path covers mask pixels too (the cover term).
+        A hinge's path is not its surface (fitting with it measured worse on lids), but joint kinds are
+        compared with every kind's path (``kind_loss``), so that a lid read as a slide gains nothing from it."""
+        use = torch.as_tensor([self.kinds[b] in kinds for b in range(len(self.kinds))])[self.labels]
+        rest = self.rest()[use]
+        out = [rest[None].expand(len(self.values) + 1, -1, -1)[:, :0]]
+        for frac in SWEEP if use.any() else ():
+            j = self.part_transforms(frac)[:, self.labels[use]]
+            out.append(torch.einsum("tnij,nj->tni", j[..., :3], rest) + j[..., 3])
+        return torch.cat(out, 1)
 
     def posed(self) -> torch.Tensor:
         """(T, N, 3) world points of every frame."""
@@ -291,7 +311,8 @@ def flow_term(model: Articulation, posed: torch.Tensor, uv: torch.Tensor, frames
     return (torch.sqrt(err + 1.0) - 1.0)[ok].mean()
 
 
-def data_terms(model: Articulation, frames: int, *, with_flow: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def data_terms(model: Articulation, frames: int, *, with_flow: bool = True,
+               swept: tuple[str, ...] = ("slide",)) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Track (chained tracks + frame-to-frame flow unless ``with_flow`` is false), inside and cover terms over
     frames 1..frames-1, in strides (see the module docstring)."""
     sc = model.scene
@@ -305,6 +326,7 @@ def data_terms(model: Articulation, frames: int, *, with_flow: bool = True) -> t
     if with_flow:
         track = track + FLOW_WEIGHT * flow_term(model, posed, uv_all, frames)
     inside = (sample_outside(sc, uv, 1) / sc.stride).clamp(max=10.0)[:, moving].mean()
+    uv = torch.cat([uv, project(sc, model.swept(swept)[1:frames])], 1)
     cover = []
     for t in range(1, frames):
         if len(sc.cover_px[t]) and moving.any():
@@ -364,15 +386,15 @@ def kind_loss(model: Articulation, cfg: FitConfig) -> float:
     """The data loss over all frames by which joint kinds are compared: without the flow term, which shapes
     the fit but lets a far-pivot hinge out-fit a slide on a plain sliding plate (docs/recon_suite.md)."""
     with torch.no_grad():
-        track, inside, cover = data_terms(model, model.values.shape[0] + 1, with_flow=False)
+        track, inside, cover = data_terms(model, model.values.shape[0] + 1, with_flow=False, swept=("slide", "hinge"))
         return float(track + cfg.inside_weight * inside + cfg.cover_weight * cover)
 
 
-def _start(scene: Scene, tracks: Tracks, labels: np.ndarray, root: int, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """(B, 3) hinge pivots at each part's border with the root and (B, 3) slide directions from its tracks."""
+def _start(scene: Scene, tracks: Tracks, labels: np.ndarray, root: int) -> np.ndarray:
+    """(B, 3) hinge pivots at each part's border with the root (at the reference depth)."""
     n_parts = int(labels.max()) + 1
     rest = (scene.centre + scene.z_ref * scene.rays).numpy()
-    pivots, slides = np.zeros((n_parts, 3)), np.tile([1.0, 0, 0], (n_parts, 1))
+    pivots = np.zeros((n_parts, 3))
     root_uv = tracks.uv0[labels == root]
     for b in range(n_parts):
         own = np.flatnonzero(labels == b)
@@ -380,11 +402,7 @@ def _start(scene: Scene, tracks: Tracks, labels: np.ndarray, root: int, camera: 
             continue
         dist = cKDTree(root_uv).query(tracks.uv0[own])[0]
         pivots[b] = rest[own[dist <= np.quantile(dist, 0.1)]].mean(0)
-        disp = np.where(tracks.trusted[:, own, None], tracks.uv[:, own] - tracks.uv0[own], np.nan)
-        mean = np.nanmean(disp.reshape(-1, 2), 0) if np.isfinite(disp).any() else np.zeros(2)
-        if np.linalg.norm(mean) > 1e-6:
-            slides[b] = np.linalg.inv(camera.world_to_cam)[:3, :3] @ np.array([mean[0], mean[1], 0.0])
-    return pivots, slides
+    return pivots
 
 
 def relabel(model: Articulation, tracks: Tracks, *, margin: float = 0.25) -> np.ndarray:
@@ -418,49 +436,127 @@ def relabel(model: Articulation, tracks: Tracks, *, margin: float = 0.25) -> np.
 
 
 def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, camera: Camera, cfg: FitConfig) -> JointFit:
-    """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms."""
+    """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms. ``camera``
+    is the scene's (kept for callers; the scene holds its matrices)."""
     labels, root = init.labels.copy(), init.root
     n_parts, n_frames = int(labels.max()) + 1, tracks.uv.shape[0]
-    moving = [b for b in range(n_parts) if b != root]
-    pivots, slides = _start(scene, tracks, labels, root, camera)
+    pivots = _start(scene, tracks, labels, root)
     pairs = neighbour_pairs(tracks.uv0, labels, tracks.stride)
     log_d = np.full(len(labels), np.log(scene.z_ref))
-
-    def fresh(kinds: list[str], axes: np.ndarray) -> Articulation:
-        return Articulation(scene, labels, root, kinds, axes, pivots, np.zeros((n_frames, n_parts)), log_d)
-
     kinds = ["root" if b == root else "hinge" for b in range(n_parts)]
     best, best_loss, history = None, np.inf, []
     for s in range(max(1, min(cfg.axis_starts, len(AXIS_STARTS)))):
-        model = fresh(kinds, np.tile(AXIS_STARTS[s], (n_parts, 1)))
+        model = Articulation(scene, labels, root, kinds, np.tile(AXIS_STARTS[s], (n_parts, 1)), pivots,
+                             np.zeros((n_frames, n_parts)), log_d)
         loss = optimise(model, cfg, cfg.steps // 3, pairs)
         history.append(loss)
         log.info("recon=video: hinge start %d (axis %s): data loss %.4f", s, AXIS_STARTS[s].tolist(), loss)
         if loss < best_loss:
             best, best_loss = model, loss
-    best_kind_loss = kind_loss(best, cfg)
-    for b in moving:  # the same part on a slide instead
-        trial_kinds = list(best.kinds)
-        trial_kinds[b] = "slide"
-        axes = best.axes.detach().numpy().copy()
-        axes[b] = slides[b]
-        model = fresh(trial_kinds, axes)
-        loss = optimise(model, cfg, cfg.steps // 3, pairs)
-        history.append(loss)
-        trial_kind_loss = kind_loss(model, cfg)
-        log.info("recon=video: part %d as a slide: kind loss %.4f (hinge %.4f)", b, trial_kind_loss, best_kind_loss)
-        # a hinge whose pivot is far away imitates a slide; the slide, with fewer degrees of freedom,
-        # wins unless the hinge explains the images clearly better
-        if trial_kind_loss < best_kind_loss * (1.0 + SLIDE_PREFERENCE):
-            best, best_loss, best_kind_loss = model, loss, trial_kind_loss
-    best_loss = optimise(best, cfg, cfg.steps, pairs, windows=1)
+    best = choose_kinds(best, tracks, cfg, history)
+    pairs = neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride)
+    best_loss = optimise(best, cfg, cfg.steps // 2, pairs, windows=1)
     for _ in range(cfg.relabel_rounds):
-        new = relabel(best, tracks)
-        log.info("recon=video: relabelled %d of %d points", int((new != best.labels.numpy()).sum()), len(new))
-        best.labels = torch.as_tensor(new)
-        pairs = neighbour_pairs(tracks.uv0, new, tracks.stride)
-        best_loss = optimise(best, cfg, cfg.steps // 2, pairs, windows=1)
+        best_loss = relabel_and_refine(best, tracks, cfg, cfg.steps // 2)
     return _result(best, best_loss, history)
+
+
+def relabel_and_refine(model: Articulation, tracks: Tracks, cfg: FitConfig, steps: int) -> float:
+    """Relabel the points under the model's motions, then refine it; returns the data loss."""
+    new = relabel(model, tracks)
+    log.info("recon=video: relabelled %d of %d points", int((new != model.labels.numpy()).sum()), len(new))
+    model.labels = torch.as_tensor(new)
+    return optimise(model, cfg, steps, neighbour_pairs(tracks.uv0, new, tracks.stride), windows=1)
+
+
+def choose_kinds(hinge: Articulation, tracks: Tracks, cfg: FitConfig, history: list[float]) -> Articulation:
+    """Each moving part as a hinge or a slide. Both readings are relabelled and refined the same way before
+    their data terms are compared (labels a hinge absorbed should not decide against the slide); a hinge
+    with a far pivot imitates a slide, so the slide, with fewer degrees of freedom, wins unless the hinge
+    explains the images clearly better."""
+    relabel_and_refine(hinge, tracks, cfg, cfg.steps // 4)
+    best, best_kind = hinge, kind_loss(hinge, cfg)
+    for b in [b for b in range(len(hinge.kinds)) if b != hinge.root]:
+        trial = slide_from(best, b, tracks, cfg)
+        history.append(relabel_and_refine(trial, tracks, cfg, cfg.steps // 4))
+        trial_kind = kind_loss(trial, cfg)
+        log.info("recon=video: part %d as a slide: kind loss %.4f (as a %s %.4f)", b, trial_kind, best.kinds[b], best_kind)
+        if trial_kind < best_kind * (1.0 + SLIDE_PREFERENCE):
+            best, best_kind = trial, trial_kind
+    return best
+
+
+def copy_with(model: Articulation, kinds: list[str], axes: np.ndarray, values: np.ndarray) -> Articulation:
+    """A new model with the same labels, surfaces and pivots as ``model``, and these kinds, axes and values
+    (values (T, B) in the model's units, frame 0 included)."""
+    with torch.no_grad():
+        out = Articulation(model.scene, model.labels.numpy(), model.root, kinds, axes, model.pivot0.numpy(), values,
+                           model.log_depth().numpy())
+        out.plane.copy_(model.plane)
+        out.resid.copy_(model.resid)
+        out.pivot_delta.copy_(model.pivot_delta)
+    return out
+
+
+def slide_from(model: Articulation, b: int, tracks: Tracks, cfg: FitConfig) -> Articulation:
+    """Part ``b`` of ``model`` on a slide, searched over 3D directions: the direction of the part's 3D
+    displacement under the current joint, its image-plane motion lifted into the image plane, that tilted
+    towards and away from the camera by 45 degrees, and the view ray (a drawer pulled towards the camera);
+    each start's travel per frame matches the current joint's image motion (Gauss-Newton), the two
+    best by data loss are fitted, the better kept."""
+    sc = model.scene
+    with torch.no_grad():
+        own = (model.labels == b).numpy()
+        x0 = model.rest().numpy()[own]
+        xt = model.posed().numpy()[:, own]
+    target = project(sc, torch.as_tensor(xt)).numpy()
+    kinds = list(model.kinds)
+    kinds[b] = "slide"
+    starts = []
+    for direction in slide_directions(x0, xt, target, sc):
+        axes = model.axes.detach().numpy().copy()
+        axes[b] = direction
+        values = np.concatenate([np.zeros((1, len(kinds))), model.values.detach().numpy()], 0)
+        values[:, b] = gauss_newton_travel(x0, direction, target, sc) / sc.width
+        trial = copy_with(model, kinds, axes, values)
+        starts.append((kind_loss(trial, cfg), len(starts), trial))
+    starts.sort(key=lambda x: x[:2])
+    pairs = neighbour_pairs(tracks.uv0, model.labels.numpy(), tracks.stride)
+    fitted = [(optimise(trial, cfg, cfg.steps // 8, pairs, windows=1), i, trial) for _, i, trial in starts[:2]]
+    return min(fitted, key=lambda x: x[:2])[2]
+
+
+def slide_directions(x0: np.ndarray, xt: np.ndarray, uv: np.ndarray, scene: Scene) -> list[np.ndarray]:
+    """Unit slide-direction starts (world) for a part with rest points x0 (N, 3), posed points xt (T, N, 3)
+    and their pixels uv (T, N, 2) under its current joint."""
+    disp = (xt - x0[None]).mean(1)
+    d3 = np.linalg.svd(disp, full_matrices=False)[2][0] if np.abs(disp).max() > 0 else np.array([1.0, 0, 0])
+    c2w = np.linalg.inv(scene.w2c.numpy())
+    ray = x0.mean(0) - scene.centre.numpy()
+    ray /= max(np.linalg.norm(ray), 1e-12)
+    flow = (uv - uv[:1]).mean(1)
+    flow2 = np.linalg.svd(flow, full_matrices=False)[2][0] if np.abs(flow).max() > 0 else np.array([1.0, 0])
+    lateral = c2w[:3, :3] @ np.array([flow2[0], flow2[1], 0.0])
+    lateral -= ray * (lateral @ ray)
+    lateral /= max(np.linalg.norm(lateral), 1e-12)
+    out = [d3, lateral, lateral + ray, lateral - ray, ray]
+    return [d / np.linalg.norm(d) for d in out]
+
+
+def gauss_newton_travel(x0: np.ndarray, direction: np.ndarray, target: np.ndarray, scene: Scene, iters: int = 4) -> np.ndarray:
+    """(T,) travel [m] along ``direction`` whose projected rest points x0 (N, 3) best match target pixels
+    (T, N, 2), per frame, by a few Gauss-Newton steps on the pinhole projection."""
+    w2c, K = scene.w2c.numpy(), scene.K.numpy()
+    pc0, dc = x0 @ w2c[:3, :3].T + w2c[:3, 3], w2c[:3, :3] @ direction
+    s = np.zeros(len(target))
+    for _ in range(iters):
+        pc = pc0[None] + s[:, None, None] * dc  # (T, N, 3)
+        z = np.maximum(pc[..., 2], 1e-6)
+        uv = np.stack([K[0, 0] * pc[..., 0] / z + K[0, 2], K[1, 1] * pc[..., 1] / z + K[1, 2]], -1)
+        jac = np.stack([K[0, 0] * (dc[0] * z - pc[..., 0] * dc[2]) / z**2,
+                        K[1, 1] * (dc[1] * z - pc[..., 1] * dc[2]) / z**2], -1)
+        s = s + ((target - uv) * jac).sum((1, 2)) / np.maximum((jac**2).sum((1, 2)), 1e-12)
+    return s - s[0]
 
 
 def _result(model: Articulation, loss: float, history: list[float]) -> JointFit:
