@@ -47,7 +47,8 @@ class FitConfig:
     """Attributes:
     steps: Adam steps of a full fit (the starts and the refinement use fractions of it).
     lr: learning rate (depths, axes, pivots in object widths; joint values in rad or object widths).
-    axis_starts: hinge-axis starts tried per fit (world x, y, z, then diagonals; at most 6).
+    axis_starts: hinge-axis starts tried per fit (world x, y, z, each part's border with the root,
+        then diagonals; at most 7).
     cover_weight: weight of the cover term against the track term.
     inside_weight: weight of the inside-the-mask term.
     smooth_weight: weight of the depth and temporal smoothness priors.
@@ -57,7 +58,7 @@ class FitConfig:
 
     steps: int = 240
     lr: float = 0.03
-    axis_starts: int = 3
+    axis_starts: int = 4
     cover_weight: float = 3.0
     inside_weight: float = 3.0
     smooth_weight: float = 1.0
@@ -390,19 +391,30 @@ def kind_loss(model: Articulation, cfg: FitConfig) -> float:
         return float(track + cfg.inside_weight * inside + cfg.cover_weight * cover)
 
 
-def _start(scene: Scene, tracks: Tracks, labels: np.ndarray, root: int) -> np.ndarray:
-    """(B, 3) hinge pivots at each part's border with the root (at the reference depth)."""
+def _start(scene: Scene, tracks: Tracks, labels: np.ndarray, root: int) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 3) hinge pivots at each part's border with the root and (B, 3) unit axes along that border (a
+    lid's hinge line; image-plane directions at the reference depth)."""
     n_parts = int(labels.max()) + 1
     rest = (scene.centre + scene.z_ref * scene.rays).numpy()
-    pivots = np.zeros((n_parts, 3))
+    pivots, border = np.zeros((n_parts, 3)), np.tile([1.0, 0, 0], (n_parts, 1))
     root_uv = tracks.uv0[labels == root]
     for b in range(n_parts):
         own = np.flatnonzero(labels == b)
         if b == root or not len(own) or not len(root_uv):
             continue
         dist = cKDTree(root_uv).query(tracks.uv0[own])[0]
-        pivots[b] = rest[own[dist <= np.quantile(dist, 0.1)]].mean(0)
-    return pivots
+        near = rest[own[dist <= np.quantile(dist, 0.1)]]
+        pivots[b] = near.mean(0)
+        if len(near) >= 3:
+            border[b] = np.linalg.svd(near - near.mean(0), full_matrices=False)[2][0]
+    return pivots, border
+
+
+def axis_start(s: int, border: np.ndarray) -> np.ndarray:
+    """(B, 3) hinge-axis start ``s``: world x, y, z, then each part's border with the root, then diagonals."""
+    if s == 3:
+        return border
+    return np.tile(AXIS_STARTS[s if s < 3 else s - 1], (len(border), 1))
 
 
 def relabel(model: Articulation, tracks: Tracks, *, margin: float = 0.25) -> np.ndarray:
@@ -440,17 +452,17 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, camera: Camera, cfg
     is the scene's (kept for callers; the scene holds its matrices)."""
     labels, root = init.labels.copy(), init.root
     n_parts, n_frames = int(labels.max()) + 1, tracks.uv.shape[0]
-    pivots = _start(scene, tracks, labels, root)
+    pivots, border = _start(scene, tracks, labels, root)
     pairs = neighbour_pairs(tracks.uv0, labels, tracks.stride)
     log_d = np.full(len(labels), np.log(scene.z_ref))
     kinds = ["root" if b == root else "hinge" for b in range(n_parts)]
     best, best_loss, history = None, np.inf, []
-    for s in range(max(1, min(cfg.axis_starts, len(AXIS_STARTS)))):
-        model = Articulation(scene, labels, root, kinds, np.tile(AXIS_STARTS[s], (n_parts, 1)), pivots,
-                             np.zeros((n_frames, n_parts)), log_d)
+    for s in range(max(1, min(cfg.axis_starts, len(AXIS_STARTS) + 1))):
+        axes = axis_start(s, border)
+        model = Articulation(scene, labels, root, kinds, axes, pivots, np.zeros((n_frames, n_parts)), log_d)
         loss = optimise(model, cfg, cfg.steps // 3, pairs)
         history.append(loss)
-        log.info("recon=video: hinge start %d (axis %s): data loss %.4f", s, AXIS_STARTS[s].tolist(), loss)
+        log.info("recon=video: hinge start %d (axes %s): data loss %.4f", s, np.round(axes, 2).tolist(), loss)
         if loss < best_loss:
             best, best_loss = model, loss
     best = choose_kinds(best, tracks, cfg, history)
