@@ -132,7 +132,7 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
     report["loss_truth_refined"] = losses(truth, len(masks), cfg.fit)
     report["truth_refined_angle_err"] = _value_err(truth, gt, scene)
     if run_fit:
-        fit = jt.fit_joints(scene, tracks, init, camera, cfg.fit)
+        fit = jt.fit_joints(scene, tracks, init, cfg.fit)
         found = model_from(scene, fit.labels, fit.root, fit.kinds, fit.axes, fit.pivots, fit.values, fit.depth)
         report["found_kinds"] = fit.kinds
         report["loss_found"] = losses(found, len(masks), cfg.fit)

@@ -447,9 +447,9 @@ def relabel(model: Articulation, tracks: Tracks, *, margin: float = 0.25) -> np.
     return out if all((out == b).sum() >= 3 for b in range(n_parts)) else labels
 
 
-def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, camera: Camera, cfg: FitConfig) -> JointFit:
-    """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms. ``camera``
-    is the scene's (kept for callers; the scene holds its matrices)."""
+def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> JointFit:
+    """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms (the camera is
+    the scene's)."""
     labels, root = init.labels.copy(), init.root
     n_parts, n_frames = int(labels.max()) + 1, tracks.uv.shape[0]
     pivots, border = _start(scene, tracks, labels, root)

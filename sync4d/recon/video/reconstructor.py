@@ -140,7 +140,7 @@ class VideoReconstructor:
         # CPU (measured 6.7 s vs 90 s for the same short fit on this machine under load)
         torch.set_num_threads(1)
         try:
-            joints = fit_joints(scene, tracks, init, camera, cfg.fit)
+            joints = fit_joints(scene, tracks, init, cfg.fit)
         finally:
             torch.set_num_threads(threads)
         log.info("recon=video: joints %s, data loss %.4f", joints.kinds, joints.data_loss)
