@@ -37,7 +37,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from sync4d.errors import DataMissingError
-from sync4d.match import MatchConfig, MatchResult, match_parts
+from sync4d.match import METHODS, MatchConfig, MatchResult, match_parts
 from sync4d.registry import build
 from sync4d.types import Reference, TargetGaussians
 
@@ -483,7 +483,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m sync4d.evaluate match_gt", description=__doc__.split("\n")[0])
     p.add_argument("--features", default="geometric", help="conf/features/<name>.yaml or a YAML path")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="feature config overrides")
-    p.add_argument("--method", default=MatchConfig.method, choices=("auto", "features", "structure"),
+    p.add_argument("--method", default=MatchConfig.method, choices=METHODS,
                    help="match.method (default: MatchConfig's)")
     p.add_argument("--match", nargs="*", default=[], metavar="KEY=VALUE",
                    help="further MatchConfig overrides, e.g. structure.miss_cost=3")
