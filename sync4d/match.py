@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 from sync4d.align import AlignResult, Similarity, align_shapes, normalization
 from sync4d.match_structure import StructureConfig, StructureMatch, match_structure
 from sync4d.skeleton import SkeletonConfig, cloud_volume_points, volume_points
+from sync4d.surface_sample import area_samples
 from sync4d.errors import ConfigError, InputError
 from sync4d.interfaces import FeatureExtractor
 from sync4d.types import PartMap, Reference, TargetGaussians
@@ -693,13 +694,10 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int, 
             return vertices
         return vertices[rng.choice(len(vertices), count, replace=False)]
     tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    if area.sum() <= 0:
+    sampled = area_samples(tri, count, rng)
+    if sampled is None:
         raise InputError("match: the target mesh has zero area")
-    face = rng.choice(len(faces), size=count, p=area / area.sum())
-    r1, r2 = rng.random(count), rng.random(count)
-    s = np.sqrt(r1)
-    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    face, bary = sampled
     return np.einsum("sk,skd->sd", bary, tri[face])
 
 

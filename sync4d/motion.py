@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sync4d.surface_sample import area_samples
 from sync4d.types import DrivingMotion, Reference
 
 
@@ -25,14 +26,10 @@ def surface_samples(points: np.ndarray, faces: np.ndarray | None, *, count: int 
     if faces is None or len(faces) == 0:
         return points
     tri = points[faces]
-    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    if areas.sum() <= 0:
+    sampled = area_samples(tri, count, np.random.default_rng(seed))
+    if sampled is None:
         return points
-    rng = np.random.default_rng(seed)
-    face = rng.choice(len(faces), size=count, p=areas / areas.sum())
-    r1, r2 = rng.random(count), rng.random(count)
-    s = np.sqrt(r1)
-    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    face, bary = sampled
     return np.einsum("nk,nki->ni", bary, tri[face])
 
 

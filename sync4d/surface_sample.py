@@ -20,6 +20,19 @@ PRESAMPLE = 30
 MIN_OPACITY = 0.1
 
 
+def area_samples(tri: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
+    """``count`` points uniform by area on triangles ``tri`` (F, 3, 3): their face index (count,) and
+    barycentric weights (count, 3) (a point is ``bary @ tri[face]``; the same samples follow a deforming mesh).
+    None when the triangles have no area (the caller says what that means for its input)."""
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not area.sum() > 0:
+        return None
+    face = rng.choice(len(tri), size=count, p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    return face, np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+
+
 def _occupied(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """Voxel index of each point (N,) and the number of occupied voxels, for voxels of side ``cell``."""
     coords = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)

@@ -147,12 +147,12 @@ def surface_samples(
 ) -> tuple[np.ndarray, np.ndarray]:
     """``count`` (face index, barycentric weights (count, 3)) samples uniform by area on the rest mesh; the same
     samples move with the mesh in every frame."""
-    tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    face = rng.choice(len(faces), count, p=area / area.sum())
-    r1, r2 = np.sqrt(rng.uniform(size=count)), rng.uniform(size=count)
-    bary = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
-    return face, bary
+    from sync4d.surface_sample import area_samples
+
+    sampled = area_samples(vertices[faces], count, rng)
+    if sampled is None:
+        raise ValueError("shiba_clip: the export's frame-0 mesh has zero area")
+    return sampled
 
 
 def render_mesh_frames(

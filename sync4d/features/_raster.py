@@ -20,6 +20,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from sync4d.errors import InputError
+from sync4d.surface_sample import area_samples
 
 
 @dataclass(frozen=True)
@@ -102,16 +103,12 @@ def surface_samples(
     vn = vertex_normals(points, faces)
     if faces is None:
         return points, vn
-    rng = np.random.default_rng(seed)
     tri = points[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = 0.5 * np.linalg.norm(fn, axis=1)
-    if area.sum() <= 0:
+    sampled = area_samples(tri, n_samples, np.random.default_rng(seed))
+    if sampled is None:
         raise InputError("features.diff3f: the mesh has zero area")
-    face = rng.choice(len(faces), size=n_samples, p=area / area.sum())
-    r1, r2 = rng.random(n_samples), rng.random(n_samples)
-    s = np.sqrt(r1)
-    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    face, bary = sampled
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     samples = np.einsum("sk,skd->sd", bary, tri[face])
     normals = fn[face] / np.maximum(np.linalg.norm(fn[face], axis=1, keepdims=True), 1e-12)
     return np.concatenate([samples, points]), np.concatenate([normals, vn])

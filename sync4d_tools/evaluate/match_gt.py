@@ -36,9 +36,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sync4d.errors import DataMissingError
+from sync4d.errors import DataMissingError, InputError
 from sync4d.match import METHODS, MatchConfig, MatchResult, match_parts
 from sync4d.registry import build
+from sync4d.surface_sample import area_samples
 from sync4d.types import Reference, TargetGaussians
 
 log = logging.getLogger(__name__)
@@ -259,11 +260,10 @@ def sample_labelled_surface(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Area-uniform surface samples (count, 3) and the part of the face each came from (count,)."""
     tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    face = rng.choice(len(faces), size=count, p=area / area.sum())
-    r1, r2 = rng.random(count), rng.random(count)
-    s = np.sqrt(r1)
-    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    sampled = area_samples(tri, count, rng)
+    if sampled is None:
+        raise InputError("match_gt: a reference body has zero surface area")
+    face, bary = sampled
     points = np.einsum("sk,skd->sd", bary, tri[face])
     return points, part[faces[face, 0]]
 
