@@ -125,6 +125,62 @@ def test_human_fit_recovers_known_joints() -> None:
     assert lengths.std(0).max() < 0.01  # one rigid skeleton over the clip
 
 
+def test_flip_test_mirrors_back_and_keeps_labels() -> None:
+    """The mirrored pass is flipped back with left and right exchanged; a pass naming the limbs crosswise is dropped."""
+    assert (bp.MIRROR[bp.MIRROR] == np.arange(39)).all()
+    assert bp.LANDMARK_NAMES[bp.MIRROR[bp.LANDMARK_NAMES.index("l_knee")]] == "r_knee"
+    rng = np.random.default_rng(0)
+    raw = np.zeros((39, 5))
+    raw[:, :2] = rng.uniform(20, 236, (39, 2))
+
+    class Constant:  # a "model" whose landmarks ignore the image: the mirrored pass must mirror them
+        def run(self, x):
+            return {"a": raw.reshape(1, -1).copy(), "b": np.zeros((1, 39 * 3)), "c": np.zeros((1, 256 * 256)),
+                    "d": np.ones((1, 1))}
+
+    img = np.zeros((256, 256, 3), np.uint8)
+    plain, mirrored = bp.run_crop(Constant(), img), bp.run_crop(Constant(), img, flip=True)
+    assert np.allclose(mirrored.raw[:, 0], 256 - raw[bp.MIRROR, 0]) and np.allclose(mirrored.raw[:, 1], raw[bp.MIRROR, 1])
+    assert np.allclose(plain.raw, raw)
+    uv = raw[:33, :2]
+    assert bp.labels_agree(uv, uv + 1.0)
+    assert not bp.labels_agree(uv, uv[bp.MIRROR[:33]])
+
+
+def test_landmark_flow_follows_the_body_and_skips_the_background() -> None:
+    rng = np.random.default_rng(0)
+    texture = rng.integers(0, 255, (60, 60, 3), dtype=np.uint8)
+    frames = np.full((2, 120, 160, 3), 90, np.uint8)
+    masks = np.zeros((2, 120, 160), bool)
+    for t, (du, dv) in enumerate([(0, 0), (3, 2)]):
+        frames[t, 30 + dv: 90 + dv, 40 + du: 100 + du] = texture
+        masks[t, 30 + dv: 90 + dv, 40 + du: 100 + du] = True
+    uv = np.array([[[70.0, 60.0], [60.0, 50.0], [140.0, 100.0]]])  # two on the square, one on the background
+    flow = bp.landmark_flow(frames, np.repeat(uv, 2, axis=0), masks)
+    assert flow.shape == (1, 3, 2)
+    assert np.allclose(flow[0, :2], [3.0, 2.0], atol=0.5)
+    assert np.isnan(flow[0, 2]).all()
+
+
+def test_human_fit_follows_the_flow() -> None:
+    """Noisy landmarks plus the true image motion: the fitted joints move as the flow says."""
+    import dataclasses
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    truth = standing_body(12)
+    track = synthetic_track(truth, K, np.random.default_rng(0), noise_px=4.0)
+    true_uv = track.landmarks_2d - np.random.default_rng(0).normal(0, 4.0, track.landmarks_2d.shape)
+    flowing = dataclasses.replace(track, flow=np.diff(true_uv, axis=0))
+
+    def motion_error(tr) -> float:
+        fit = fit_human(tr, K, HumanFitConfig())
+        proj = fit.joints[..., :2] / fit.joints[..., 2:] * 600.0 + K[:2, 2]
+        true = truth[..., :2] / truth[..., 2:] * 600.0 + K[:2, 2]
+        return float(np.linalg.norm(np.diff(proj, axis=0) - np.diff(true, axis=0), axis=-1).mean())
+
+    assert motion_error(flowing) < 0.7 * motion_error(track)
+
+
 def test_nobody_in_the_video_names_it() -> None:
     detector, landmarks = load_models()
     rng = np.random.default_rng(0)

@@ -12,6 +12,10 @@ calculator options (``pose_detection_cpu.pbtxt``, ``pose_landmark_cpu.pbtxt``):
 3. Landmark model on the 256x256 crop in [0, 1]: 33 landmarks (+6 auxiliary) mapped back to the image,
    visibility = sigmoid, metric world landmarks (hip-centred) rotated back by the crop's angle, a person
    segmentation warped back into the frame.
+4. Flip test: the model also runs on the mirrored crop (x flipped back, left and right landmarks
+   exchanged) and the two passes are averaged, unless they disagree about which limb is left.
+5. Optical flow (OpenCV DIS) at each landmark's pixel to the next frame, kept where it is reliable; the
+   body fit asks the joints' image motion to follow it.
 
 Coordinates: image pixels (u right, v down) with pixel centres at +0.5 (as the project's renderer);
 world landmarks in metres with the camera's axes (x right, y down, z away from the camera).
@@ -57,6 +61,8 @@ class PoseTrack:
         masks: (T, H, W) bool person segmentation.
         found: (T,) bool, a person was tracked in the frame (else the frame's arrays are copies of the
             nearest found frame and its mask is empty).
+        flow: (T-1, 33, 2) optical-flow displacement of each landmark's pixel from frame t to t+1 [px],
+            NaN where the flow is not forward-backward consistent; None when not measured.
     """
 
     landmarks_2d: np.ndarray
@@ -66,6 +72,7 @@ class PoseTrack:
     presence: np.ndarray
     masks: np.ndarray
     found: np.ndarray
+    flow: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -234,36 +241,117 @@ class FramePose:
     aux: np.ndarray
 
 
-def landmarks_in_roi(model, frame: np.ndarray, roi: Roi) -> FramePose:
-    """Run the landmark model on the crop ``roi`` of ``frame`` and map its outputs back to the image."""
-    import cv2
+def _mirror_permutation() -> np.ndarray:
+    """(39,) index of each model landmark's left/right twin (itself on the midline and for 33-38)."""
+    perm = np.arange(NUM_LANDMARKS + 6)
+    for i, name in enumerate(LANDMARK_NAMES):
+        for a, b in (("l_", "r_"), ("r_", "l_"), ("_l", "_r"), ("_r", "_l")):
+            twin = name.replace(a, b, 1) if (name.startswith(a) or name.endswith(a)) else None
+            if twin is not None and twin != name and twin in LANDMARK_NAMES:
+                perm[i] = LANDMARK_NAMES.index(twin)
+                break
+    return perm
 
-    img = crop(frame, roi, LMK_SIZE)
-    out = model.run(img[None].astype(np.float32) / 255.0)
+
+MIRROR = _mirror_permutation()
+
+
+@dataclass(frozen=True)
+class CropOutput:
+    """The landmark model's raw outputs on one crop, in the crop's own frame.
+
+    Attributes:
+        raw: (39, 5) x, y [crop px in [0, 256]], z [crop px], visibility and presence logits.
+        world: (39, 3) metric landmarks in the crop's axes [m].
+        seg: (256, 256) person probability in [0, 1].
+        presence: pose-presence score in [0, 1].
+    """
+
+    raw: np.ndarray
+    world: np.ndarray
+    seg: np.ndarray
+    presence: float
+
+
+def run_crop(model, img: np.ndarray, *, flip: bool = False) -> CropOutput:
+    """The landmark model on one 256x256 crop; ``flip`` runs it on the mirrored crop and mirrors back.
+
+    A mirrored person is a person whose left is the original's right, so the mirrored outputs are
+    flipped in x and their left/right landmarks exchanged (the flip test of pose estimation).
+    """
+    x = img[:, ::-1] if flip else img
+    out = model.run(np.ascontiguousarray(x)[None].astype(np.float32) / 255.0)
     by_size = {a.size: a for a in out.values()}
-    raw = by_size[39 * 5].reshape(39, 5)
-    world = by_size[39 * 3].reshape(39, 3)[:NUM_LANDMARKS]
-    seg = by_size[LMK_SIZE * LMK_SIZE].reshape(LMK_SIZE, LMK_SIZE)
+    raw = by_size[39 * 5].reshape(39, 5).astype(np.float64)
+    world = by_size[39 * 3].reshape(39, 3).astype(np.float64)
+    seg = by_size[LMK_SIZE * LMK_SIZE].reshape(LMK_SIZE, LMK_SIZE).astype(np.float64)
+    seg = 1.0 / (1.0 + np.exp(-np.clip(seg, -50.0, 50.0)))
     presence = float(by_size[1].ravel()[0])
-    # The model's crop coordinates are continuous in [0, 256]; move to the image.
-    uv_all = crop_to_image(raw[:, :2], roi, LMK_SIZE)
-    z = raw[:NUM_LANDMARKS, 2] * roi.size / LMK_SIZE
-    vis = 1.0 / (1.0 + np.exp(-raw[:NUM_LANDMARKS, 3]))
-    c, s = math.cos(roi.angle), math.sin(roi.angle)
-    world = world.copy()
-    world[:, :2] = world[:, :2] @ np.array([[c, -s], [s, c]]).T
-    h, w = frame.shape[:2]
-    prob = 1.0 / (1.0 + np.exp(-np.clip(seg.astype(np.float64), -50.0, 50.0)))
-    # roi_affine maps crop -> image, which is warpAffine's forward direction here
-    mask = cv2.warpAffine(prob.astype(np.float32), roi_affine(roi, LMK_SIZE), (w, h), flags=cv2.INTER_LINEAR,
-                          borderValue=0.0) > 0.5
     if presence > 1.0 or presence < 0.0:  # some exports give a logit
         presence = float(1.0 / (1.0 + np.exp(-presence)))
-    return FramePose(uv=uv_all[:NUM_LANDMARKS], z=z, world=world, visibility=vis, presence=presence, mask=mask,
+    if flip:
+        raw, world, seg = raw[MIRROR].copy(), world[MIRROR].copy(), seg[:, ::-1]
+        raw[:, 0] = LMK_SIZE - raw[:, 0]
+        world[:, 0] = -world[:, 0]
+    return CropOutput(raw=raw, world=world, seg=seg, presence=presence)
+
+
+LIMB_LANDMARKS = np.array([13, 14, 15, 16, 25, 26, 27, 28])  # elbows, wrists, knees, ankles
+
+
+def labels_agree(a: np.ndarray, b: np.ndarray) -> bool:
+    """Two passes' (33, 2) landmarks name the limbs alike: b's limbs lie nearer a's than with left and right exchanged.
+
+    On some frames one pass calls the left limbs right; their average would put both arms (or legs) on
+    the midline, so such a pass is left out.
+    """
+    same = np.linalg.norm(a[LIMB_LANDMARKS] - b[LIMB_LANDMARKS], axis=-1).mean()
+    crossed = np.linalg.norm(a[LIMB_LANDMARKS] - b[MIRROR[LIMB_LANDMARKS]], axis=-1).mean()
+    return bool(same <= crossed)
+
+
+def image_pose(out: CropOutput, roi: Roi, shape: tuple[int, int]) -> FramePose:
+    """The landmark model's outputs on the crop ``roi`` mapped back to the image (mask as a probability)."""
+    import cv2
+
+    # The model's crop coordinates are continuous in [0, 256]; move to the image.
+    uv_all = crop_to_image(out.raw[:, :2], roi, LMK_SIZE)
+    z = out.raw[:NUM_LANDMARKS, 2] * roi.size / LMK_SIZE
+    vis = 1.0 / (1.0 + np.exp(-out.raw[:NUM_LANDMARKS, 3]))
+    c, s = math.cos(roi.angle), math.sin(roi.angle)
+    world = out.world[:NUM_LANDMARKS].copy()
+    world[:, :2] = world[:, :2] @ np.array([[c, -s], [s, c]]).T
+    h, w = shape
+    # roi_affine maps crop -> image, which is warpAffine's forward direction here
+    prob = cv2.warpAffine(out.seg.astype(np.float32), roi_affine(roi, LMK_SIZE), (w, h), flags=cv2.INTER_LINEAR,
+                          borderValue=0.0)
+    return FramePose(uv=uv_all[:NUM_LANDMARKS], z=z, world=world, visibility=vis, presence=out.presence, mask=prob,
                      aux=uv_all[NUM_LANDMARKS:])
 
 
-def track_video(frames: np.ndarray, detector, landmark_model, *, source: str, min_presence: float = 0.5) -> PoseTrack:
+def mean_pose(poses: list[FramePose]) -> FramePose:
+    """The average of several passes in the image; the mask is the mean probability > 0.5."""
+    mean = lambda k: np.mean([getattr(p, k) for p in poses], axis=0)  # noqa: E731
+    return FramePose(uv=mean("uv"), z=mean("z"), world=mean("world"), visibility=mean("visibility"),
+                     presence=float(mean("presence")), mask=mean("mask") > 0.5, aux=mean("aux"))
+
+
+def landmarks_in_roi(model, frame: np.ndarray, roi: Roi, *, flip_test: bool = True) -> FramePose:
+    """Run the landmark model on the crop ``roi`` of ``frame`` and map its outputs back to the image.
+
+    With ``flip_test`` the model also runs on the mirrored crop, and the two passes are averaged when
+    they name the limbs alike (:func:`labels_agree`); else the unflipped pass is kept alone.
+    """
+    img = crop(frame, roi, LMK_SIZE)
+    poses = [image_pose(run_crop(model, img, flip=flip), roi, frame.shape[:2])
+             for flip in ((False, True) if flip_test else (False,))]
+    return mean_pose([p for p in poses if labels_agree(poses[0].uv, p.uv)])
+
+
+def track_video(
+    frames: np.ndarray, detector, landmark_model, *, source: str, min_presence: float = 0.5, flip_test: bool = True,
+    with_flow: bool = True,
+) -> PoseTrack:
     """BlazePose over a clip: detect, then track the region of interest from the previous landmarks.
 
     Args:
@@ -272,6 +360,8 @@ def track_video(frames: np.ndarray, detector, landmark_model, *, source: str, mi
         landmark_model: the landmark model.
         source: the video's name, for the error message.
         min_presence: below this pose-presence score the track is lost and the detector runs again.
+        flip_test: average each crop's landmarks with those of its mirror image (:func:`run_crop`).
+        with_flow: measure the optical flow at the landmarks (:func:`landmark_flow`).
 
     Raises:
         InputError: nobody is found in any frame (names the video).
@@ -287,7 +377,7 @@ def track_video(frames: np.ndarray, detector, landmark_model, *, source: str, mi
                 roi = detect(detector, frames[t], anchors)
                 if roi is None:
                     break
-            pose = landmarks_in_roi(landmark_model, frames[t], roi)
+            pose = landmarks_in_roi(landmark_model, frames[t], roi, flip_test=flip_test)
             if pose.presence >= min_presence:
                 break
             pose, roi = None, None  # lost: detect again in this frame
@@ -305,4 +395,29 @@ def track_video(frames: np.ndarray, detector, landmark_model, *, source: str, mi
         landmarks_2d=np.stack([p.uv for p in pick]), landmarks_z=np.stack([p.z for p in pick]),
         world=np.stack([p.world for p in pick]), visibility=np.stack([p.visibility for p in pick]),
         presence=np.array([p.presence for p in pick]), masks=masks, found=found,
+        flow=landmark_flow(frames, np.stack([p.uv for p in pick]), masks) if with_flow else None,
     )
+
+
+def landmark_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, *, fb_tol_px: float = 1.0) -> np.ndarray:
+    """(T-1, L, 2) DIS optical flow at each landmark's pixel to the next frame [px]; NaN where unreliable.
+
+    Unreliable: the landmark lies off the person's mask in frame t or its flow's end off the mask in
+    frame t+1 (a landmark beside the body would read the background's flow), or the flow does not come
+    back within ``fb_tol_px`` (occluded).
+    """
+    from sync4d.recon.video.images import optical_flow, sample_image
+
+    out = np.full((max(len(frames) - 1, 0),) + uv.shape[1:], np.nan)
+    if len(frames) < 2:
+        return out
+    fwd, bwd = optical_flow(frames)
+    for t in range(len(frames) - 1):
+        d = sample_image(fwd[t], uv[t] - 0.5)  # pixel centres at +0.5, array indices at 0
+        back = sample_image(bwd[t], uv[t] + d - 0.5)
+        on = sample_image(masks[t].astype(np.float32)[..., None], uv[t] - 0.5)[:, 0] > 0.5
+        lands = sample_image(masks[t + 1].astype(np.float32)[..., None], uv[t] + d - 0.5)[:, 0] > 0.5
+        ok = (np.linalg.norm(d + back, axis=-1) < fb_tol_px) & on & lands
+        out[t, ok] = d[ok]
+    return out
+

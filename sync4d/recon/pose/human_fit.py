@@ -10,7 +10,10 @@ camera frame are optimised jointly over the clip against:
 * one set of bone lengths for the whole clip (a variable, left and right tied), so the body is rigid;
 * joint limits: knees bend forward only, elbows and knees never fold below ``min_hinge_deg``;
 * temporal smoothness (squared accelerations of every joint, so the prior does not depend on the frame
-  rate).
+  rate);
+* the video's optical flow: each joint's image motion from frame t to t+1 follows the DIS flow at its
+  landmark's pixel, where that flow is reliable (on the person, forward-backward consistent). The
+  landmarks' errors drift with the pose; the flow measures the body's own motion.
 
 The clip's depth comes from the metric world landmarks and the focal length (a 1.7 m person spanning
 h pixels is at z = f 1.7 / h), so the assumed field of view sets the distance, not the pose.
@@ -66,7 +69,9 @@ class HumanFitConfig:
             of positions at 10 frames a second; other frame rates give the same prior [1/m^2].
         limit_weight: joint-limit violations [1/m^2].
         min_hinge_deg: smallest allowed elbow/knee angle [deg] (180 = straight).
-        huber_px: reprojection errors beyond this are down-weighted (Huber) [px].
+        huber_px: reprojection and flow errors beyond this are down-weighted (Huber) [px].
+        flow_weight: the fitted joints' image motion between frames against the optical flow at their
+            landmarks (:attr:`PoseTrack.flow`), in the reprojection's units.
         iterations: L-BFGS iterations.
     """
 
@@ -78,6 +83,7 @@ class HumanFitConfig:
     min_hinge_deg: float = 30.0
     huber_px: float = 10.0
     iterations: int = 60
+    flow_weight: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -176,6 +182,7 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig, fps: float =
     uv_t, vis_t, world_t = (torch.tensor(a, dtype=dt) for a in (uv, vis, world))
     seg_t, par_t, mir_t = (torch.tensor(a) for a in (seg, PARENTS[seg], mirror))
     focal = float(K[0, 0])
+    flow = flow_targets(track, vis)
     min_cos = float(np.cos(np.radians(cfg.min_hinge_deg)))
     opt = torch.optim.LBFGS([x, log_len], lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
 
@@ -194,8 +201,10 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig, fps: float =
         second = (x[2:] - 2 * x[1:-1] + x[:-2]) * (fps / SMOOTH_FPS) ** 2  # acceleration x (0.1 s)^2
         l_smooth = second.pow(2).sum(-1).mean() if len(x) > 2 else x.new_zeros(())
         l_limit = _hinge_losses(x, min_cos)
+        l_flow = _flow_loss(proj, flow, focal, hub) if flow is not None else x.new_zeros(())
         loss = (
-            cfg.reprojection_weight * l_rep * 1e2
+            cfg.flow_weight * l_flow * 1e2
+            + cfg.reprojection_weight * l_rep * 1e2
             + cfg.world_weight * l_world
             + cfg.bone_weight * l_bone
             + cfg.smooth_weight * l_smooth
@@ -212,6 +221,27 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig, fps: float =
     bone[seg] = np.linalg.norm(joints[:, seg] - joints[:, PARENTS[seg]], axis=-1).mean(0)
     rep = (err_px * vis).sum(1) / np.maximum(vis.sum(1), 1e-9)
     return HumanFit(joints=joints, names=JOINT_NAMES, parents=PARENTS.copy(), bone_lengths=bone, reprojection_px=rep)
+
+
+def flow_targets(track: PoseTrack, vis: np.ndarray) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """((T-1, J, 2) flow at each joint [px], (T-1, J) weight), or None without flow in the track.
+
+    A joint read from two landmarks takes their mean flow, and only where both are reliable; the weight
+    is the joint's visibility in both frames.
+    """
+    if track.flow is None or len(track.flow) == 0:
+        return None
+    fl = gather_joints(track.flow)
+    ok = np.isfinite(fl).all(-1) * vis[1:] * vis[:-1]
+    return torch.tensor(np.nan_to_num(fl), dtype=torch.float64), torch.tensor(ok, dtype=torch.float64)
+
+
+def _flow_loss(proj: torch.Tensor, flow: tuple[torch.Tensor, torch.Tensor], focal: float, hub: float) -> torch.Tensor:
+    """Huber error of the projected joints' motion against the flow, in focal-length units."""
+    target, weight = flow
+    err = (proj[1:] - proj[:-1] - target).norm(dim=-1) / focal
+    rob = torch.where(err < hub, 0.5 * err**2, hub * (err - 0.5 * hub))
+    return (rob * weight).sum() / weight.sum().clamp_min(1.0)
 
 
 def _project(x: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
