@@ -37,6 +37,8 @@ DET_SIZE = 224
 LMK_SIZE = 256
 NUM_LANDMARKS = 33
 ROI_SCALE = 1.25
+# longer image side [px] at which the landmarks' optical flow is computed (larger frames are shrunk)
+FLOW_MAX_SIDE = 480
 
 # BlazePose landmark indices used by the body fit.
 LANDMARK_NAMES = (
@@ -399,25 +401,32 @@ def track_video(
     )
 
 
-def landmark_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, *, fb_tol_px: float = 1.0) -> np.ndarray:
+def landmark_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, *, fb_tol_px: float = 1.0,
+                  max_side: int = FLOW_MAX_SIDE) -> np.ndarray:
     """(T-1, L, 2) DIS optical flow at each landmark's pixel to the next frame [px]; NaN where unreliable.
 
     Unreliable: the landmark lies off the person's mask in frame t or its flow's end off the mask in
     frame t+1 (a landmark beside the body would read the background's flow), or the flow does not come
-    back within ``fb_tol_px`` (occluded).
+    back within ``fb_tol_px`` (occluded). Frames larger than ``max_side`` pixels are shrunk for the flow
+    (its cost grows with the pixel count; the displacements are scaled back).
     """
+    import cv2
+
     from sync4d.recon.video.images import optical_flow, sample_image
 
     out = np.full((max(len(frames) - 1, 0),) + uv.shape[1:], np.nan)
     if len(frames) < 2:
         return out
-    fwd, bwd = optical_flow(frames)
+    h, w = frames.shape[1:3]
+    k = min(1.0, max_side / max(h, w))
+    small = frames if k == 1.0 else np.stack(
+        [cv2.resize(f, (round(w * k), round(h * k)), interpolation=cv2.INTER_AREA) for f in frames])
+    fwd, bwd = optical_flow(small)
     for t in range(len(frames) - 1):
-        d = sample_image(fwd[t], uv[t] - 0.5)  # pixel centres at +0.5, array indices at 0
-        back = sample_image(bwd[t], uv[t] + d - 0.5)
+        d = sample_image(fwd[t], uv[t] * k - 0.5) / k  # pixel centres at +0.5, array indices at 0
+        back = sample_image(bwd[t], (uv[t] + d) * k - 0.5) / k
         on = sample_image(masks[t].astype(np.float32)[..., None], uv[t] - 0.5)[:, 0] > 0.5
         lands = sample_image(masks[t + 1].astype(np.float32)[..., None], uv[t] + d - 0.5)[:, 0] > 0.5
         ok = (np.linalg.norm(d + back, axis=-1) < fb_tol_px) & on & lands
         out[t, ok] = d[ok]
     return out
-
