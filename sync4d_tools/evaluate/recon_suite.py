@@ -143,6 +143,35 @@ def load_case(folder: Path | None) -> tuple[Any, dict[str, np.ndarray]]:
     return source, gt
 
 
+def label_diagnosis(fit: VideoFit, gt_labels: np.ndarray, rendered: list[np.ndarray], mapping: np.ndarray) -> dict[str, float]:
+    """Where the labels are lost: agreement of the tracked points' initial and fitted labels with the gt part
+    under their frame-0 pixel (bones mapped as for the score), the rendered score in frame 0 and in the
+    later frames, and the share of wrongly rendered pixels within 2 px of a gt part border."""
+    import cv2
+
+    uv = np.floor(fit.tracks.uv0).astype(int)
+    truth = gt_labels[0][uv[:, 1], uv[:, 0]]
+    fg = truth > 0
+    out = {"points_init": float((mapping[fit.init.labels] == truth)[fg].mean()) if fg.any() else 0.0,
+           "points_fit": float((mapping[fit.joints.labels] == truth)[fg].mean()) if fg.any() else 0.0}
+    wrong_border = wrong = 0
+    per_frame = []
+    for t, lab in enumerate(rendered):
+        g = gt_labels[t]
+        ok = mapping[lab] == g[g > 0]
+        per_frame.append(ok.mean() if len(ok) else 1.0)
+        border = np.zeros(g.shape, bool)
+        for p in np.unique(g[g > 0]):
+            near = cv2.dilate((g == p).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+            border |= near & (g > 0) & (g != p)
+        wrong += int((~ok).sum())
+        wrong_border += int((~ok & border[g > 0]).sum())
+    out["render_f0"] = float(per_frame[0])
+    out["render_later"] = float(np.mean(per_frame[1:])) if len(per_frame) > 1 else float(per_frame[0])
+    out["wrong_at_border"] = wrong_border / max(wrong, 1)
+    return {k: round(v, 4) for k, v in out.items()}
+
+
 def run_case(name: str, folder: Path | None, seed: int) -> dict[str, Any]:
     source, gt = load_case(folder)
     n_parts = len(gt["joint_type"]) + 1
@@ -152,7 +181,8 @@ def run_case(name: str, folder: Path | None, seed: int) -> dict[str, Any]:
     joints = joint_errors(fit, gt, mapping, votes)
     return {"case": name, "seed": seed, "joints": joints, "labels": round(labels, 4),
             "seconds": round(fit.seconds, 1), "cpu_seconds": round(fit.cpu_seconds, 1), "frames": fit.reference.num_frames,
-            "size": list(fit.masks.shape[1:][::-1]), "pass": passes(joints, labels)}
+            "size": list(fit.masks.shape[1:][::-1]), "pass": passes(joints, labels),
+            "label_diagnosis": label_diagnosis(fit, gt["part_labels"], rendered, mapping)}
 
 
 def table(rows: list[dict[str, Any]]) -> str:
