@@ -322,6 +322,25 @@ def test_quadruped_fit_started_at_the_truth_stays_there(shared_data: Path) -> No
     assert joint_errors(fitted, joints).mean() < 0.03 * length
 
 
+def test_quadruped_split_fits_the_template_to_known_joints(shared_data: Path) -> None:
+    """The body suite's error split (``--split``): the template fitted directly to joints of the template
+    posed by known rotations recovers them (A1, no priors) and stays close under the fit's priors (A2)."""
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d_tools.body_suite import _fit_to_truth, _truth_start
+    from sync4d_tools.evaluate.recon_joints import joint_errors
+
+    _, joints, camera, masks = _template_clip()
+    names = [n for n, _ in qf.VOCABULARY]
+    ids = [qf.DOG_NAMES.index(t) for _, t in qf.VOCABULARY]
+    cfg = qf.QuadrupedFitConfig()
+    prob = qf._Problem(masks, camera, cfg)
+    for priors, bound in ((False, 0.01), (True, 0.03)):
+        params = _truth_start(prob, joints[:, ids], names, np.array([0.0, -1.0, 0.0]))
+        _fit_to_truth(prob, params, joints[:, ids], ids, cfg, priors, steps=150)
+        fitted = qf._joints(prob, params).detach().numpy()
+        assert joint_errors(fitted[:, ids], joints[:, ids]).mean() < bound * 0.6
+
+
 @pytest.mark.slow
 def test_quadruped_fit_on_template_silhouettes(shared_data: Path) -> None:
     """Silhouettes of the template in three known poses: the fit from scratch explains them (IoU > 0.6) and

@@ -478,19 +478,13 @@ def _losses(
         prob.outside[frames][:, None], grid, align_corners=False, padding_mode="border"
     )
     inside = dist.pow(2).mean()
-    ll = params["log_len"]
-    lengths = ll.pow(2).mean() + (ll - ll[prob.twin]).pow(2).mean()
-    local = params["local"]
-    limit = torch.relu(local.norm(dim=-1) - math.radians(cfg.joint_limit_deg)).pow(2).mean()
-    # legs swing in the body's sagittal plane: their rotations turn mostly about the lateral (z) axis
-    off = local[:, prob.leg_joints, :2].norm(dim=-1)
-    limit = limit + torch.relu(off - math.radians(cfg.leg_off_plane_deg)).pow(2).mean()
     # root-relative joints and the root itself (template units): both move smoothly
     rel = torch.cat([joints - joints[:, :1], joints[:, :1]], 1) / scale
     if history is not None:
         rel = torch.cat([history, rel])
     second = (rel[2:] - 2 * rel[1:-1] + rel[:-2]) * prob.rate**2
     smooth = second.pow(2).sum(-1).mean() if len(rel) > 2 else joints.new_zeros(())
+    lengths, limit = shape_priors(prob, params, cfg)
     total = (
         cfg.silhouette_weight * bce
         + cfg.inside_weight * inside
@@ -499,6 +493,20 @@ def _losses(
         + cfg.smooth_weight * smooth
     )
     return total, joints, occ
+
+
+def shape_priors(
+    prob: _Problem, params: dict[str, torch.Tensor], cfg: QuadrupedFitConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The unweighted limb-length prior and joint-limit penalty of ``params``."""
+    ll = params["log_len"]
+    lengths = ll.pow(2).mean() + (ll - ll[prob.twin]).pow(2).mean()
+    local = params["local"]
+    limit = torch.relu(local.norm(dim=-1) - math.radians(cfg.joint_limit_deg)).pow(2).mean()
+    # legs swing in the body's sagittal plane: their rotations turn mostly about the lateral (z) axis
+    off = local[:, prob.leg_joints, :2].norm(dim=-1)
+    limit = limit + torch.relu(off - math.radians(cfg.leg_off_plane_deg)).pow(2).mean()
+    return lengths, limit
 
 
 def _run(
