@@ -203,39 +203,3 @@ def test_two_plate_slide_is_found_as_a_slide() -> None:
     # the camera sits at the origin, so the scale is the reference depth (1 m) against the true 1.2 m
     found = np.abs(fit.joints.values[:, moving])
     assert np.corrcoef(found, travel)[0, 1] > 0.99
-
-
-def test_final_labels_follow_neighbours_where_the_evidence_is_ambiguous() -> None:
-    from sync4d.recon.video.labels import potts_labels
-
-    grid = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0)), -1).reshape(-1, 2) * 3.0
-    truth = (grid[:, 0] >= 15).astype(int)
-    cost = np.stack([truth == 1, truth == 0], 1).astype(float)  # clear evidence: 1 for the wrong part
-    ambiguous = [12, 57]  # no evidence either way, started on the wrong part
-    cost[ambiguous] = 0.0
-    start = truth.copy()
-    start[ambiguous] = 1 - truth[ambiguous]
-    out = potts_labels(cost, grid, 3.0, start)
-    assert np.array_equal(out, truth)
-    strong = cost.copy()
-    strong[12] = [5.0, 0.0]  # a point its own evidence puts on the other part keeps it
-    assert potts_labels(strong, grid, 3.0, truth)[12] == 1
-
-
-def test_colour_cost_sees_a_point_land_on_other_surface() -> None:
-    from types import SimpleNamespace
-
-    import torch
-
-    from sync4d.recon.video.labels import _colour_cost
-
-    colour = torch.zeros(3, 3, 8, 8)
-    colour[:, :, :, 4:] = 1.0  # a bright right half in every frame
-    uv = torch.tensor([[[2.0, 2.0], [6.0, 2.0]]] * 3, dtype=torch.float64)  # two points, static
-    moved = uv.clone()
-    moved[1:, 0, 0] = 6.0  # the first point predicted onto the bright half
-    vis = torch.ones(3, 2, dtype=torch.bool)
-    sc = SimpleNamespace(colour=colour)
-    assert torch.allclose(_colour_cost(sc, uv, vis), torch.zeros(2, dtype=torch.float64))
-    cost = _colour_cost(sc, moved, vis)
-    assert cost[0] > 2.0 and cost[1] == 0.0

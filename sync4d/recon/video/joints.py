@@ -18,8 +18,7 @@ a slide from five 3D direction starts (the hinge's 3D displacement, the image mo
 45 degrees towards and away from the camera, the view ray), each with its travel matched to the hinge's
 image motion; the two best are fitted, relabelled and refined the same way, and the slide wins unless the
 hinge explains the images 5 % better. A slide's path (its outline extruded along its direction: a
-drawer's box) also covers mask pixels. The winner is refined, relabelled and refined again. Last, the tracked points get their final
-labels from every frame's evidence and their neighbours (:mod:`sync4d.recon.video.labels`).
+drawer's box) also covers mask pixels. The winner is refined, relabelled and refined again.
 """
 
 from __future__ import annotations
@@ -81,7 +80,6 @@ class Scene:
         root_motion: (T, 4, 4) the root's rigid motion (identity when static).
         flow: (T-1, 3, H, W) forward flow u, v [px] and its consistency (1 or 0), for the flow term.
         stride: grid spacing [px]; width: object width [m]; z_ref: depth that fixes the scale [m].
-        colour: (T, 3, H, W) float32 RGB in [0, 1] of every frame (for the final labels), or None.
     """
 
     rays: torch.Tensor
@@ -97,7 +95,6 @@ class Scene:
     width: float
     z_ref: float
     flow: torch.Tensor | None = None
-    colour: torch.Tensor | None = None
 
 
 @dataclass
@@ -159,10 +156,8 @@ def _rodrigues(axis: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
 
 
 def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit, z_ref: float,
-               root_motion: np.ndarray, rng: np.random.Generator, *, cover_samples: int = 400,
-               frames: np.ndarray | None = None) -> Scene:
-    """The fit's tensors: rays, tracks, distance-to-mask images and the pixels left to the moving parts
-    (and the frames (T, H, W, 3) uint8, if given, as colour images)."""
+               root_motion: np.ndarray, rng: np.random.Generator, *, cover_samples: int = 400) -> Scene:
+    """The fit's tensors: rays, tracks, distance-to-mask images and the pixels left to the moving parts."""
     c2w = np.linalg.inv(camera.world_to_cam)
     homo = np.concatenate([tracks.uv0, np.ones((len(tracks.uv0), 1))], 1)
     rays = (np.linalg.inv(camera.K) @ homo.T).T @ c2w[:3, :3].T
@@ -184,8 +179,7 @@ def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit
                  tracks=torch.as_tensor(tracks.uv, dtype=d), trusted=torch.as_tensor(tracks.trusted),
                  outside=torch.as_tensor(outside, dtype=d), cover_px=cover,
                  root_motion=torch.as_tensor(root_motion, dtype=d), stride=float(tracks.stride),
-                 width=float(span * z_ref / camera.K[0, 0]), z_ref=z_ref, flow=_flow_tensor(tracks),
-                 colour=None if frames is None else torch.as_tensor(frames).permute(0, 3, 1, 2).float() / 255.0)
+                 width=float(span * z_ref / camera.K[0, 0]), z_ref=z_ref, flow=_flow_tensor(tracks))
 
 
 def _flow_tensor(tracks: Tracks) -> torch.Tensor | None:
@@ -476,15 +470,6 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> 
     best_loss = optimise(best, cfg, cfg.steps // 2, pairs, windows=1)
     for _ in range(cfg.relabel_rounds):
         best_loss = relabel_and_refine(best, tracks, cfg, cfg.steps // 2)
-    from sync4d.recon.video.labels import part_costs, potts_labels  # labels builds on this module
-
-    cost, start = part_costs(best), best.labels.numpy()
-    # the root takes no point from a moving part: a plain lid's sticking tracks make "static" the cheaper
-    # reading of its points (measured: laptop labels 0.79 -> 0.61-0.68 when it may)
-    cost[start != root, root] = np.inf
-    final = potts_labels(cost, tracks.uv0, tracks.stride, start)
-    log.info("recon=video: final labels change %d of %d points", int((final != best.labels.numpy()).sum()), len(final))
-    best.labels = torch.as_tensor(final)
     return _result(best, best_loss, history)
 
 

@@ -134,7 +134,7 @@ class VideoReconstructor:
                  tracks.stride, init.root, "static" if init.root_static else "moving", np.round(init.motion_px, 2))
         z_ref = reference_depth(camera)
         root_motion = self._root_motion(tracks, init, camera, z_ref)
-        scene = make_scene(tracks, masks, camera, init, z_ref, root_motion, rng, frames=clip.frames)
+        scene = make_scene(tracks, masks, camera, init, z_ref, root_motion, rng)
         threads = torch.get_num_threads()
         # the fit's tensors are small: one thread is several times faster than two fighting for a shared
         # CPU (measured 6.7 s vs 90 s for the same short fit on this machine under load)
