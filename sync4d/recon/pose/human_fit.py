@@ -191,8 +191,7 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig, fps: float =
         proj = _project(x, K_t)
         err = (proj - uv_t).norm(dim=-1) / focal
         hub = cfg.huber_px / focal
-        rob = torch.where(err < hub, 0.5 * err**2, hub * (err - 0.5 * hub))
-        l_rep = (rob * vis_t).sum() / vis_t.sum().clamp_min(1.0)
+        l_rep = (_huber(err, hub) * vis_t).sum() / vis_t.sum().clamp_min(1.0)
         rel = x - x[:, :1]
         l_world = ((rel - world_t).pow(2).sum(-1) * (0.2 + vis_t)).mean()
         seg_len = (x[:, seg_t] - x[:, par_t]).norm(dim=-1)
@@ -240,8 +239,12 @@ def _flow_loss(proj: torch.Tensor, flow: tuple[torch.Tensor, torch.Tensor], foca
     """Huber error of the projected joints' motion against the flow, in focal-length units."""
     target, weight = flow
     err = (proj[1:] - proj[:-1] - target).norm(dim=-1) / focal
-    rob = torch.where(err < hub, 0.5 * err**2, hub * (err - 0.5 * hub))
-    return (rob * weight).sum() / weight.sum().clamp_min(1.0)
+    return (_huber(err, hub) * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def _huber(err: torch.Tensor, delta: float) -> torch.Tensor:
+    """Huber penalty of non-negative errors: quadratic below ``delta``, linear above."""
+    return torch.where(err < delta, 0.5 * err**2, delta * (err - 0.5 * delta))
 
 
 def _project(x: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
