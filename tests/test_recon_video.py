@@ -203,3 +203,30 @@ def test_two_plate_slide_is_found_as_a_slide() -> None:
     # the camera sits at the origin, so the scale is the reference depth (1 m) against the true 1.2 m
     found = np.abs(fit.joints.values[:, moving])
     assert np.corrcoef(found, travel)[0, 1] > 0.99
+
+
+def test_tracks_on_a_plain_face_are_not_verified() -> None:
+    """A plain lid slides 3 px a frame over a static plain base of similar grey (a closed laptop's lid on
+    its base); a textured square moves the same. On the plain lid the chained flow sticks (small and still
+    forward-backward consistent), so 'trusted' alone keeps tracks that report under half the motion; the
+    patch check drops them and keeps the textured square's, which are right."""
+    from sync4d.recon.video.stages import TrackConfig, track_grid
+
+    yy, xx = np.mgrid[0:H, 0:W]
+    texture = (120 + 70 * np.sin(xx / 2.0) * np.cos(yy / 2.5)).astype(np.uint8)
+    frames, masks = np.full((6, H, W, 3), 30, np.uint8), np.zeros((6, H, W), bool)
+    for t in range(6):
+        x = 10 + 3 * t
+        frames[t, 16:80, 4:60] = 150  # the static base
+        frames[t, 20:76, x:x + 30] = 170  # the plain lid
+        frames[t, 20:76, x + 60:x + 90] = texture[20:76, 10:40, None]  # textured, carried with its square
+        masks[t, 16:80, 4:60] = masks[t, 20:76, x:x + 30] = masks[t, 20:76, x + 60:x + 90] = True
+    tracks = track_grid(frames, masks, TrackConfig(points=600))
+    lid = (tracks.uv0[:, 0] > 16) & (tracks.uv0[:, 0] < 34) & (tracks.uv0[:, 1] > 30) & (tracks.uv0[:, 1] < 66)
+    textured = (tracks.uv0[:, 0] > 72) & (tracks.uv0[:, 0] < 98) & (tracks.uv0[:, 1] > 24) & (tracks.uv0[:, 1] < 72)
+    moved = tracks.uv[-1, :, 0] - tracks.uv0[:, 0]
+    sticking = tracks.trusted[-1] & lid
+    assert sticking.sum() > 30 and np.median(moved[sticking]) < 7.5  # trusted, yet under half the true 15 px
+    assert not tracks.verified[-1, lid].any()
+    assert tracks.verified[-1, textured].mean() > 0.9
+    assert np.allclose(moved[tracks.verified[-1] & textured], 15.0, atol=1.0)

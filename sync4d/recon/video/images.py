@@ -89,6 +89,35 @@ def trusted_tracks(uv0: np.ndarray, fwd: np.ndarray, valid_flow: np.ndarray, mas
     return tracks, ok
 
 
+def patch_agreement(frames: np.ndarray, uv0: np.ndarray, uv: np.ndarray, *, radius: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """How well each track's frame-t patch matches its frame-0 patch.
+
+    Args:
+        frames: (T, H, W, 3) uint8 RGB.
+        uv0: (N, 2) frame-0 positions [px] (pixel k covers [k, k + 1)).
+        uv: (T, N, 2) tracked positions [px].
+        radius: the patches are (2 radius + 1)^2 pixels, bilinearly sampled.
+
+    Returns:
+        (ncc (T, N) normalised cross-correlation of the grey patches in [-1, 1], contrast (N,) standard
+        deviation of the frame-0 patch in grey levels / 255).
+    """
+    grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY).astype(np.float64)[..., None] / 255.0 for f in frames]
+    offsets = np.stack(np.meshgrid(np.arange(-radius, radius + 1), np.arange(-radius, radius + 1)), -1).reshape(-1, 2)
+
+    def centred(image: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        patch = np.stack([sample_image(image, centres - 0.5 + o)[:, 0] for o in offsets], 1)
+        return patch - patch.mean(1, keepdims=True)
+
+    first = centred(grey[0], uv0)
+    contrast = np.sqrt((first**2).mean(1))
+    ncc = np.empty(uv.shape[:2])
+    for t, image in enumerate(grey):
+        now = centred(image, uv[t])
+        ncc[t] = (first * now).mean(1) / np.maximum(contrast * np.sqrt((now**2).mean(1)), 1e-9)
+    return ncc, contrast
+
+
 def background_masks(frames: np.ndarray, *, threshold: float = 30.0, open_px: int = 3) -> np.ndarray:
     """(T, H, W) bool foreground by a median background model (static camera assumed).
 

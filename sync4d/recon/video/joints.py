@@ -5,7 +5,8 @@ moving part p is one rigid body on a joint relative to the root part (the base):
 a pivot P_p, angle theta_{t,p}) or a slide (direction a_p, travel s_{t,p}). All parts are fitted together
 by Adam on three image terms, each in units of the tracking grid's stride:
 
-    * tracks: projected points against their flow tracks, where the tracks are still trusted;
+    * tracks: projected points against their flow tracks, where the tracks are still verified (consistent,
+      inside the masks and matching their frame-0 patch: a plain face's tracks stick, see ``Tracks``);
     * inside: every projected point lies inside its frame's mask (distance transform outside it);
     * cover: every frame's mask pixels are near some projected point, or a point on a slide's path
       (truncated, so surfaces the first frame never saw cost a bounded amount);
@@ -74,7 +75,7 @@ class Scene:
         rays: (N, 3) world direction of each point's frame-0 pixel with unit camera depth.
         centre: (3,) camera centre [m].
         K, w2c: (3, 3) intrinsics, (4, 4) world -> camera.
-        tracks: (T, N, 2) [px]; trusted: (T, N) bool.
+        tracks: (T, N, 2) [px]; trusted: (T, N) bool, the verified tracks (``Tracks.verified``).
         outside: (T, H, W) distance to the mask [px] (0 inside).
         cover_px: list of T (M_t, 2) sampled mask pixels [px].
         root_motion: (T, 4, 4) the root's rigid motion (identity when static).
@@ -176,7 +177,7 @@ def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit
     d = torch.float64
     return Scene(rays=torch.as_tensor(rays, dtype=d), centre=torch.as_tensor(c2w[:3, 3], dtype=d),
                  K=torch.as_tensor(camera.K, dtype=d), w2c=torch.as_tensor(camera.world_to_cam, dtype=d),
-                 tracks=torch.as_tensor(tracks.uv, dtype=d), trusted=torch.as_tensor(tracks.trusted),
+                 tracks=torch.as_tensor(tracks.uv, dtype=d), trusted=torch.as_tensor(tracks.verified),
                  outside=torch.as_tensor(outside, dtype=d), cover_px=cover,
                  root_motion=torch.as_tensor(root_motion, dtype=d), stride=float(tracks.stride),
                  width=float(span * z_ref / camera.K[0, 0]), z_ref=z_ref, flow=_flow_tensor(tracks))

@@ -3,7 +3,8 @@
 Stages (each a module with its own config block, results passed as dataclasses):
     1. masks (:func:`~sync4d.recon.video.stages.video_masks`): the input's, or a median background model;
     2. flow and tracks (:func:`~sync4d.recon.video.stages.track_grid`): a grid of frame-0 mask pixels
-       chained through dense optical flow, trusted while forward-backward consistent and inside the masks;
+       chained through dense optical flow, trusted while forward-backward consistent and inside the masks,
+       verified while their patch still matches frame 0's (the fit uses only verified tracks);
     3. initialisation (:func:`~sync4d.recon.video.stages.init_parts`): parts by clustering position and
        track displacement, refined by affine motion; the root is the part that moves least;
     4. silhouette and joint fit (:func:`~sync4d.recon.video.joints.fit_joints`): depths, one hinge or slide
