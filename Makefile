@@ -41,7 +41,7 @@ $(STAMP): requirements.txt $(POSE_MODELS)
 train: $(STAMP)
 	$(PY) train.py $(ARGS)
 
-# The fast lane (at most 4 minutes idle here): lint, then every test not marked slow.
+# The fast lane (4-6 minutes idle here, depending on the machine): lint, then every test not marked slow.
 test: $(STAMP)
 	$(PY) -m ruff check sync4d sync4d_tools tests benchmarks plugins train.py
 	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
