@@ -230,21 +230,3 @@ def test_tracks_on_a_plain_face_are_not_verified() -> None:
     assert not tracks.verified[-1, lid].any()
     assert tracks.verified[-1, textured].mean() > 0.9
     assert np.allclose(moved[tracks.verified[-1] & textured], 15.0, atol=1.0)
-
-
-def test_hinge_search_helpers() -> None:
-    """The search's lattice covers the hemisphere evenly and its Viterbi track follows the cheapest angles
-    within the step limit, starting at rest."""
-    from sync4d.recon.video.search import best_track, hemisphere_directions, rotations
-
-    dirs = hemisphere_directions(48)
-    assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0) and (dirs[:, 2] > 0).all()
-    assert np.abs(dirs[:, :2].mean(0)).max() < 0.05  # no side favoured
-    angles = np.radians(np.arange(-180.0, 180.0, 10.0))
-    truth = np.radians([0.0, 20.0, 40.0, 60.0, 40.0])
-    costs = np.abs(angles[None] - truth[:, None])  # cheapest at the true angle of each frame
-    costs[2, np.argmin(np.abs(angles + np.radians(40.0)))] = -1.0  # a lure 80 degrees away in one frame
-    loss, track = best_track(costs, angles, np.radians(30.0))
-    assert np.allclose(track, truth) and loss == pytest.approx(0.0, abs=1e-2)
-    rot = rotations(np.array([[0.0, 0.0, 1.0]]), np.array([np.pi / 2]))[0, 0]
-    assert np.allclose(rot @ [1.0, 0, 0], [0, 1.0, 0])

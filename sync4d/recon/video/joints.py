@@ -32,7 +32,6 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from sync4d.recon.video.search import search_hinges
 from sync4d.recon.video.stages import PartInit, Tracks
 from sync4d.types import Camera
 
@@ -51,7 +50,6 @@ class FitConfig:
     lr: learning rate (depths, axes, pivots in object widths; joint values in rad or object widths).
     axis_starts: hinge-axis starts tried per fit (world x, y, z, each part's border with the root,
         then diagonals; at most 7).
-    search_starts: further starts from the global hinge search (its best hypotheses).
     cover_weight: weight of the cover term against the track term.
     inside_weight: weight of the inside-the-mask term.
     smooth_weight: weight of the depth and temporal smoothness priors.
@@ -62,7 +60,6 @@ class FitConfig:
     steps: int = 240
     lr: float = 0.03
     axis_starts: int = 4
-    search_starts: int = 2
     cover_weight: float = 3.0
     inside_weight: float = 3.0
     smooth_weight: float = 1.0
@@ -227,14 +224,7 @@ class Articulation(torch.nn.Module):
         self.coords = torch.cat([torch.ones(len(labels), 1, dtype=d), (scene.rays @ scene.w2c[:3, :3].T)[:, :2]], 1)
         inv = np.exp(-np.asarray(log_depth))
         plane = np.zeros((len(kinds), 3))
-        plane[:, 0] = inv.mean()
-        coords = self.coords.numpy()
-        for b in range(len(kinds)):  # each part's plane fitted to its points' inverse depths
-            own = labels == b
-            if own.sum() >= 3:
-                plane[b] = np.linalg.lstsq(coords[own], inv[own], rcond=None)[0]
-            elif own.any():
-                plane[b, 0] = inv[own].mean()
+        plane[:, 0] = [inv[labels == b].mean() if (labels == b).any() else inv.mean() for b in range(len(kinds))]
         self.plane = torch.nn.Parameter(torch.as_tensor(plane, dtype=d))
         self.resid = torch.nn.Parameter(torch.zeros(len(labels), dtype=d))
         self.axes = torch.nn.Parameter(torch.as_tensor(axes, dtype=d))
@@ -467,17 +457,19 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> 
     """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms (the camera is
     the scene's)."""
     labels, root = init.labels.copy(), init.root
-    n_parts = int(labels.max()) + 1
+    n_parts, n_frames = int(labels.max()) + 1, tracks.uv.shape[0]
     pivots, border = _start(scene, tracks, labels, root)
     pairs = neighbour_pairs(tracks.uv0, labels, tracks.stride)
+    log_d = np.full(len(labels), np.log(scene.z_ref))
     kinds = ["root" if b == root else "hinge" for b in range(n_parts)]
     best, best_loss, history = None, np.inf, []
-    for s, (axes, values, log_d, windows) in enumerate(hinge_starts(scene, tracks, labels, root, pivots, border, cfg)):
-        model = Articulation(scene, labels, root, kinds, axes, pivots, values, log_d)
+    for s in range(max(1, min(cfg.axis_starts, len(AXIS_STARTS) + 1))):
+        axes = axis_start(s, border)
+        model = Articulation(scene, labels, root, kinds, axes, pivots, np.zeros((n_frames, n_parts)), log_d)
         # the starts follow every consistent track: a sticking track under-reports its part's motion but
         # still points the way, and a start needs any cue to reach the right basin (the lever's starts all
         # ended at 3-4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
-        loss = optimise(model, cfg, cfg.steps // 3, pairs, windows=windows, verified_only=False)
+        loss = optimise(model, cfg, cfg.steps // 3, pairs, verified_only=False)
         history.append(loss)
         log.info("recon=video: hinge start %d (axes %s): data loss %.4f", s, np.round(axes, 2).tolist(), loss)
         if loss < best_loss:
@@ -488,32 +480,6 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> 
     for _ in range(cfg.relabel_rounds):
         best_loss = relabel_and_refine(best, tracks, cfg, cfg.steps // 2)
     return _result(best, best_loss, history)
-
-
-def hinge_starts(scene: Scene, tracks: Tracks, labels: np.ndarray, root: int, pivots: np.ndarray, border: np.ndarray,
-                 cfg: FitConfig) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, int]]:
-    """(axes (B, 3), values (T, B), log depths (N,), Adam windows) of every hinge start: ``cfg.axis_starts``
-    fixed axes (world x, y, z, the border, ...) at rest on the reference plane, followed over a growing
-    window; then the ``cfg.search_starts`` best hypotheses of the global search (axis, angle track and
-    surface tilt per part, :mod:`sync4d.recon.video.search`), fitted over all frames at once."""
-    n_frames, n_parts = tracks.uv.shape[0], len(pivots)
-    flat = np.full(len(labels), np.log(scene.z_ref))
-    out = [(axis_start(s, border), np.zeros((n_frames, n_parts)), flat, 4)
-           for s in range(min(cfg.axis_starts, len(AXIS_STARTS) + 1))]
-    if cfg.search_starts < 1:
-        return out
-    arrays = {"K": scene.K.numpy(), "w2c": scene.w2c.numpy(), "outside": scene.outside.numpy(),
-              "cover_px": [c.numpy() for c in scene.cover_px], "stride": scene.stride}
-    found = search_hinges(scene.rays.numpy(), scene.centre.numpy(), scene.z_ref, labels, root, pivots, border, arrays,
-                          tracks, cover_weight=cfg.cover_weight, inside_weight=cfg.inside_weight)
-    for s in range(cfg.search_starts):
-        axes, values, log_d = border.copy(), np.zeros((n_frames, n_parts)), flat.copy()
-        for b, hyps in enumerate(found):
-            if hyps:
-                h = hyps[min(s, len(hyps) - 1)]
-                axes[b], values[:, b], log_d[labels == b] = h.axis, h.angles, np.log(h.depth)
-        out.append((axes, values, log_d, 1))
-    return out
 
 
 def relabel_and_refine(model: Articulation, tracks: Tracks, cfg: FitConfig, steps: int) -> float:
