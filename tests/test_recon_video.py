@@ -118,6 +118,8 @@ def test_config_errors_name_the_key() -> None:
         build("recon", {"type": "video", "bones": 0})
     with pytest.raises(ConfigError, match="points"):
         build("recon", {"type": "video", "tracks": {"points": 3}})
+    with pytest.raises(ConfigError, match="patch_ncc"):
+        build("recon", {"type": "video", "tracks": {"patch_ncc": 1.5}})
     with pytest.raises(ConfigError, match="recon.fit.nonsense"):
         build("recon", {"type": "video", "fit": {"nonsense": 1}})
     with pytest.raises(ConfigError, match="source"):

@@ -468,7 +468,7 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> 
         model = Articulation(scene, labels, root, kinds, axes, pivots, np.zeros((n_frames, n_parts)), log_d)
         # the starts follow every consistent track: a sticking track under-reports its part's motion but
         # still points the way, and a start needs any cue to reach the right basin (the lever's starts all
-        # ended at 3-4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
+        # ended at about 4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
         loss = optimise(model, cfg, cfg.steps // 3, pairs, verified_only=False)
         history.append(loss)
         log.info("recon=video: hinge start %d (axes %s): data loss %.4f", s, np.round(axes, 2).tolist(), loss)

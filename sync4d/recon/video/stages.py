@@ -37,9 +37,10 @@ class TrackConfig:
     flow: dense optical flow: ``dis`` or ``farneback`` (OpenCV).
     check_px: forward-backward consistency tolerance of a flow vector [px].
     points: about this many first-frame mask pixels are tracked (a regular grid).
-    patch_ncc: a track stays trusted while its 7x7 grey patch correlates with its frame-0 patch at least
-        this much, and only where the frame-0 patch has contrast (``MIN_PATCH_CONTRAST``): flow on a plain
-        face is near zero and still forward-backward consistent, so unverified tracks stick.
+    patch_ncc: a trusted track is also verified while its 7x7 grey patch correlates with its frame-0 patch
+        at least this much (in [-1, 1]), and only where the frame-0 patch has contrast
+        (``MIN_PATCH_CONTRAST``): flow on a plain face is near zero and still forward-backward consistent,
+        so unverified tracks stick.
     """
 
     flow: Literal["dis", "farneback"] = "dis"
