@@ -18,7 +18,7 @@ from sync4d.config_schemas import register_schemas  # noqa: E402
 
 @hydra.main(version_base="1.3", config_path=str(ROOT / "conf"), config_name="config")
 def main(cfg: DictConfig) -> float | None:
-    from sync4d.pipeline import run_guarded
+    from sync4d.run.pipeline import run_guarded
 
     metrics = run_guarded(cfg)
     return None if not metrics else metrics.get("pose_error_pct") or metrics.get("displacement_error_pct")

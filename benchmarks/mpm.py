@@ -59,7 +59,7 @@ def _thread_cpu() -> dict[int, float]:
 
 
 class _CriticalPath:
-    """Wraps the simulator's thread hand-over (``_Workspace.run``) to estimate the wall time on idle cores.
+    """Wraps the simulator's thread hand-over (``Workspace.run``) to estimate the wall time on idle cores.
 
     Each parallel section costs the CPU time of its slowest task (``time.thread_time`` in each thread);
     everything else the main thread does is serial. Estimate = main thread's CPU - its CPU inside the
@@ -68,11 +68,11 @@ class _CriticalPath:
     """
 
     def __init__(self) -> None:
-        from sync4d.sim import mpm_warp
+        from sync4d.sim.mpm_warp.model import Workspace
 
         self.sections = 0.0  # sum over sections of the slowest task [CPU s]
         self.main_inside = 0.0  # main thread's CPU inside sections [s]
-        self._orig = mpm_warp._Workspace.run
+        self._orig = Workspace.run
         path = self
 
         def run(ws, task):
@@ -95,7 +95,7 @@ class _CriticalPath:
             path.main_inside += time.thread_time() - c0
             path.sections += max(spent)
 
-        mpm_warp._Workspace.run = run
+        Workspace.run = run
 
 
 def _scene(n_particles: int, n_grid: int, checkpoint_every: int | None = None, threads: int | None = None):
@@ -177,7 +177,7 @@ def run_split(n_particles: int, n_grid: int) -> dict:
     import numpy as np
     import warp as wp
 
-    from sync4d.sim import _kernels as K
+    from sync4d.sim.mpm_warp import kernels as K
 
     sim, model, st, v0 = _scene(n_particles, n_grid)
     sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=2, dt=DT)

@@ -30,7 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from sync4d.render.camera import look_at  # noqa: E402
 from sync4d.render.splat_torch import SplatTorch  # noqa: E402
-from sync4d.types import Camera, quat_to_matrix  # noqa: E402
+from sync4d.geometry import quat_to_matrix  # noqa: E402
+from sync4d.types import Camera  # noqa: E402
 
 
 def random_scene(n: int, camera: Camera, *, seed: int = 0) -> dict[str, np.ndarray]:

@@ -93,7 +93,7 @@ def check_run_dir(argv: list[str]) -> None:
     if not run_dir or any(arg in ("-m", "--multirun") for arg in argv):
         return
     from sync4d.errors import Sync4DError
-    from sync4d.pipeline import claim_run_dir
+    from sync4d.run.pipeline import claim_run_dir
 
     resume = values.get("resume")
     try:

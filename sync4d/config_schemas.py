@@ -12,7 +12,7 @@ import dataclasses
 
 from hydra.core.config_store import ConfigStore
 
-from sync4d.registry import GROUPS, _REGISTRY, omegaconf_schema
+from sync4d.registry import GROUPS, available, lookup, omegaconf_schema
 
 _registered = False
 
@@ -35,14 +35,14 @@ def register_schemas() -> None:
     load_all()
     store = ConfigStore.instance()
     for group in GROUPS:
-        for name, cls in _REGISTRY[group].items():
-            schema = omegaconf_schema(cls.Config)
+        for name in available(group):
+            cls = lookup(group, name)
+            schema = omegaconf_schema(cls.Config)  # type: ignore[attr-defined]
             node = dataclasses.make_dataclass(
                 f"{schema.__name__}_{group}_{name}", [("type", str, dataclasses.field(default=name))], bases=(schema,)
             )
             store.store(group=group, name=schema_name(name), node=node)
     from sync4d.match import MatchConfig
-
     from sync4d.transfer import TransferConfig
 
     store.store(group="match", name="defaults", node=omegaconf_schema(MatchConfig))

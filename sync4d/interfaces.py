@@ -7,19 +7,18 @@ dependencies each group receives are listed below. ``device`` is always the conf
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Iterator
 from typing import Any, Protocol
 
 import numpy as np
+import torch
 
 from sync4d.types import (
     Camera,
-    DrivingMotion,
-    PartMap,
+    FramePose,
     Reference,
     ReferenceInput,
     TargetGaussians,
-    Trajectory,
 )
 
 
@@ -52,27 +51,77 @@ class FeatureExtractor(Protocol):
 
 
 class Simulator(Protocol):
-    """Group ``sim``: built with ``(cfg, device=...)``; animates the target with the driving motion.
+    """Group ``sim``: built with ``(cfg, device=...)``. A simulator only steps: it models a particle set and
+    advances a state by one frame; the transfer stage (:mod:`sync4d.transfer`) owns the frame-pair loop.
 
-    ``velocity_cfg`` selects the velocity field (ignored by ``sim=lbs``); ``on_frame(t, x, F, stats,
-    checkpoint=None, control=None)`` is called after every completed frame with the Gaussians' positions
-    (N, 3) [m] and deformation gradients (N, 3, 3), or, with ``control`` (a
-    :class:`sync4d.sim.control.ControlPoints`), those of the P control points the Gaussians follow, so the
-    pipeline writes outputs as the run goes; ``checkpoint`` is the simulator's state to resume from.
-    ``resume`` is that state (plus ``frame``) when resuming.
+    ``differentiable``: whether :meth:`rollout` carries gradients to its inputs (velocity training needs it);
+    ``dtype``: the float type of the states it steps.
+    The model is whatever the simulator needs that a rollout does not change (grid, masses, skinning weights).
     """
 
-    def run(
-        self,
-        target: TargetGaussians,
-        part_map: PartMap,
-        motion: DrivingMotion,
-        *,
-        velocity_cfg: Any,
-        num_frames: int,
-        on_frame: Callable[..., None] | None = None,
-        resume: dict[str, Any] | None = None,
-    ) -> Trajectory: ...
+    differentiable: bool
+    dtype: torch.dtype
+
+    def prepare(
+        self, points: np.ndarray, *, volume: np.ndarray | None = None, part: np.ndarray | None = None,
+        driven: np.ndarray | None = None,
+    ) -> Any:
+        """The model of (P, 3) rest particles [m] with (P,) volumes [m^3], parts and driven flags."""
+        ...
+
+    def domain(self, model: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The box the simulation lives in [m], (3,) low and high corners (a velocity field spans it)."""
+        ...
+
+    def frame_time_for(self, fps: float | None) -> float:
+        """Simulated time of one frame [s]."""
+        ...
+
+    def substeps_for(self, model: Any, v_max: float = 0.0, *, fps: float | None = None) -> tuple[int, float]:
+        """Substeps N and dt [s] of one frame for particles up to ``v_max`` [m/s] fast."""
+        ...
+
+    def rollout(
+        self, model: Any, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *,
+        substeps: int, dt: float, frame_index: int = 0, pose: FramePose | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(x, v, F, C) after ``substeps`` substeps of ``dt`` [s] (shapes (P, 3), (P, 3), (P, 3, 3),
+        (P, 3, 3)); ``pose`` is the driving motion of the frame pair."""
+        ...
+
+
+class VelocityField(Protocol):
+    """Group ``velocity``: built with ``(cfg, num_parts=B, bounds=(lo, hi), seed=...)``; a torch module giving
+    the delta velocity [m/s] added to the reference velocities (paper Eq. v <- v0 + dv)."""
+
+    trainable: bool
+    velocity_scale: float
+
+    def __call__(self, x: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
+        """(P, 3) positions [m], (P,) parts -> (P, 3) delta velocities [m/s]."""
+        ...
+
+    def regularizer(self) -> torch.Tensor:
+        """The field's own loss term (e.g. the triplane's total variation)."""
+        ...
+
+    def parameters(self) -> Iterator[torch.nn.Parameter]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> Any: ...
+
+
+class Logger(Protocol):
+    """Group ``logger``: built with ``(cfg, run_dir=...)``; scalars, images and hyper-parameters of a run."""
+
+    def scalar(self, tag: str, value: float, step: int) -> None: ...
+
+    def image(self, tag: str, image: np.ndarray, step: int = 0) -> None: ...
+
+    def hparams(self, params: dict[str, Any], metrics: dict[str, float]) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class Renderer(Protocol):

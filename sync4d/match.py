@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 from sync4d.align import AlignResult, Similarity, align_shapes, normalization
 from sync4d.match_structure import StructureConfig, StructureMatch, match_structure
 from sync4d.skeleton import SkeletonConfig, cloud_volume_points, volume_points
-from sync4d.surface_sample import area_samples
+from sync4d.surface import area_samples
 from sync4d.errors import ConfigError, InputError
 from sync4d.interfaces import FeatureExtractor
 from sync4d.types import PartMap, Reference, TargetGaussians

@@ -20,6 +20,7 @@ import functools
 import types
 import typing
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any, Literal, TypeVar
 
 from omegaconf import DictConfig, OmegaConf
@@ -30,8 +31,6 @@ from sync4d.errors import ConfigError, RegistryError
 GROUPS: tuple[str, ...] = ("reference", "recon", "features", "target", "sim", "velocity", "render", "logger")
 
 _REGISTRY: dict[str, dict[str, type]] = {group: {} for group in GROUPS}
-# Optional built-ins that could not be imported (e.g. a CUDA-only backend): name -> reason.
-_FAILED_IMPORTS: dict[str, str] = {}
 
 T = TypeVar("T", bound=type)
 
@@ -68,11 +67,6 @@ def unregister(group: str, name: str) -> None:
     _REGISTRY[group].pop(name, None)
 
 
-def record_failed_import(name: str, reason: str) -> None:
-    """Remember an optional built-in that could not be imported, to list it in 'unknown name' errors."""
-    _FAILED_IMPORTS[name] = reason
-
-
 def available(group: str) -> list[str]:
     """Sorted names registered in ``group``."""
     _ensure_plugins_loaded()
@@ -85,19 +79,12 @@ def lookup(group: str, name: str) -> type:
     """The class registered as ``group``/``name``; an unknown name lists what is available."""
     names = available(group)
     if name not in _REGISTRY[group]:
-        failed = [f"{k} ({v})" for k, v in sorted(_FAILED_IMPORTS.items())]
-        hint = f"; failed to import: {', '.join(failed)}" if failed else ""
-        raise RegistryError(f"unknown {group} '{name}'; available: {', '.join(names) or '(none)'}{hint}")
+        raise RegistryError(f"unknown {group} '{name}'; available: {', '.join(names) or '(none)'}")
     return _REGISTRY[group][name]
 
 
-def make_config(
-    group: str, cfg: Mapping[str, Any] | DictConfig, *, shrink: Mapping[str, Any] | None = None
-) -> tuple[type, Any]:
+def make_config(group: str, cfg: Mapping[str, Any] | DictConfig) -> tuple[type, Any]:
     """Merge a YAML/dict config (with a ``type`` key) into the component's typed ``Config``.
-
-    ``shrink`` holds values applied only where the selected component has that field (the
-    ``debug=smoke`` config uses it to make every component tiny without knowing which one is selected).
 
     Returns:
         (component class, typed Config instance).
@@ -105,22 +92,56 @@ def make_config(
     Raises:
         ConfigError: missing ``type``, an unknown key, or a value of the wrong type; names the key.
     """
-    if isinstance(cfg, DictConfig):
-        values = OmegaConf.to_container(cfg, resolve=True)
-    else:
-        values = dict(cfg)
-    assert isinstance(values, dict)
+    values = plain_dict(cfg)
     name = values.pop("type", None)
     if name is None:
         raise ConfigError(f"{group}: config has no 'type' key; set {group}=<one of {', '.join(available(group))}>")
     cls = lookup(group, str(name))
-    if shrink:
-        values.update(applicable_shrink(cls, values, shrink))
     typed = typed_config(cls.Config, values, where=f"{group}", label=f"{group}={name}")
     check = getattr(typed, "validate", None)
     if callable(check):
         check()
     return cls, typed
+
+
+@dataclass(frozen=True)
+class Component:
+    """A selected component: its group, registered name, class and typed ``Config`` (what a run plan holds).
+
+    Attributes:
+        group: the registry group (``sim``); name: the registered name (``mpm_warp``).
+        cls: the registered class; config: an instance of its ``Config``.
+    """
+
+    group: str
+    name: str
+    cls: type
+    config: Any
+
+    def build(self, **deps: Any) -> Any:
+        """The component, built with its typed config and keyword dependencies (``device=...``)."""
+        return self.cls(self.config, **deps)
+
+    def values(self) -> dict[str, Any]:
+        """The config as plain values with ``type`` (for cache keys and records)."""
+        return {"type": self.name, **dataclasses.asdict(self.config)}
+
+    def with_values(self, **changes: Any) -> Component:
+        """The same component with some config fields changed (validated again)."""
+        return component(self.group, {**self.values(), **changes})
+
+
+def component(group: str, cfg: Mapping[str, Any] | DictConfig) -> Component:
+    """The :class:`Component` a group's config selects (see :func:`make_config`)."""
+    cls, typed = make_config(group, cfg)
+    return Component(group, str(cls.registry_name), cls, typed)  # type: ignore[attr-defined]
+
+
+def plain_dict(cfg: Mapping[str, Any] | DictConfig) -> dict[str, Any]:
+    """A config node or mapping as a plain, resolved dict."""
+    values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    assert isinstance(values, dict)
+    return {str(k): v for k, v in values.items()}
 
 
 def typed_config(config: type, values: Mapping[str, Any], *, where: str, label: str) -> Any:
@@ -189,46 +210,9 @@ def omegaconf_schema(config: type) -> type:
     return dataclasses.make_dataclass(f"{config.__qualname__.replace('.', '_')}Schema", fields)
 
 
-def effective_config(group: str, cfg: Mapping[str, Any] | DictConfig, shrink: Mapping[str, Any] | None) -> dict:
-    """The group's config as a plain dict with the ``shrink`` values its component knows applied."""
-    values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-    assert isinstance(values, dict)
-    if shrink and "type" in values:
-        values.update(applicable_shrink(lookup(group, str(values["type"])), values, shrink))
-    return values
-
-
-def applicable_shrink(cls: type, values: Mapping[str, Any], shrink: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``shrink`` values the component's Config has a field for, of a compatible kind.
-
-    A scalar never replaces a list (e.g. ``iterations: 30`` against a per-level ``[250, 150]``): such a
-    value is skipped rather than turned into a type error.
-    """
-    fields = {f.name: f for f in dataclasses.fields(cls.Config)}
-    out = {}
-    for key, value in dict(shrink).items():
-        if key not in fields:
-            continue
-        current = values.get(key, getattr(cls.Config(), key, None) if _has_defaults(cls.Config) else None)
-        if isinstance(current, (list, tuple)) != isinstance(value, (list, tuple)):
-            continue
-        out[key] = value
-    return out
-
-
-def _has_defaults(config: type) -> bool:
-    return all(
-        f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING  # type: ignore[misc]
-        for f in dataclasses.fields(config)
-    )
-
-
-def build(
-    group: str, cfg: Mapping[str, Any] | DictConfig, *, shrink: Mapping[str, Any] | None = None, **deps: Any
-) -> Any:
+def build(group: str, cfg: Mapping[str, Any] | DictConfig, **deps: Any) -> Any:
     """Build the component selected by ``cfg.type`` with its typed config and keyword dependencies."""
-    cls, typed = make_config(group, cfg, shrink=shrink)
-    return cls(typed, **deps)
+    return component(group, cfg).build(**deps)
 
 
 _plugins_loaded = False

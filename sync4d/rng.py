@@ -4,17 +4,12 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 
 def torch_generator(seed: int) -> torch.Generator:
     """A CPU ``torch.Generator`` seeded with ``seed`` (parameters are initialised on the CPU, then moved)."""
     return torch.Generator().manual_seed(int(seed))
-
-
-def numpy_generator(seed: int) -> np.random.Generator:
-    return np.random.default_rng(int(seed))
 
 
 def init_linear_layers(module: torch.nn.Module, generator: torch.Generator) -> None:

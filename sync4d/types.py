@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from sync4d.geometry import SH_C0, quat_to_matrix
+
 from sync4d.errors import InputError
 
 Dim = int | str  # a fixed size, or a symbol bound to the first size seen for it
@@ -378,51 +380,6 @@ class DrivingMotion:
         return self
 
 
-@dataclass(frozen=True)
-class SimState:
-    """State of the simulated particles (control points or Gaussians).
-
-    Attributes:
-        x: (P, 3) positions [m].
-        v: (P, 3) velocities [m/s].
-        F: (P, 3, 3) deformation gradients (dimensionless).
-        C: (P, 3, 3) APIC affine velocity matrices [1/s].
-        volume: (P,) initial volumes V_p^0 [m^3].
-        mass: (P,) masses [kg].
-        E: Young's modulus [Pa].
-        nu: Poisson's ratio, in [0, 0.5).
-        density: [kg/m^3].
-    """
-
-    x: np.ndarray
-    v: np.ndarray
-    F: np.ndarray
-    C: np.ndarray
-    volume: np.ndarray
-    mass: np.ndarray
-    E: float
-    nu: float
-    density: float
-
-    @property
-    def num(self) -> int:
-        return int(self.x.shape[0])
-
-    def validate(self) -> SimState:
-        dims: dict[str, int] = {}
-        check_array("SimState", "x", self.x, ("P", 3), dims)
-        check_array("SimState", "v", self.v, ("P", 3), dims)
-        check_array("SimState", "F", self.F, ("P", 3, 3), dims)
-        check_array("SimState", "C", self.C, ("P", 3, 3), dims)
-        check_array("SimState", "volume", self.volume, ("P",), dims)
-        check_array("SimState", "mass", self.mass, ("P",), dims)
-        _require(dims["P"] > 0, "SimState.x: no particles to simulate")
-        _require(bool(np.all(self.volume > 0)), "SimState.volume: volumes must be > 0")
-        _require(bool(np.all(self.mass > 0)), "SimState.mass: masses must be > 0")
-        validate_material(self.E, self.nu, self.density)
-        return self
-
-
 def validate_material(E: float, nu: float, density: float, *, where: str = "sim") -> None:
     """Refuse physically meaningless materials before any kernel runs.
 
@@ -478,45 +435,6 @@ class Trajectory:
         return self
 
 
-SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi)): RGB = 0.5 + SH_C0 * f_dc
-
-
-def quat_to_matrix(quats: np.ndarray) -> np.ndarray:
-    """(N, 4) wxyz quaternions (any length) -> (N, 3, 3) rotation matrices (float64)."""
-    q = np.asarray(quats, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def matrix_to_quat(mats: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices -> (N, 4) wxyz unit quaternions with w >= 0 (float64)."""
-    m = np.asarray(mats, dtype=np.float64)
-    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
-    cands = np.stack(
-        [
-            np.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
-            np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - trace, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
-            np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 + 2 * m[..., 1, 1] - trace, m[..., 1, 2] + m[..., 2, 1]], -1),
-            np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 + 2 * m[..., 2, 2] - trace], -1),
-        ],
-        -2,
-    )
-    # Pick the numerically largest candidate (Shepperd's method) per matrix.
-    diag = np.stack([trace, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1)
-    best = np.argmax(diag, axis=-1)
-    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
-
-
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera.
@@ -567,3 +485,29 @@ class ReferenceInput:
     path: str | None = None
     ground_truth: Reference | None = None
     world_up: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class FramePose:
+    """The driving motion over one frame pair, in the target's frame: what a simulator may follow.
+
+    Attributes:
+        start: (B, 4, 4) each part's rest -> frame t transform.
+        end: (B, 4, 4) each part's rest -> frame t+1 transform.
+        pivots: (B, 3) rest-space point each part turns about between the two [m] (its centroid).
+    """
+
+    start: np.ndarray
+    end: np.ndarray
+    pivots: np.ndarray
+
+    @property
+    def num_parts(self) -> int:
+        return int(self.start.shape[0])
+
+    def validate(self) -> FramePose:
+        dims: dict[str, int] = {}
+        check_array("FramePose", "start", self.start, ("B", 4, 4), dims)
+        check_array("FramePose", "end", self.end, ("B", 4, 4), dims)
+        check_array("FramePose", "pivots", self.pivots, ("B", 3), dims)
+        return self

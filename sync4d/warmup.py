@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Sequence
 
 ROOT = Path(__file__).resolve().parent.parent
-KERNEL_MODULES: tuple[str, ...] = ("sync4d.sim._kernels",)
+KERNEL_MODULES: tuple[str, ...] = ("sync4d.sim.mpm_warp.kernels",)
 
 
 def warm(device: str = "cpu", modules: Sequence[str] = KERNEL_MODULES) -> float:

@@ -147,7 +147,7 @@ def surface_samples(
 ) -> tuple[np.ndarray, np.ndarray]:
     """``count`` (face index, barycentric weights (count, 3)) samples uniform by area on the rest mesh; the same
     samples move with the mesh in every frame."""
-    from sync4d.surface_sample import area_samples
+    from sync4d.surface import area_samples
 
     sampled = area_samples(vertices[faces], count, rng)
     if sampled is None:

@@ -72,7 +72,7 @@ def assert_same_run(a: Path, b: Path) -> None:
 def train_in_process(run_dir: Path, *overrides: str) -> tuple[int, str]:
     """What ``python train.py debug=smoke <overrides> hydra.run.dir=<run_dir>`` would do, in this process.
 
-    The same command-line checks, composition and :func:`sync4d.pipeline.run_guarded`, without paying
+    The same command-line checks, composition and :func:`sync4d.run.pipeline.run_guarded`, without paying
     for a new interpreter (torch, Warp, Hydra: seconds per launch). Returns (exit code, stderr text);
     log records go elsewhere, as under Hydra they go to the run's log.
     """
@@ -84,7 +84,7 @@ def train_in_process(run_dir: Path, *overrides: str) -> tuple[int, str]:
     from omegaconf import open_dict
 
     from sync4d.cli import check_command_line
-    from sync4d.pipeline import run_guarded
+    from sync4d.run.pipeline import run_guarded
 
     argv = ["debug=smoke", *overrides, f"hydra.run.dir={run_dir}"]
     err = io.StringIO()
@@ -94,10 +94,12 @@ def train_in_process(run_dir: Path, *overrides: str) -> tuple[int, str]:
     try:
         with contextlib.redirect_stderr(err):
             check_command_line(argv, ROOT / "conf")
+            overrides = [a for a in argv if not a.startswith("hydra.")]
             with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-                cfg = compose(config_name="config", overrides=[a for a in argv if not a.startswith("hydra.")])
+                cfg = compose(config_name="config", overrides=overrides)
             with open_dict(cfg):
                 cfg.run_dir = str(run_dir)
+                cfg.hydra = {"overrides": {"task": overrides}}  # what Hydra records of the command line
             run_guarded(cfg)
         return 0, err.getvalue()
     except SystemExit as stop:

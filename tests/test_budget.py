@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sync4d.budget import choose_budget, choose_control_grid, grid_for_cells
-from sync4d.motion import driving_motion
+from sync4d.transfer.budget import choose_budget, choose_control_grid, grid_for_cells
+from sync4d.transfer.motion import driving_motion
 from sync4d.scenes.laptop import laptop_reference
 from sync4d.sim import physics
 
@@ -53,34 +53,29 @@ def _laptop_scene():
     return target, motion
 
 
-def test_stiff_material_is_refused_in_seconds_naming_E_and_the_fix():
-    import time
-
+def test_stiff_material_is_refused_before_simulating_naming_E_and_the_fix():
     import pytest
 
-    from sync4d.budget import check_run_cost
     from sync4d.errors import ConfigError
-
-    import sync4d.sim.mpm_warp  # noqa: F401 - imported (Warp loaded) before the clock starts
-    import sync4d.velocity.fields  # noqa: F401
+    from sync4d.sim.mpm_warp import MPMWarp
+    from sync4d.transfer import TransferConfig
+    from sync4d.transfer.budget import check_run_cost
 
     target, motion = _laptop_scene()
-    started = time.perf_counter()
     with pytest.raises(ConfigError, match=r"^sim\.E=1e\+12 Pa: .* substeps per frame exceed sim\.max_substeps=2000 .*"
                        r"lower sim\.E \(about .* Pa or less fits\)") as info:
-        check_run_cost({"type": "mpm_warp", "E": 1e12}, {"type": "triplane"}, target, motion, frames=24)
-    assert time.perf_counter() - started < 5.0  # milliseconds here; the bound leaves room for a busy machine
+        check_run_cost(MPMWarp.Config(E=1e12), TransferConfig(), True, target, motion, frames=24)
     assert "\n" not in str(info.value)
 
 
 def test_cost_estimate_follows_the_cfl_model_and_scales_with_stiffness():
-    from sync4d.budget import SimSettings, estimate_cost
+    from sync4d.transfer.budget import SimSettings, estimate_cost
     from sync4d.sim.mpm_warp import MPMWarp
 
     target, motion = _laptop_scene()
-    cfg = MPMWarp.Config(control_grid=None)
-    soft = estimate_cost(target.means, motion, SimSettings.of(cfg), frames=24, iterations=12)
-    stiff = estimate_cost(target.means, motion, SimSettings.of(MPMWarp.Config(E=1e6, control_grid=None)), frames=24,
+    cfg = MPMWarp.Config()
+    soft = estimate_cost(target.means, motion, SimSettings.of(cfg, None), frames=24, iterations=12)
+    stiff = estimate_cost(target.means, motion, SimSettings.of(MPMWarp.Config(E=1e6), None), frames=24,
                           iterations=12)
     frame_time = 1.0 / motion.fps
     # the substep meets the CFL bound used by the simulator (with the transfer's speed headroom)
@@ -110,18 +105,18 @@ def test_train_refuses_a_stiff_material_before_simulating(tmp_path):
 
 def test_estimated_memory_of_a_control_point_run_does_not_grow_with_frames_times_gaussians():
     """With control points the run holds per-point frames: 4x the frames adds megabytes, not N x T."""
-    from sync4d.budget import SimSettings, estimate_cost
+    from sync4d.transfer.budget import SimSettings, estimate_cost
     from sync4d.sim.mpm_warp import MPMWarp
 
     _, motion = _laptop_scene()
     means = np.random.default_rng(0).random((200_000, 3)) * 0.3
-    settings = SimSettings.of(MPMWarp.Config(control_grid=20))
+    settings = SimSettings.of(MPMWarp.Config(), 20)
     short = estimate_cost(means, motion, settings, frames=24, iterations=0)
     long = estimate_cost(means, motion, settings, frames=96, iterations=0)
     assert short.particles <= 20**3
     assert long.peak_memory_mb - short.peak_memory_mb < 72 * short.particles * 2 * 96 / 2**20 + 1.0
     # every Gaussian simulated: the frames are per Gaussian and the estimate grows with them
-    every = SimSettings.of(MPMWarp.Config(control_grid=None))
+    every = SimSettings.of(MPMWarp.Config(), None)
     few = means[:20_000]
     grow = estimate_cost(few, motion, every, frames=96, iterations=0).peak_memory_mb - \
         estimate_cost(few, motion, every, frames=24, iterations=0).peak_memory_mb

@@ -173,7 +173,7 @@ def test_glb_plays_in_threejs_at_the_exported_positions(tmp_path: Path) -> None:
 
 def deforming_gaussians(t: int = 20, n: int = 600) -> tuple[np.ndarray, np.ndarray]:
     """A smoothly turning, stretching cloud: (T, N, 3) means [m] and (T, N, 3, 3) covariances [m^2]."""
-    from sync4d.types import quat_to_matrix
+    from sync4d.geometry import quat_to_matrix
 
     rng = np.random.default_rng(5)
     base = rng.uniform(-0.3, 0.3, (n, 3))
@@ -228,7 +228,8 @@ def test_seq4d_round_trip_within_its_stated_bounds(tmp_path: Path) -> None:
 def test_seq4d_is_over_ten_times_smaller_than_the_ply_sequence(tmp_path: Path) -> None:
     from sync4d.io.ply import write_gaussians_ply
     from sync4d.io.seq4d import Seq4DConfig, write_seq4d
-    from sync4d.types import TargetGaussians, matrix_to_quat
+    from sync4d.types import TargetGaussians
+    from sync4d.geometry import matrix_to_quat
 
     means, covs = deforming_gaussians(t=12, n=1500)
     n = means.shape[1]

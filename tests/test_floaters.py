@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sync4d.errors import InputError
-from sync4d.floaters import FloaterConfig, find_floaters, remove_floaters
+from sync4d.scenes.floaters import FloaterConfig, find_floaters, remove_floaters
 
 
 def shell(n: int, seed: int = 0) -> np.ndarray:

@@ -44,7 +44,7 @@ def test_library_never_imports_tools():
 
 
 def test_importing_the_pipeline_loads_no_tool():
-    code = ("import sys, sync4d.pipeline; from sync4d.plugins import load_all; load_all(); "
+    code = ("import sys, sync4d.run.pipeline; from sync4d.plugins import load_all; load_all(); "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('sync4d_tools', 'benchmarks')))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout
@@ -100,3 +100,114 @@ def test_readme_numbers_come_from_the_benchmarks_json():
     out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "readme.py"), "--check"], cwd=ROOT,
                          capture_output=True, text=True, timeout=60, check=False)
     assert out.returncode == 0, "README.md differs from benchmarks/results: run python benchmarks/readme.py"
+
+
+# ---------------------------------------------------------------------------------------------- the map
+
+
+def house_map() -> dict[str, int]:
+    """The layer of every top-level module and package of ``sync4d``, from docs/DEVELOPING.md's map."""
+    import re
+
+    text = (ROOT / "docs" / "DEVELOPING.md").read_text()
+    table = text.split("<!-- house:map -->")[1].split("<!-- /house:map -->")[0]
+    layers: dict[str, int] = {}
+    for row in table.splitlines():
+        cells = [c.strip() for c in row.strip().strip("|").split("|")]
+        if len(cells) < 2 or not re.match(r"^\d", cells[0]):
+            continue
+        for name in re.findall(r"`([\w.]+)`", cells[1]):
+            layers[name] = int(cells[0].split()[0])
+    return layers
+
+
+def top_level_name(module: str) -> str:
+    """``sync4d.sim.mpm_warp.solver`` -> ``sim``; ``sync4d.geometry`` -> ``geometry``."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def test_every_top_level_module_and_package_is_on_the_map():
+    on_disk = {p.stem for p in LIBRARY.glob("*.py") if p.stem != "__init__"} | {
+        p.name for p in LIBRARY.iterdir() if p.is_dir() and (p / "__init__.py").is_file()}
+    mapped = set(house_map())
+    assert not on_disk - mapped, f"not on the map in docs/DEVELOPING.md: {sorted(on_disk - mapped)}"
+    assert not mapped - on_disk, f"on the map but not in sync4d/: {sorted(mapped - on_disk)}"
+
+
+def library_edges(*, top_level_only: bool) -> set[tuple[str, str, str]]:
+    """(importing module, imported module, the import) for every import between library modules."""
+    modules = {module_name(p): p for p in LIBRARY.rglob("*.py")}
+    edges = set()
+    for name, path in modules.items():
+        for imported in imports(path, top_level_only=top_level_only):
+            if imported in modules and imported != name:
+                edges.add((name, imported, imported))
+    return edges
+
+
+def test_no_import_points_to_a_higher_layer():
+    layer = house_map()
+    upward = sorted(f"{a} (layer {layer[top_level_name(a)]}) imports {b} (layer {layer[top_level_name(b)]})"
+                    for a, b, _ in library_edges(top_level_only=False)
+                    if top_level_name(a) and top_level_name(b)  # the package root (sync4d/__init__) is no layer
+                    and layer[top_level_name(b)] > layer[top_level_name(a)])
+    assert not upward, upward
+
+
+def test_no_import_cycle_between_packages():
+    """Counting lazy (function-level) imports too: a package never reaches back to itself."""
+    graph: dict[str, set[str]] = {}
+    for a, b, _ in library_edges(top_level_only=False):
+        pa, pb = top_level_name(a), top_level_name(b)
+        if pa != pb and pa and pb:
+            graph.setdefault(pa, set()).add(pb)
+
+    def reaches(start: str, goal: str, seen: set[str]) -> bool:
+        for nxt in graph.get(start, ()):
+            if nxt == goal or (nxt not in seen and reaches(nxt, goal, seen | {nxt})):
+                return True
+        return False
+
+    circles = sorted(p for p in graph if reaches(p, p, {p}))
+    assert not circles, f"packages on an import circle: {circles}"
+
+
+def private_uses(path: Path) -> list[str]:
+    """``from m import _name`` and ``m._name`` of a project module in one file."""
+    tree = ast.parse(path.read_text())
+    mine = ("sync4d", "sync4d_tools", "benchmarks")
+    aliases: set[str] = set()
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in mine:
+            for alias in node.names:
+                if alias.name.startswith("_") and not alias.name.startswith("__"):
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} from {node.module} import {alias.name}")
+                aliases.add(alias.asname or alias.name)
+        elif isinstance(node, ast.Import):
+            aliases |= {a.asname or a.name.split(".")[0] for a in node.names if a.name.split(".")[0] in mine}
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+                and isinstance(node.value, ast.Name) and node.value.id in aliases):
+            found.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.value.id}.{node.attr}")
+    return found
+
+
+def test_no_private_name_is_used_across_modules():
+    """A private function or class stays in its module; what another module needs is public."""
+    found = [hit for folder in ("sync4d", "sync4d_tools", "benchmarks")
+             for path in (ROOT / folder).rglob("*.py") for hit in private_uses(path)]
+    assert not found, found
+
+
+def long_functions(path: Path, limit: int) -> list[str]:
+    tree = ast.parse(path.read_text())
+    return [f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)"
+            for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+            and node.end_lineno is not None and node.end_lineno - node.lineno + 1 >= limit]
+
+
+def test_every_function_is_under_80_lines():
+    found = [hit for path in LIBRARY.rglob("*.py") for hit in long_functions(path, 80)]
+    assert not found, found

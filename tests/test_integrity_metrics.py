@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sync4d import metrics as M
+from sync4d.run import metrics as M
 
 
 @pytest.fixture(scope="module")

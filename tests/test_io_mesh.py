@@ -8,7 +8,7 @@ import trimesh
 
 from sync4d.errors import InputError
 from sync4d.io.mesh import load_mesh, mesh_to_gaussians, winding_number
-from sync4d.types import quat_to_matrix
+from sync4d.geometry import quat_to_matrix
 
 
 def test_winding_number_inside_outside():

@@ -7,8 +7,8 @@ import pytest
 import torch
 import trimesh
 
-from sync4d import metrics as M
-from sync4d.motion import coverage, driving_motion, frame_indices
+from sync4d.run import metrics as M
+from sync4d.transfer.motion import coverage, driving_motion, frame_indices
 from sync4d.scenes.laptop import laptop_reference, lid_angles_of
 from sync4d.types import Reference
 from sync4d.velocity.fields import NoField, PerPartField, TriplaneField, total_variation
@@ -129,7 +129,7 @@ def test_total_variation_matches_its_definition():
 
 
 def test_recentred_parts_keep_rotation_and_move_centroid_by_bone_displacement():
-    from sync4d.motion import recentre_on_parts
+    from sync4d.transfer.motion import recentre_on_parts
     from sync4d.scenes.laptop import rigid, rotation_x
 
     T = np.stack([np.eye(4), rigid(rotation_x(0.7), np.array([0.0, 0.02, -0.12]))])[None]  # (1, 2, 4, 4)

@@ -16,15 +16,17 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from sync4d import outputs
+from sync4d.run import writer as outputs
 from sync4d.io.mesh import mesh_to_gaussians
 from sync4d.io.ply import read_gaussians_ply
-from sync4d.motion import driving_motion
-from sync4d.outputs import FrameWriter, compute_metrics
-from sync4d.render_outputs import sequence_gaussians
+from sync4d.transfer.motion import driving_motion
+from sync4d.run.writer import FrameWriter, compute_metrics
+from sync4d.run.exports import sequence_gaussians
 from sync4d.scenes.laptop import laptop_mesh, laptop_reference
 from sync4d.sim.control import carry_gaussians, control_of, gaussian_covariances, gaussian_trajectory
+from sync4d.registry import component
 from sync4d.sim.mpm_warp import MPMWarp
+from sync4d.transfer import TransferConfig, run_transfer
 from sync4d.types import PartMap
 
 FRAMES = 3
@@ -46,8 +48,12 @@ def scene():
     return ref, target, part_map, motion
 
 
-def simulator() -> MPMWarp:
-    return MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4, control_grid=6), device="cpu")
+def simulate(scene, frames: int, on_frame, resume=None):
+    """The untrained MPM transfer of ``scene`` on a 6-cell control lattice."""
+    _, target, part_map, motion = scene
+    sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4), device="cpu")
+    return run_transfer(sim, component("velocity", {"type": "none"}).build, TransferConfig(control_grid=6), target,
+                        part_map, motion, num_frames=frames, on_frame=on_frame, resume=resume)
 
 
 def finish(writer: FrameWriter, trajectory, ref, part_map):
@@ -86,9 +92,7 @@ def runs(scene, tmp_path_factory):
         old.on_frame(t, carry_gaussians(means0, cov0, g2p, control.rest, x, F)[0], F[g2p], stats, checkpoint)
         new.on_frame(t, x, F, stats, checkpoint, control=control)
 
-    sim_trajectory = simulator().run(
-        target, part_map, motion, velocity_cfg={"type": "none"}, num_frames=FRAMES, on_frame=on_frame
-    )
+    sim_trajectory = simulate(scene, FRAMES, on_frame)
     old_metrics, old_traj = finish(old, sim_trajectory, ref, part_map)
     new_metrics, new_traj = finish(new, sim_trajectory, ref, part_map)
     return old_dir, new_dir, old_metrics, new_metrics, old_traj, new_traj
@@ -131,7 +135,8 @@ def test_bounded_metrics_follow_a_stride_subset(scene, runs, monkeypatch) -> Non
     b = compute_metrics(new_traj, target, part_map, motion, ref, **kwargs)
     assert stable(a) == stable(b)
     assert a["rigidity_residual_pct"] != full["rigidity_residual_pct"]  # a subset was measured
-    assert a["pose_error_pct"] == pytest.approx(full["pose_error_pct"], rel=0.5)
+    # a stride sample of 100 Gaussians estimates the mean pose error of all of them to within a tenth
+    assert a["pose_error_pct"] == pytest.approx(full["pose_error_pct"], rel=0.1)
 
 
 def test_streamed_run_resumes_exactly(scene, runs, tmp_path: Path) -> None:
@@ -139,19 +144,11 @@ def test_streamed_run_resumes_exactly(scene, runs, tmp_path: Path) -> None:
     ref, target, part_map, motion = scene
     _, new_dir, _, new_metrics, _, _ = runs
     killed = FrameWriter(tmp_path / "killed", target, motion)
-    simulator().run(target, part_map, motion, velocity_cfg={"type": "none"}, num_frames=2, on_frame=killed.on_frame)
+    simulate(scene, 2, killed.on_frame)
     resumed = FrameWriter(tmp_path / "resumed", target, motion)
     state = resumed.resume_state(str(tmp_path / "killed"))
     assert state is not None and state["frame"] == 1 and resumed.control is not None
-    trajectory = simulator().run(
-        target,
-        part_map,
-        motion,
-        velocity_cfg={"type": "none"},
-        num_frames=FRAMES,
-        on_frame=resumed.on_frame,
-        resume=state,
-    )
+    trajectory = simulate(scene, FRAMES, resumed.on_frame, resume=state)
     metrics, _ = finish(resumed, trajectory, ref, part_map)
     for t in range(FRAMES):
         name = f"{t:06d}.ply"

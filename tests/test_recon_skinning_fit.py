@@ -39,7 +39,7 @@ def test_kabsch_recovers_a_rigid_transform() -> None:
     rng = np.random.default_rng(1)
     pts = rng.normal(size=(50, 3))
     q = rng.normal(size=4)
-    from sync4d.types import quat_to_matrix
+    from sync4d.geometry import quat_to_matrix
 
     true = np.eye(4)
     true[:3, :3] = quat_to_matrix(q[None])[0]

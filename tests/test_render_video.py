@@ -141,7 +141,7 @@ def test_motion_view_looks_at_the_plane_of_motion_upright() -> None:
 
 
 def test_turntable_of_the_last_frame(tmp_path: Path) -> None:
-    from sync4d.render_outputs import write_turntable
+    from sync4d.run.exports import write_turntable
     from sync4d.types import TargetGaussians
 
     n = 40

@@ -8,7 +8,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import cdist
 
-from sync4d import metrics as M
+from sync4d.run import metrics as M
 
 
 def brute_force_fragments(x, pairs, strain, gap):

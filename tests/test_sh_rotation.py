@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from sync4d.deform import deform_gaussians, polar_rotation
+from sync4d.sim.deform import deform_gaussians, polar_rotation
 from sync4d.render.camera import look_at
 from sync4d.render.sh import eval_sh, rotate_sh, sh_basis
 from sync4d.render.splat_torch import SplatTorch

@@ -8,7 +8,8 @@ import torch
 
 from sync4d.errors import ConfigError
 from sync4d.sim.control import carry_gaussians, gaussian_covariances, make_control_points
-from sync4d.sim.mpm_warp import MPMWarp
+from sync4d.transfer.particles import make_particles
+from sync4d.types import PartMap
 
 
 def test_control_points_are_cell_means():
@@ -75,19 +76,31 @@ def test_gaussian_covariance_from_scales_and_quats():
     np.testing.assert_allclose(cov[0], np.diag([1.0, 4.0, 9.0]))
 
 
-def test_prepare_gaussians_uses_control_points():
+def test_control_particles_share_the_volume_by_geometry():
+    """Through control points every occupied lattice cell holds one cell volume, split among its per-part points
+    by their Gaussians; without them every Gaussian is a particle."""
     rng = np.random.default_rng(2)
-    means = rng.uniform(0, 0.2, (20000, 3))
-    sim = MPMWarp(MPMWarp.Config(control_grid=10, n_grid=16), device="cpu")
-    model, g2p = sim.prepare_gaussians(means, volume=8e-3)
-    assert model.num_particles <= 1000 and g2p.shape == (20000,)
-    assert model.volume.sum() == pytest.approx(8e-3)
-    # each control point's share of the volume follows the number of Gaussians it stands for
-    counts = np.bincount(g2p)
-    np.testing.assert_allclose(model.volume, 8e-3 * counts / counts.sum())
-    sim_all = MPMWarp(MPMWarp.Config(control_grid=None, n_grid=16), device="cpu")
-    model_all, ident = sim_all.prepare_gaussians(means[:500])
-    assert model_all.num_particles == 500 and np.array_equal(ident, np.arange(500))
+    means = rng.uniform(0, 0.2, (20000, 3)).astype(np.float32)
+    target = mesh_free_target(means)
+    part = (means[:, 0] > 0.1).astype(np.int64)
+    part_map = PartMap(np.zeros(1, dtype=np.int64), part, np.ones(len(means)), 2)
+    particles = make_particles(target, part_map, 10)
+    assert len(particles.points) <= 1100 and particles.gaussian_to_point.shape == (20000,)
+    side = float(np.ptp(means.astype(np.float64), axis=0).max()) / 10
+    cells = len(make_control_points(means.astype(np.float64), 10)[0])  # occupied lattice cells
+    assert particles.volume.sum() == pytest.approx(cells * side**3, rel=1e-6)
+    assert np.all(particles.part[particles.gaussian_to_point] == part)  # a point never mixes parts
+    every = make_particles(target, part_map, None)
+    assert len(every.points) == 20000 and every.volume is None
+
+
+def mesh_free_target(means: np.ndarray):
+    from sync4d.types import TargetGaussians
+
+    n = len(means)
+    return TargetGaussians(means=means, quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                           log_scales=np.full((n, 3), -5.0, np.float32), opacity_logits=np.zeros(n, np.float32),
+                           sh=np.zeros((n, 1, 3), np.float32))
 
 
 def test_carry_frame_moves_every_gaussian_rigidly_with_its_control_point():

@@ -89,7 +89,7 @@ def test_yaml_builds(repo_root):
     cfg = OmegaConf.load(repo_root / "conf/sim/mpm_warp.yaml")
     cfg.pop("defaults", None)  # Hydra's schema line; the values come from MPMWarp.Config
     sim = build("sim", cfg, device="cpu")
-    assert isinstance(sim, MPMWarp) and sim.cfg.E == 1e4 and sim.cfg.control_grid == MPMWarp.Config().control_grid
+    assert isinstance(sim, MPMWarp) and sim.cfg.E == 1e4 and sim.cfg.n_grid == MPMWarp.Config().n_grid
     # the simulated time of a frame is the reference's frame interval unless set
     assert sim.cfg.frame_time is None and sim.frame_time_for(12.0) == pytest.approx(1 / 12)
     with pytest.raises(ConfigError, match="sim.frame_time"):
@@ -349,10 +349,10 @@ def _threaded_run(threads: int, *, substeps: int = 30):
 
 def test_threads_match_one_thread_and_are_deterministic():
     x1, F1, gv1, gF1, sim1 = _threaded_run(1)
-    assert sim1._ws.threads == 1
+    assert sim1.workspace.threads == 1
     for threads in (2, 3):
         x, F, gv, gF, sim = _threaded_run(threads)
-        ws = sim._ws
+        ws = sim.workspace
         assert ws.threads == threads and ws.grids.shape[0] == threads
         assert sorted(hi - lo for lo, hi in ws.bounds) == ([500, 501] if threads == 2 else [333, 334, 334])
         # the node sums are added in another order: equal up to float rounding, not bit for bit
@@ -375,8 +375,8 @@ def test_particles_leaving_the_grid_in_the_second_thread_raise_diverged():
     v0[torch.as_tensor(pts[:, 0] > 0.09), 0] = 200.0  # the highest-x cells: the last chunk after sorting
     with pytest.raises(SimulationDiverged, match=r"frame 2, substep \d of 10: particles left the grid"):
         sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=10, dt=1e-3, frame_index=2, check_cfl=False)
-    assert sim._ws.threads == 2
-    assert int(sim._ws.status_of[0].numpy()[0]) == 2147483647 and int(sim._ws.status_of[1].numpy()[0]) < 10
+    assert sim.workspace.threads == 2
+    assert int(sim.workspace.status_of[0].numpy()[0]) == 2147483647 and int(sim.workspace.status_of[1].numpy()[0]) < 10
 
 
 def test_thread_count_rules():
@@ -479,7 +479,7 @@ def _random_F(n: int, seed: int) -> np.ndarray:
 def test_kirchhoff_stress_matches_svd_formula():
     import warp as wp
 
-    from sync4d.sim import _kernels as K
+    from sync4d.sim.mpm_warp import kernels as K
 
     F = _random_F(400, 0)
     mu, lam = physics.lame_parameters(1e4, 0.3)
@@ -509,7 +509,7 @@ def test_kirchhoff_stress_matches_svd_formula():
 def test_hand_written_stress_adjoint_matches_warp_autodiff():
     import warp as wp
 
-    from sync4d.sim import _kernels as K
+    from sync4d.sim.mpm_warp import kernels as K
 
     F = _random_F(400, 1)
     F = F[np.linalg.det(F) > 0.05]  # away from the inversion kink of the SVD branch
@@ -544,8 +544,8 @@ def _one_particle_grid(F: np.ndarray, *, scale: float = 1.0):
 
     import warp as wp
 
-    from sync4d.sim import _kernels as K
-    from sync4d.sim import mpm_warp as mw
+    from sync4d.sim.mpm_warp import kernels as K
+    from sync4d.sim.mpm_warp.solver import Launch
 
     sim = make_sim(n_grid=16)
     model = sim.prepare(np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.1]]))
@@ -554,17 +554,16 @@ def _one_particle_grid(F: np.ndarray, *, scale: float = 1.0):
         model, rest_points=xp, mass=np.array([0.7]), volume=np.array([2e-4]), mu=model.mu * scale, lam=model.lam * scale
     )
     dt = 1e-3
-    launch = mw._Launch(
+    launch = Launch(
         model=model,
-        ws=sim._workspace(1, model.grid.dims),
+        ws=sim.workspace_for(1, model.grid.dims),
         mass=wp.array(np.array([0.7], np.float32), dtype=float, device="cpu"),
         volume=wp.array(np.array([2e-4], np.float32), dtype=float, device="cpu"),
         dt=dt,
         mass_eps=1e-12,
     )
     t = torch.as_tensor
-    mw._load(
-        launch.ws.ping,
+    launch.ws.ping.load(
         t(xp, dtype=torch.float32),
         torch.zeros(1, 3),
         t(F[None], dtype=torch.float32),

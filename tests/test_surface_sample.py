@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sync4d.surface_sample import SURFACE_POINTS, splat_surface, spread_sample
+from sync4d.surface import SURFACE_POINTS, splat_surface, spread_sample
 
 
 def test_sample_is_bounded_and_covers_thin_parts_a_random_sample_misses():

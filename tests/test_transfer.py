@@ -2,18 +2,31 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from sync4d.motion import driving_motion
-from sync4d.outputs import compute_metrics
+from sync4d.transfer.motion import driving_motion
+from sync4d.run.writer import compute_metrics
 from sync4d.scenes.laptop import laptop_mesh, laptop_reference
 from sync4d.io.mesh import mesh_to_gaussians
 from sync4d.sim.lbs import LinearBlendSkinning
 from sync4d.sim.mpm_warp import MPMWarp
-from sync4d.transfer import PAPER, anchor_weights, initial_velocity, make_particles
+from sync4d.registry import component
+from sync4d.transfer import PAPER, TransferConfig, run_transfer
+from sync4d.transfer.loss import anchor_weights, initial_velocity
+from sync4d.transfer.particles import make_particles
 from sync4d.types import PartMap
+
+
+def transfer(sim, scene, *, velocity=None, options=None, num_frames=3, on_frame=None):
+    """The transfer stage on ``scene`` (reference, target, part map, motion) through ``sim``."""
+    _, target, part_map, motion = scene
+    make_field = component("velocity", velocity or {"type": "none"}).build
+    return run_transfer(sim, make_field, options or TransferConfig(), target, part_map, motion,
+                        num_frames=num_frames, on_frame=on_frame)
 
 
 @pytest.fixture(scope="module")
@@ -32,9 +45,9 @@ def test_loss_decreases_in_every_frame(tiny_scene):
     # The paper's own setting: one velocity per part, L1 on part centroids, relative targets.
     sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4), device="cpu")
     stats = []
-    velocity = {"type": "per_part", "iterations": 15, "lr": 0.5, "patience": 15, "velocity_scale": 0.3}
-    sim.run(target, part_map, motion, velocity_cfg=velocity, num_frames=3, transfer=PAPER,
-            on_frame=lambda t, x, F, s, checkpoint=None, control=None: stats.append(s))
+    options = dataclasses.replace(PAPER, iterations=15, lr=0.5, patience=15)
+    transfer(sim, tiny_scene, velocity={"type": "per_part", "velocity_scale": 0.3}, options=options,
+             on_frame=lambda t, x, F, s, checkpoint=None, control=None: stats.append(s))
     assert len(stats) == 3
     for s in stats[1:]:
         assert s["loss/displacement"] < 0.5 * s["loss/initial"], s
@@ -44,14 +57,16 @@ def test_untrained_rigid_init_follows_the_hinge(tiny_scene):
     """With the bone's rigid velocity field and no training the lid still tracks the reference closely."""
     ref, target, part_map, motion = tiny_scene
     sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4), device="cpu")  # transfer.init=rigid: the default
-    traj = sim.run(target, part_map, motion, velocity_cfg={"type": "none"}, num_frames=3)
+    traj = transfer(sim, tiny_scene)
     m = compute_metrics(traj, target, part_map, motion, ref, self_transfer=True, frame_seconds=[0.0] * 3)
     assert m["pose_error_max_pct"] < 2.0
 
 
 def test_lbs_self_transfer_is_exact_with_hard_weights(tiny_scene):
     ref, target, part_map, motion = tiny_scene
-    traj = LinearBlendSkinning(LinearBlendSkinning.Config(neighbours=1)).run(target, part_map, motion, num_frames=3)
+    # every Gaussian skinned (no control points): point-wise deformation proper
+    traj = transfer(LinearBlendSkinning(LinearBlendSkinning.Config(neighbours=1)), tiny_scene,
+                    options=TransferConfig(control_grid=None))
     m = compute_metrics(traj, target, part_map, motion, ref, self_transfer=True, frame_seconds=[0.0] * 3)
     assert m["pose_error_pct"] < 1e-9 and m["rigidity_residual_pct"] < 1e-9
 
@@ -91,7 +106,7 @@ def _run_with_stress_scale(tiny_scene, scale: float) -> dict:
     import dataclasses
 
     ref, target, part_map, motion = tiny_scene
-    sim = MPMWarp(MPMWarp.Config(n_grid=16, control_grid=12), device="cpu")
+    sim = MPMWarp(MPMWarp.Config(n_grid=16), device="cpu")
     prepare = sim.prepare
 
     def scaled(*args, **kwargs):
@@ -100,7 +115,7 @@ def _run_with_stress_scale(tiny_scene, scale: float) -> dict:
         return dataclasses.replace(m, mu=m.mu * scale, lam=m.lam * scale, E=m.E * max(scale, 1.0))
 
     sim.prepare = scaled  # type: ignore[method-assign]
-    traj = sim.run(target, part_map, motion, velocity_cfg={"type": "none"}, num_frames=3)
+    traj = transfer(sim, tiny_scene, options=TransferConfig(control_grid=12))
     return compute_metrics(traj, target, part_map, motion, ref, self_transfer=True, frame_seconds=[0.0] * 3)
 
 

@@ -7,7 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from sync4d.registry import component
 from sync4d.sim.kinematic import Kinematic
+from sync4d.transfer import TransferConfig, run_transfer
 from sync4d.sim.lbs import LinearBlendSkinning
 from sync4d_tools.evaluate import transfer_gt as G
 
@@ -56,9 +58,11 @@ def test_kinematic_with_every_gaussian_is_point_wise_rigid_motion():
     """sim=kinematic without control points is exactly lbs with hard labels (free flight of rigid steps)."""
     pair = G.load_pair("laptop", 4, 400)
     motion = G.pair_motion(pair, 4)
-    a = Kinematic(Kinematic.Config(control_grid=None)).run(pair.target, pair.part_map, motion, num_frames=4)
-    b = LinearBlendSkinning(LinearBlendSkinning.Config(neighbours=1)).run(pair.target, pair.part_map, motion,
-                                                                         num_frames=4)
+    every = TransferConfig(control_grid=None)
+    none = component("velocity", {"type": "none"}).build
+    a = run_transfer(Kinematic(Kinematic.Config()), none, every, pair.target, pair.part_map, motion, num_frames=4)
+    b = run_transfer(LinearBlendSkinning(LinearBlendSkinning.Config(neighbours=1)), none, every, pair.target,
+                     pair.part_map, motion, num_frames=4)
     np.testing.assert_allclose(a.x, b.x, atol=1e-9)
 
 

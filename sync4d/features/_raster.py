@@ -20,7 +20,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from sync4d.errors import InputError
-from sync4d.surface_sample import area_samples
+from sync4d.surface import area_samples
 
 
 @dataclass(frozen=True)

@@ -94,9 +94,26 @@ def export_usd(
     Returns:
         The path written.
     """
-    from pxr import Gf, Usd, UsdGeom, Vt
-
     means = np.asarray(frames_means, dtype=np.float32)
+    w = check_usd_inputs(means, colors, widths, opacities, mesh_vertices, mesh_faces)
+    stage = new_stage(len(means), fps, up_axis)
+    define_points(stage, "/sync4d/gaussians", means, w, colors, opacities)
+    if mesh_vertices is not None:
+        _define_mesh(stage, "/sync4d/reference", np.asarray(mesh_vertices, np.float32),
+                     np.asarray(mesh_faces), mesh_color)
+
+    def write(tmp: Path) -> None:
+        if not stage.GetRootLayer().Export(str(tmp)):
+            raise OSError(f"export_usd: USD could not write {tmp}")
+
+    return atomic_write(path, write)
+
+
+def check_usd_inputs(means: np.ndarray, colors: np.ndarray | None, widths: np.ndarray | float | None,
+                     opacities: np.ndarray | None, mesh_vertices: np.ndarray | None,
+                     mesh_faces: np.ndarray | None) -> np.ndarray:
+    """Check :func:`export_usd`'s inputs (one :class:`InputError` naming the argument); returns the point
+    widths [m] as (N,) or (T, N) float32."""
     num_frames, num = _check_sequence(means)
     if colors is not None and np.shape(colors) != (num, 3):
         raise InputError(f"export_usd: colors must be ({num}, 3), got {np.shape(colors)}")
@@ -109,6 +126,12 @@ def export_usd(
         raise InputError(f"export_usd: widths must be a scalar, ({num},) or ({num_frames}, {num}), got {w.shape}")
     if mesh_vertices is not None and mesh_faces is None:
         raise InputError("export_usd: mesh_vertices given without mesh_faces")
+    return w
+
+
+def new_stage(num_frames: int, fps: float, up_axis: str) -> Any:
+    """An in-memory USD stage of ``num_frames`` time codes at ``fps``, metres, with a ``/sync4d`` root."""
+    from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.CreateInMemory()
     stage.SetStartTimeCode(0)
@@ -119,8 +142,17 @@ def export_usd(
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     root = UsdGeom.Xform.Define(stage, "/sync4d")
     stage.SetDefaultPrim(root.GetPrim())
+    return stage
 
-    points = UsdGeom.Points.Define(stage, "/sync4d/gaussians")
+
+def define_points(stage: Any, prim_path: str, means: np.ndarray, w: np.ndarray, colors: np.ndarray | None,
+                  opacities: np.ndarray | None) -> None:
+    """Animated USD points: (T, N, 3) positions [m] per time code, widths (N,) or (T, N) [m], colours and
+    opacities (fixed), and an extent per frame that bounds the points with their widths."""
+    from pxr import Gf, Usd, UsdGeom, Vt
+
+    num_frames, num = means.shape[:2]
+    points = UsdGeom.Points.Define(stage, prim_path)
     points_attr, extent_attr, widths_attr = points.GetPointsAttr(), points.GetExtentAttr(), points.GetWidthsAttr()
     points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
     if w.ndim == 1:
@@ -142,16 +174,6 @@ def export_usd(
     if opacities is not None:
         opacity_pv = points.CreateDisplayOpacityPrimvar(UsdGeom.Tokens.vertex)
         opacity_pv.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(np.clip(opacities, 0, 1), dtype=np.float32)))
-
-    if mesh_vertices is not None:
-        _define_mesh(stage, "/sync4d/reference", np.asarray(mesh_vertices, np.float32),
-                     np.asarray(mesh_faces), mesh_color)
-
-    def write(tmp: Path) -> None:
-        if not stage.GetRootLayer().Export(str(tmp)):
-            raise OSError(f"export_usd: USD could not write {tmp}")
-
-    return atomic_write(path, write)
 
 
 def _define_mesh(stage: Any, prim_path: str, verts: np.ndarray, faces: np.ndarray,

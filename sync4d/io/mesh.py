@@ -14,7 +14,8 @@ import numpy as np
 import trimesh
 
 from sync4d.errors import InputError
-from sync4d.types import SH_C0, TargetGaussians, matrix_to_quat
+from sync4d.types import TargetGaussians
+from sync4d.geometry import SH_C0, matrix_to_quat
 
 
 def load_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

@@ -401,7 +401,7 @@ def rotations_from_positions(positions: np.ndarray, parents: np.ndarray, *, rest
     Returns:
         (T, J, 3, 3) rotations mapping rest-frame directions to frame t.
     """
-    from sync4d.recon.skinning import kabsch
+    from sync4d.geometry import rigid_fit as kabsch
 
     n_frames, n_joints, _ = positions.shape
     parents = np.asarray(parents)

@@ -19,7 +19,6 @@ overflows or underflows float32, opacity logits beyond +-100, positions beyond 1
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +33,7 @@ REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "
 #: Inclusive (low, high) bounds of values a real splat can hold, per property prefix, and why.
 #: exp(+-80) is near the float32 range (exp(88.7) overflows, exp(-87) is subnormal); a logit of 100 is
 #: an opacity of 1 - 4e-44; 1e6 m is 1000 km (a floater farther than that is a corrupt file, and nearer
-#: ones are found by :mod:`sync4d.floaters`).
+#: ones are found by :mod:`sync4d.scenes.floaters`).
 LIMITS: dict[str, tuple[float, float, str]] = {
     "scale_": (-80.0, 80.0, "a log standard deviation: exp() of it leaves the float32 range"),
     "opacity": (-100.0, 100.0, "an opacity logit"),
@@ -225,9 +224,3 @@ def write_gaussians_ply(path: str | os.PathLike[str], gaussians: TargetGaussians
 
     ply = plyfile.PlyData([plyfile.PlyElement.describe(gaussians_table(gaussians), "vertex")], byte_order="<")
     return atomic_write(Path(path), lambda tmp: ply.write(str(tmp)))
-
-
-def sh_degree_of_property_names(names: list[str]) -> int:
-    """SH degree implied by a list of property names (for diagnostics)."""
-    n_rest = sum(1 for n in names if re.fullmatch(r"f_rest_\d+", n))
-    return int(round(np.sqrt(n_rest // 3 + 1))) - 1

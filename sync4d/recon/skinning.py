@@ -229,20 +229,6 @@ def matrix_to_rot6d(rot: np.ndarray) -> np.ndarray:
     return np.concatenate([rot[..., :, 0], rot[..., :, 1]], axis=-1)
 
 
-def quat_to_matrix_torch(q: torch.Tensor) -> torch.Tensor:
-    """(..., 4) wxyz quaternions (any non-zero length) -> (..., 3, 3) rotations, differentiable."""
-    q = torch.nn.functional.normalize(q, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
 def axis_angle_to_matrix_torch(v: torch.Tensor) -> torch.Tensor:
     """(..., 3) rotation vectors [rad] -> (..., 3, 3) rotations (Rodrigues), smooth at zero."""
     theta2 = (v * v).sum(-1, keepdim=True)[..., None]

@@ -150,6 +150,104 @@ def _bone_shapes(rest: np.ndarray, labels: np.ndarray, bones: int, floor: float)
     return centers, rots, scales
 
 
+def check_sequence(sequence: np.ndarray, bones: int, opts: FitOptions) -> np.ndarray:
+    """The (T, V, 3) sequence as float64 after checking its shape, values, B and the options."""
+    seq = np.asarray(sequence, dtype=np.float64)
+    if seq.ndim != 3 or seq.shape[-1] != 3 or seq.shape[0] < 1 or seq.shape[1] < 1:
+        raise InputError(f"skinning_fit: mesh_sequence must have shape (T, V, 3), got {seq.shape}")
+    if not np.isfinite(seq).all():
+        raise InputError("skinning_fit: mesh_sequence contains NaN/inf")
+    n_frames, n_verts, _ = seq.shape
+    if not 1 <= bones <= n_verts:
+        raise ConfigError(f"recon.bones={bones}: must lie in [1, {n_verts}] (the number of vertices)")
+    if not 0 <= opts.rest_frame < n_frames:
+        raise ConfigError(f"recon.rest_frame={opts.rest_frame}: the sequence has {n_frames} frames")
+    if opts.global_from not in ("kabsch", "identity"):
+        raise ConfigError(f"recon.global_from={opts.global_from!r}: use 'kabsch' or 'identity'")
+    return seq
+
+
+def initial_bone_motion(rest_n: np.ndarray, local_n: np.ndarray, labels: np.ndarray, bones: int) -> np.ndarray:
+    """(T, B, 4, 4) each cluster's best rigid motion from rest (translation only for 1-2 point clusters)."""
+    init_j = np.tile(np.eye(4), (local_n.shape[0], bones, 1, 1))
+    for b in range(bones):
+        members = labels == b
+        if members.sum() >= 3:
+            init_j[:, b] = sk.kabsch(np.broadcast_to(rest_n[members], local_n[:, members].shape), local_n[:, members])
+        else:  # a 1-2 point cluster cannot fix a rotation: translate only
+            init_j[:, b, :3, 3] = local_n[:, members].mean(1) - rest_n[members].mean(0)
+    return init_j
+
+
+class BoneModel(torch.nn.Module):
+    """Gaussian bones (centres, orientations, log scales), per-frame rotations about fixed pivots with
+    translations, and an optional skinning MLP delta, in normalised units (paper Eq. W = softmax(d_M + W_delta))."""
+
+    def __init__(self, centers0: np.ndarray, rots0: np.ndarray, scales0: np.ndarray, init_j: np.ndarray,
+                 opts: FitOptions) -> None:
+        super().__init__()
+        dt = torch.float32
+        bones = len(centers0)
+        self.register_buffer("pivots", torch.as_tensor(centers0, dtype=dt))  # fixed pivots of the rotations
+        self.centers = torch.nn.Parameter(torch.as_tensor(centers0, dtype=dt))
+        self.bone_rot = torch.nn.Parameter(torch.as_tensor(sk.matrix_to_rot6d(rots0), dtype=dt))
+        self.log_scales = torch.nn.Parameter(torch.as_tensor(np.log(scales0 * opts.init_scale_factor), dtype=dt))
+        self.rot6 = torch.nn.Parameter(torch.as_tensor(sk.matrix_to_rot6d(init_j[..., :3, :3]), dtype=dt))
+        # Translation of each bone's pivot: x' = R (x - p) + p + tau.
+        tau0 = np.einsum("tbij,bj->tbi", init_j[..., :3, :3], centers0) + init_j[..., :3, 3] - centers0
+        self.tau = torch.nn.Parameter(torch.as_tensor(tau0, dtype=dt))
+        self.mlp = (
+            sk.SkinningDelta(bones, center=np.zeros(3), scale=0.5, width=opts.mlp_width, layers=opts.mlp_layers,
+                             frequencies=opts.mlp_frequencies, generator=torch_generator(opts.seed))
+            if opts.mlp_width > 0 else None
+        )  # fmt: skip
+
+    def bone_parameters(self) -> list[torch.nn.Parameter]:
+        return [self.centers, self.bone_rot, self.log_scales, self.rot6, self.tau]
+
+    def transforms(self) -> torch.Tensor:
+        """(T, B, 3, 4) per-frame bone transforms."""
+        rot = sk.rot6d_to_matrix(self.rot6)  # (T, B, 3, 3)
+        trans = self.pivots + self.tau - torch.einsum("tbij,bj->tbi", rot, self.pivots)
+        return torch.cat([rot, trans[..., None]], dim=-1)
+
+    def weights(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(N, B) skinning weights of (N, 3) points and the MLP's delta logits (or None)."""
+        logits = -sk.mahalanobis_sq_torch(points, self.centers, sk.rot6d_to_matrix(self.bone_rot), self.log_scales)
+        delta = self.mlp(points) if self.mlp is not None else None
+        if delta is not None:
+            logits = logits + delta
+        return torch.softmax(logits, dim=-1), delta
+
+
+def optimise_bones(model: BoneModel, x_rest: torch.Tensor, y: torch.Tensor, opts: FitOptions) -> list[float]:
+    """Adam with a cosine schedule on the LBS data term plus the delta and entropy regularisers; returns the
+    rms data error every 50 iterations (normalised units)."""
+    groups: list[dict[str, Any]] = [{"params": model.bone_parameters(), "lr": opts.lr}]
+    if model.mlp is not None:
+        groups.append({"params": list(model.mlp.parameters()), "lr": opts.lr * 0.5})
+    optim = torch.optim.Adam(groups)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim, T_max=max(opts.iterations, 1), eta_min=opts.lr * 0.05)
+    history: list[float] = []
+    for it in range(opts.iterations):
+        optim.zero_grad(set_to_none=True)
+        w, delta = model.weights(x_rest)
+        pred = sk.linear_blend_torch(x_rest, w, model.transforms())
+        data = ((pred - y) ** 2).sum(-1).mean()
+        loss = data
+        if delta is not None and opts.delta_weight > 0:
+            loss = loss + opts.delta_weight * (delta**2).mean()
+        if opts.entropy_weight > 0:
+            loss = loss + opts.entropy_weight * (-(w * torch.log(w + 1e-8)).sum(-1).mean())
+        loss.backward()
+        optim.step()
+        sched.step()
+        if it % 50 == 0 or it == opts.iterations - 1:
+            history.append(float(data.detach().sqrt()))
+            log.debug("skinning_fit B=%d it %d rms %.5f (bbox-diag units)", len(model.pivots), it, history[-1])
+    return history
+
+
 def fit_skinning(sequence: np.ndarray, bones: int, opts: FitOptions | None = None) -> FitResult:
     """Fit Gaussian bones, per-frame bone transforms and neural skinning to a posed sequence.
 
@@ -167,128 +265,27 @@ def fit_skinning(sequence: np.ndarray, bones: int, opts: FitOptions | None = Non
     """
     opts = opts or FitOptions()
     start = time.perf_counter()
-    seq = np.asarray(sequence, dtype=np.float64)
-    if seq.ndim != 3 or seq.shape[-1] != 3 or seq.shape[0] < 1 or seq.shape[1] < 1:
-        raise InputError(f"skinning_fit: mesh_sequence must have shape (T, V, 3), got {seq.shape}")
-    if not np.isfinite(seq).all():
-        raise InputError("skinning_fit: mesh_sequence contains NaN/inf")
+    seq = check_sequence(sequence, bones, opts)
     n_frames, n_verts, _ = seq.shape
-    if not 1 <= bones <= n_verts:
-        raise ConfigError(f"recon.bones={bones}: must lie in [1, {n_verts}] (the number of vertices)")
-    if not 0 <= opts.rest_frame < n_frames:
-        raise ConfigError(f"recon.rest_frame={opts.rest_frame}: the sequence has {n_frames} frames")
-    if opts.global_from not in ("kabsch", "identity"):
-        raise ConfigError(f"recon.global_from={opts.global_from!r}: use 'kabsch' or 'identity'")
-
     rest = seq[opts.rest_frame]
     diag = bbox_diagonal(rest)
     if diag <= 0:
         raise InputError("skinning_fit: the rest shape is degenerate (zero bounding box)")
     # Work in normalised units (rest centred, diagonal 1) so learning rates do not depend on the scene.
     centre = rest.mean(0)
-    if opts.global_from == "kabsch":
-        glob = sk.kabsch(np.broadcast_to(rest, seq.shape), seq)
-    else:
-        glob = np.tile(np.eye(4), (n_frames, 1, 1))
+    glob = sk.kabsch(np.broadcast_to(rest, seq.shape), seq) if opts.global_from == "kabsch" \
+        else np.tile(np.eye(4), (n_frames, 1, 1))
     local = np.einsum("tij,tvj->tvi", sk.rigid_inverse(glob)[:, :3, :3], seq) + sk.rigid_inverse(glob)[:, None, :3, 3]
     rest_n = (rest - centre) / diag
     local_n = (local - centre) / diag
-
     labels = _cluster_init(rest_n, local_n, bones, opts)
-    floor = 0.01  # 1% of the diagonal: keeps tiny clusters' Gaussians from collapsing
-    centers0, rots0, scales0 = _bone_shapes(rest_n, labels, bones, floor)
-    init_j = np.tile(np.eye(4), (n_frames, bones, 1, 1))
-    for b in range(bones):
-        members = labels == b
-        if members.sum() >= 3:
-            init_j[:, b] = sk.kabsch(np.broadcast_to(rest_n[members], local_n[:, members].shape), local_n[:, members])
-        else:  # a 1-2 point cluster cannot fix a rotation: translate only
-            init_j[:, b, :3, 3] = local_n[:, members].mean(1) - rest_n[members].mean(0)
-
-    if opts.fit_vertices and opts.fit_vertices < n_verts:
-        idx = np.sort(sk.farthest_point_sample(rest_n, opts.fit_vertices))
-    else:
-        idx = np.arange(n_verts)
-
-    dt = torch.float32
-    x_rest = torch.as_tensor(rest_n[idx], dtype=dt)
-    y = torch.as_tensor(local_n[:, idx], dtype=dt)
-    pivots = torch.as_tensor(centers0, dtype=dt)  # fixed pivots of the per-frame rotations
-
-    centers = torch.nn.Parameter(torch.as_tensor(centers0, dtype=dt))
-    bone_rot = torch.nn.Parameter(torch.as_tensor(sk.matrix_to_rot6d(rots0), dtype=dt))
-    log_scales = torch.nn.Parameter(torch.as_tensor(np.log(scales0 * opts.init_scale_factor), dtype=dt))
-    rot6 = torch.nn.Parameter(torch.as_tensor(sk.matrix_to_rot6d(init_j[..., :3, :3]), dtype=dt))
-    # Translation of each bone's pivot: x' = R (x - p) + p + tau.
-    tau0 = np.einsum("tbij,bj->tbi", init_j[..., :3, :3], centers0) + init_j[..., :3, 3] - centers0
-    tau = torch.nn.Parameter(torch.as_tensor(tau0, dtype=dt))
-    mlp = (
-        sk.SkinningDelta(bones, center=np.zeros(3), scale=0.5, width=opts.mlp_width, layers=opts.mlp_layers,
-                         frequencies=opts.mlp_frequencies, generator=torch_generator(opts.seed))
-        if opts.mlp_width > 0
-        else None
-    )
-    params: list[torch.nn.Parameter] = [centers, bone_rot, log_scales, rot6, tau]
-    groups: list[dict[str, Any]] = [{"params": params, "lr": opts.lr}]
-    if mlp is not None:
-        groups.append({"params": list(mlp.parameters()), "lr": opts.lr * 0.5})
-    optim = torch.optim.Adam(groups)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim, T_max=max(opts.iterations, 1), eta_min=opts.lr * 0.05)
-
-    def transforms() -> torch.Tensor:
-        rot = sk.rot6d_to_matrix(rot6)  # (T, B, 3, 3)
-        trans = pivots + tau - torch.einsum("tbij,bj->tbi", rot, pivots)
-        return torch.cat([rot, trans[..., None]], dim=-1)  # (T, B, 3, 4)
-
-    def weights(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        logits = -sk.mahalanobis_sq_torch(points, centers, sk.rot6d_to_matrix(bone_rot), log_scales)
-        delta = mlp(points) if mlp is not None else None
-        if delta is not None:
-            logits = logits + delta
-        return torch.softmax(logits, dim=-1), delta
-
-    history: list[float] = []
-    for it in range(opts.iterations):
-        optim.zero_grad(set_to_none=True)
-        w, delta = weights(x_rest)
-        pred = sk.linear_blend_torch(x_rest, w, transforms())
-        data = ((pred - y) ** 2).sum(-1).mean()
-        loss = data
-        if delta is not None and opts.delta_weight > 0:
-            loss = loss + opts.delta_weight * (delta**2).mean()
-        if opts.entropy_weight > 0:
-            loss = loss + opts.entropy_weight * (-(w * torch.log(w + 1e-8)).sum(-1).mean())
-        loss.backward()
-        optim.step()
-        sched.step()
-        if it % 50 == 0 or it == opts.iterations - 1:
-            history.append(float(data.detach().sqrt()))
-            log.debug("skinning_fit B=%d it %d rms %.5f (bbox-diag units)", bones, it, history[-1])
-
-    with torch.no_grad():
-        w_all, _ = weights(torch.as_tensor(rest_n, dtype=dt))
-        w_np = w_all.double().numpy()
-        w_np = w_np / w_np.sum(1, keepdims=True)
-        j_n = np.tile(np.eye(4), (n_frames, bones, 1, 1))
-        j_n[..., :3, :] = transforms().double().numpy()
-        cov_n = sk.bone_covariances(sk.rot6d_to_matrix(bone_rot).double().numpy(), np.exp(log_scales.double().numpy()))
-        centers_n = centers.double().numpy()
-
-    # Back to metres: x = diag * x_n + centre, so J = S^-1 J_n S with S the normalisation.
-    j = j_n.copy()
-    j[..., :3, 3] = diag * j_n[..., :3, 3] + centre - np.einsum("tbij,j->tbi", j_n[..., :3, :3], centre)
-    fit = FitResult(
-        rest=rest.copy(),
-        centers=centers_n * diag + centre,
-        covariances=cov_n * diag**2,
-        weights=w_np,
-        bone_transforms=j,
-        global_transforms=glob,
-        frame_error_m=np.zeros(n_frames),
-        bbox_diagonal=diag,
-        seconds=0.0,
-        history=history,
-    )
+    centers0, rots0, scales0 = _bone_shapes(rest_n, labels, bones, 0.01)  # floor 1% of the diagonal
+    model = BoneModel(centers0, rots0, scales0, initial_bone_motion(rest_n, local_n, labels, bones), opts)
+    idx = np.sort(sk.farthest_point_sample(rest_n, opts.fit_vertices)) \
+        if opts.fit_vertices and opts.fit_vertices < n_verts else np.arange(n_verts)
+    history = optimise_bones(model, torch.as_tensor(rest_n[idx], dtype=torch.float32),
+                             torch.as_tensor(local_n[:, idx], dtype=torch.float32), opts)
+    fit = fit_result(model, rest, rest_n, glob, centre, diag, history)
     fit.frame_error_m = lbs_error(seq, fit)
     fit.seconds = time.perf_counter() - start
     log.info(
@@ -297,6 +294,26 @@ def fit_skinning(sequence: np.ndarray, bones: int, opts: FitOptions | None = Non
     )
     log.debug("skinning_fit per-frame error [%% diag]: %s", np.array2string(fit.frame_error_pct, precision=3))
     return fit
+
+
+def fit_result(model: BoneModel, rest: np.ndarray, rest_n: np.ndarray, glob: np.ndarray, centre: np.ndarray,
+               diag: float, history: list[float]) -> FitResult:
+    """The fitted model back in metres: x = diag * x_n + centre, so J = S^-1 J_n S with S the normalisation."""
+    n_frames, bones = model.rot6.shape[:2]
+    with torch.no_grad():
+        w_all, _ = model.weights(torch.as_tensor(rest_n, dtype=torch.float32))
+        w_np = w_all.double().numpy()
+        w_np = w_np / w_np.sum(1, keepdims=True)
+        j_n = np.tile(np.eye(4), (n_frames, bones, 1, 1))
+        j_n[..., :3, :] = model.transforms().double().numpy()
+        cov_n = sk.bone_covariances(sk.rot6d_to_matrix(model.bone_rot).double().numpy(),
+                                    np.exp(model.log_scales.double().numpy()))
+        centers_n = model.centers.double().numpy()
+    j = j_n.copy()
+    j[..., :3, 3] = diag * j_n[..., :3, 3] + centre - np.einsum("tbij,j->tbi", j_n[..., :3, :3], centre)
+    return FitResult(rest=rest.copy(), centers=centers_n * diag + centre, covariances=cov_n * diag**2, weights=w_np,
+                     bone_transforms=j, global_transforms=glob, frame_error_m=np.zeros(n_frames),
+                     bbox_diagonal=diag, seconds=0.0, history=history)
 
 
 def parse_bones(value: Any) -> int | str:

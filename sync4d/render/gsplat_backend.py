@@ -20,7 +20,7 @@ import torch
 
 from sync4d.errors import ConfigError
 from sync4d.registry import register
-from sync4d.render.splat_torch import SplatTorch, _check_inputs
+from sync4d.render.splat_torch import SplatTorch, check_inputs
 from sync4d.types import Camera
 
 
@@ -65,7 +65,7 @@ class GsplatRenderer(SplatTorch):
         covs_t = self._tensor(covariances, dtype, dev)
         cols_t = self._tensor(colors, dtype, dev)
         opac_t = self._tensor(opacities, dtype, dev).reshape(-1)
-        _check_inputs(means_t, covs_t, cols_t, opac_t)
+        check_inputs(means_t, covs_t, cols_t, opac_t)
         if cols_t.ndim == 3:
             all_idx = torch.arange(means_t.shape[0], device=dev)
             cols_t = self._colors(cols_t, means_t, all_idx, camera)

@@ -45,7 +45,7 @@ from sync4d.render.sh import sh_degree_from_count, sh_to_rgb
 from sync4d.types import Camera
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
-_LOG_ALPHA_MAX = math.log(0.99)  # 3DGS caps a Gaussian's alpha at 0.99
+LOG_ALPHA_MAX = math.log(0.99)  # 3DGS caps a Gaussian's alpha at 0.99
 
 
 @dataclass
@@ -299,15 +299,44 @@ def composite_tiles(
         (num_tiles, tile_size^2, C) sums ``f_i alpha_i T_i`` and (num_tiles, tile_size^2) accumulated
         alpha ``1 - T_final``; pixel k of a tile is at (row k // tile_size, column k % tile_size).
     """
-    dtype, dev = means2d.dtype, means2d.device
     n_px, C = tile_size * tile_size, features.shape[1]
     if gid.numel() == 0:
         return means2d.new_zeros(num_tiles, n_px, C), means2d.new_zeros(num_tiles, n_px)
-    # The log-alpha of a pair is a quadratic in the pixel's offset (ox, oy) inside the tile, so it is one
-    # small matmul of per-pair coefficients with a fixed basis [1, ox, oy, ox^2, ox oy, oy^2] instead of
-    # a dozen full-size elementwise passes: log(o) - 0.5 (a dx^2 + 2 b dx dy + c dy^2) with
-    # dx = dx0 + ox, dy = dy0 + oy and (dx0, dy0) the offset of the tile's first pixel centre.
-    k = torch.arange(n_px, device=dev)
+    alpha = pair_alphas(gid, tile, tiles_x, tile_size, row0, means2d, conics, opacities, cutoff2)
+    log_t = torch.log1p(-alpha).double()
+    # Exclusive cumulative log-transmittance down the pair axis, restarted at each tile's first pair.
+    excl = torch.cumsum(log_t, 0) - log_t
+    counts = torch.bincount(tile, minlength=num_tiles)
+    starts = torch.cumsum(counts, 0) - counts
+    trans = torch.exp(excl - excl.index_select(0, starts.index_select(0, tile))).to(means2d.dtype)
+    weight = alpha * trans  # (P, n_px)
+    feats = features.index_select(0, gid)  # (P, C)
+    out = means2d.new_zeros(num_tiles, n_px, C).index_add(0, tile, weight[:, :, None] * feats[:, None, :])
+    acc = means2d.new_zeros(num_tiles, n_px).index_add(0, tile, weight)
+    return out, acc
+
+
+def pair_alphas(
+    gid: torch.Tensor,
+    tile: torch.Tensor,
+    tiles_x: int,
+    tile_size: int,
+    row0: int,
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    cutoff2: torch.Tensor,
+) -> torch.Tensor:
+    """(P, tile_size^2) alpha of each pair's Gaussian at every pixel of its tile (0 outside the footprint,
+    capped at 0.99); arguments as :func:`composite_tiles`'s.
+
+    The log-alpha of a pair is a quadratic in the pixel's offset (ox, oy) inside the tile, so it is one small
+    matmul of per-pair coefficients with a fixed basis [1, ox, oy, ox^2, ox oy, oy^2] instead of a dozen
+    full-size elementwise passes: log(o) - 0.5 (a dx^2 + 2 b dx dy + c dy^2) with dx = dx0 + ox,
+    dy = dy0 + oy and (dx0, dy0) the offset of the tile's first pixel centre.
+    """
+    dtype, dev = means2d.dtype, means2d.device
+    k = torch.arange(tile_size * tile_size, device=dev)
     ox = (k % tile_size).to(dtype)
     oy = torch.div(k, tile_size, rounding_mode="floor").to(dtype)
     basis = torch.stack([torch.ones_like(ox), ox, oy, ox * ox, ox * oy, oy * oy])  # (6, n_px)
@@ -335,19 +364,8 @@ def composite_tiles(
     # Footprint test: d^T Sigma^-1 d <= k^2  <=>  log_alpha >= log(o) - k^2 / 2 (so alpha >= alpha_min).
     threshold = (log_o - 0.5 * cutoff2.to(dtype).index_select(0, gid))[:, None]
     # 0.99 cap as in 3DGS keeps log(1 - alpha) finite and the backward pass well conditioned.
-    log_alpha = torch.clamp_max(log_alpha, _LOG_ALPHA_MAX)
-    alpha = torch.where(log_alpha >= threshold, torch.exp(log_alpha), torch.zeros((), dtype=dtype, device=dev))
-    log_t = torch.log1p(-alpha).double()
-    # Exclusive cumulative log-transmittance down the pair axis, restarted at each tile's first pair.
-    excl = torch.cumsum(log_t, 0) - log_t
-    counts = torch.bincount(tile, minlength=num_tiles)
-    starts = torch.cumsum(counts, 0) - counts
-    trans = torch.exp(excl - excl.index_select(0, starts.index_select(0, tile))).to(dtype)
-    weight = alpha * trans  # (P, n_px)
-    feats = features.index_select(0, gid)  # (P, C)
-    out = means2d.new_zeros(num_tiles, n_px, C).index_add(0, tile, weight[:, :, None] * feats[:, None, :])
-    acc = means2d.new_zeros(num_tiles, n_px).index_add(0, tile, weight)
-    return out, acc
+    log_alpha = torch.clamp_max(log_alpha, LOG_ALPHA_MAX)
+    return torch.where(log_alpha >= threshold, torch.exp(log_alpha), torch.zeros((), dtype=dtype, device=dev))
 
 
 def untile(x: torch.Tensor, tiles_y: int, tiles_x: int, tile_size: int, height: int, width: int) -> torch.Tensor:
@@ -485,7 +503,7 @@ class SplatTorch:
         covs_t = self._tensor(covariances, dtype, device)
         cols_t = self._tensor(colors, dtype, device)
         opac_t = self._tensor(opacities, dtype, device).reshape(-1)
-        _check_inputs(means_t, covs_t, cols_t, opac_t)
+        check_inputs(means_t, covs_t, cols_t, opac_t)
         width, height = int(camera.width), int(camera.height)
         channels = 3 if cols_t.ndim == 3 else cols_t.shape[1]
         if background is None:
@@ -588,7 +606,7 @@ def _torch_threads(num: int) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def _check_inputs(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor) -> None:
+def check_inputs(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor) -> None:
     n = means.shape[0]
     if means.ndim != 2 or means.shape[1] != 3:
         raise InputError(f"render: means must be (N, 3), got {tuple(means.shape)}")

@@ -90,7 +90,7 @@ def film_reference(
         bone b (the argmax skinning of the nearest rest vertex) is in front.
     """
     from sync4d.render.camera import frame_object
-    from sync4d.render_outputs import reference_gaussians
+    from sync4d.render.reference import reference_gaussians
 
     settings.validate()
     if reference.rest_faces is None or not len(reference.rest_faces):

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from sync4d.errors import ConfigError, DataMissingError, InputError
-from sync4d.floaters import FloaterConfig, FloaterReport, remove_floaters
+from sync4d.scenes.floaters import FloaterConfig, FloaterReport, remove_floaters
 from sync4d.io.mesh import load_mesh, mesh_to_gaussians
 from sync4d.io.ply import read_gaussians_ply
 from sync4d.registry import register
@@ -126,7 +126,7 @@ class MeshTarget:
 class PlyTarget:
     """A trained or generated 3D Gaussian Splatting ``.ply`` (Inria layout), floaters removed.
 
-    :meth:`load_checked` also returns what floater removal did (:class:`sync4d.floaters.FloaterReport`),
+    :meth:`load_checked` also returns what floater removal did (:class:`sync4d.scenes.floaters.FloaterReport`),
     for the run's log and metrics.
     """
 

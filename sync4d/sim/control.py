@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from sync4d.errors import ConfigError, InputError
-from sync4d.types import TargetGaussians, Trajectory, quat_to_matrix
+from sync4d.types import TargetGaussians, Trajectory
+from sync4d.geometry import quat_to_matrix
 
 
 def make_control_points(means: np.ndarray, control_grid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -108,7 +109,7 @@ def carry_frame(
     millions of Gaussians streams its frames to disk instead of holding them).
 
     Positions follow :func:`carry_gaussians`; covariances F_c Sigma F_c^T and the SH colours turned by the
-    polar rotation of F_c (then the global transform) come from :func:`sync4d.deform.deform_gaussians`,
+    polar rotation of F_c (then the global transform) come from :func:`sync4d.sim.deform.deform_gaussians`,
     whose rotations are built once per control point.
 
     Args:
@@ -121,7 +122,7 @@ def carry_frame(
     Returns:
         The frame's Gaussians (float32, world frame).
     """
-    from sync4d.deform import deform_gaussians
+    from sync4d.sim.deform import deform_gaussians
 
     g2p = np.asarray(gaussian_to_point, dtype=np.int64)
     F = np.asarray(F_t, dtype=np.float64)

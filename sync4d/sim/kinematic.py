@@ -1,26 +1,30 @@
 """``sim=kinematic``: the physics-free baseline of the MPM transfer (free flight, no grid, no stress).
 
-The same particles as ``sim=mpm_warp`` (control points split by part, :func:`sync4d.transfer.make_particles`)
-start every frame pair on the same initial velocities (:func:`sync4d.transfer.initial_velocity`) and fly
-freely for the frame: x <- x + N dt v, F <- (I + N dt C) F. With ``transfer.init=rigid`` that is exactly each
-part's rigid step, so every particle moves with its part's rigid motion. Whatever ``sim=mpm_warp``
-does beyond this comes from the grid and the stress; this is the reference point that shows it.
+The same particles as ``sim=mpm_warp`` start every frame pair on the same initial velocities and fly freely
+for the frame: x <- x + N dt v, F <- (I + N dt C) F, with driven particles put on their part's pose. With
+``transfer.init=rigid`` that is exactly each part's rigid step, so every particle moves with its part's rigid
+motion. Whatever ``sim=mpm_warp`` does beyond this comes from the grid and the stress; this is the reference
+point that shows it. Written in torch, so it is differentiable too.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
+import torch
 
-from sync4d.errors import ConfigError
 from sync4d.registry import register
-from sync4d.sim.control import carry_gaussians, gaussian_covariances
-from sync4d.transfer.config import TransferConfig
-from sync4d.types import DrivingMotion, PartMap, TargetGaussians, Trajectory
+from sync4d.types import FramePose
+
+
+@dataclass(frozen=True)
+class KinematicModel:
+    """Rest particles (P, 3) [m], their parts (P,) and driven flags (P,) (or None)."""
+
+    rest_points: np.ndarray
+    part: np.ndarray | None
+    driven: np.ndarray | None
 
 
 @register("sim", "kinematic")
@@ -29,61 +33,60 @@ class Kinematic:
 
     @dataclass
     class Config:
-        """Attributes:
-        control_grid: control-point lattice cells per axis (as ``sim=mpm_warp``), or null for every Gaussian.
-        (The initial velocities follow ``transfer.init``, as the MPM's do.)
-        """
+        """No settings: the initial velocities follow ``transfer.init``, as the MPM's do."""
 
-        control_grid: int | None = 40
-
-        def validate(self) -> None:
-            if self.control_grid is not None and self.control_grid < 1:
-                raise ConfigError(f"sim.control_grid={self.control_grid}: must be >= 1, or null for every Gaussian")
+    differentiable = True
+    dtype = torch.float64  # point-wise: exact in double precision
 
     def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        cfg.validate()
         self.cfg = cfg
 
-    def run(
-        self,
-        target: TargetGaussians,
-        part_map: PartMap,
-        motion: DrivingMotion,
-        *,
-        velocity_cfg: Any = None,
-        num_frames: int,
-        transfer: TransferConfig | None = None,
-        seed: int = 0,
-        on_frame: Callable[..., None] | None = None,
-        resume: dict[str, Any] | None = None,
-    ) -> Trajectory:
-        """Free flight of every frame pair from ``transfer.init``'s velocities; nothing is optimised, so
-        ``velocity_cfg`` and ``seed`` are unused."""
-        from sync4d.transfer import initial_velocity, make_particles
+    def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None, part: np.ndarray | None = None,
+                driven: np.ndarray | None = None) -> KinematicModel:
+        """The particles as given (volumes play no part in free flight)."""
+        return KinematicModel(np.asarray(points, dtype=np.float64), part, driven)
 
-        init = (transfer or TransferConfig()).init
+    def domain(self, model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
+        return padded_box(model.rest_points)
 
-        particles = make_particles(target, part_map, self.cfg.control_grid)
-        rest = particles.points
-        means0 = target.means.astype(np.float64)
-        cov0 = gaussian_covariances(target.scales, target.quats)
-        x, F = rest.copy(), np.tile(np.eye(3), (len(rest), 1, 1))
-        frame_time = 1.0 / motion.fps  # any value: free flight of N dt v does not depend on it
-        xs, fs = [], []
-        for t in range(num_frames):
-            started = time.perf_counter()
-            if t > 0:
-                P_t, P_next = motion.part_transforms[t - 1], motion.part_transforms[t]
-                step = P_next @ np.linalg.inv(P_t)
-                v0, C0 = initial_velocity(x, particles.part, step, motion.part_displacements[t - 1], frame_time,
-                                          init)
-                x = x + frame_time * v0
-                F = (np.eye(3)[None] + frame_time * C0) @ F
-            means_t, _ = carry_gaussians(means0, cov0, particles.gaussian_to_point, rest, x, F)
-            Fg = F[particles.gaussian_to_point]
-            xs.append(means_t)
-            fs.append(Fg)
-            if on_frame is not None:
-                on_frame(t, means_t, Fg, {"time/frame_s": time.perf_counter() - started})
-        return Trajectory(x=np.stack(xs), F=np.stack(fs), frame_dt=1.0 / motion.fps,
-                          global_transforms=motion.global_transforms[:num_frames]).validate()
+    def frame_time_for(self, fps: float | None) -> float:
+        return 1.0 / float(fps) if fps else 1.0  # any value: free flight of N dt v does not depend on it
+
+    def substeps_for(self, model: KinematicModel, v_max: float = 0.0, *,
+                     fps: float | None = None) -> tuple[int, float]:
+        return 1, self.frame_time_for(fps)
+
+    def rollout(
+        self, model: KinematicModel, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *,
+        substeps: int, dt: float, frame_index: int = 0, pose: FramePose | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Free flight for ``substeps * dt``: x + T v, F <- (I + T C) F; driven particles end on ``pose.end``."""
+        horizon = float(substeps) * float(dt)
+        x1 = x + horizon * v
+        F1 = (torch.eye(3, dtype=F.dtype) + horizon * C) @ F
+        if model.driven is not None and pose is not None and bool(np.any(model.driven)):
+            x1, F1 = drive_to_pose(model, pose, x1, F1)
+        return x1, v, F1, C
+
+
+def drive_to_pose(model: KinematicModel, pose: FramePose, x: torch.Tensor,
+                  F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Driven particles put on their part's pose at the frame's end (positions and rotation from rest)."""
+    assert model.part is not None and model.driven is not None
+    idx = np.flatnonzero(model.driven)
+    parts = model.part[idx]
+    end = pose.end[parts]
+    moved = np.einsum("pij,pj->pi", end[:, :3, :3], model.rest_points[idx]) + end[:, :3, 3]
+    x, F = x.clone(), F.clone()
+    x[idx] = torch.as_tensor(moved, dtype=x.dtype)
+    F[idx] = torch.as_tensor(end[:, :3, :3], dtype=F.dtype)
+    return x, F
+
+
+def padded_box(points: np.ndarray, padding: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """The points' bounding box grown by ``padding`` of its longest side on every side [m]."""
+    lo, hi = points.min(0), points.max(0)
+    margin = padding * float(max((hi - lo).max(), 1e-9))
+    return lo - margin, hi + margin
+
+

@@ -1,20 +1,11 @@
-"""The transfer stage: frame-pair training of a delta-velocity field through the simulator (paper Sec. 3.4).
+"""The transfer stage (paper Sec. 3.4): it owns the frame-pair loop; a simulator only steps.
 
-The simulator prepares and rolls out (:mod:`sync4d.sim`); this stage owns the loop: initial velocities,
-the loss, the optimiser and the advance from one frame pair to the next (:mod:`sync4d.transfer.loop`).
+config (the stage's options) <- motion (the driving motion in the target's frame) <- particles (control
+points, bone cores) <- loss (anchors, targets, initial velocities) <- loop (the loop and its optimiser) <-
+budget (the simulation's size and cost, before it runs).
 """
 
 from sync4d.transfer.config import PAPER, TransferConfig
-from sync4d.transfer.loop import (
-    Particles,
-    PartLoss,
-    anchor_points,
-    anchor_weights,
-    apply_rigid,
-    initial_velocity,
-    make_particles,
-    run_mpm_transfer,
-)
+from sync4d.transfer.loop import run_transfer
 
-__all__ = ["PAPER", "Particles", "PartLoss", "TransferConfig", "anchor_points", "anchor_weights", "apply_rigid",
-           "initial_velocity", "make_particles", "run_mpm_transfer"]
+__all__ = ["PAPER", "TransferConfig", "run_transfer"]

@@ -1,9 +1,10 @@
 """Delta-velocity fields (paper Sec. 3.4): ``dv = field(x, part)`` added to the reference velocities.
 
 Each field is a ``torch.nn.Module`` registered in the ``velocity`` group and built with
-``(cfg, num_parts=B, bounds=(lo, hi))`` where ``bounds`` is the simulation box [m]. ``velocity_scale``
+``(cfg, num_parts=B, bounds=(lo, hi), seed=...)`` where ``bounds`` is the simulation box [m]. ``velocity_scale``
 multiplies the initial reference velocities (the paper's alpha in its no-optimisation ablation) and
-``trainable`` says whether frame-pair training optimises it.
+``trainable`` says whether frame-pair training optimises it; the transfer stage owns the optimiser
+(``transfer.lr``, ``transfer.iterations``, ``transfer.patience``).
 """
 
 from __future__ import annotations
@@ -48,17 +49,10 @@ class TriplaneField(nn.Module):
         init_std: float = 0.1      # std of the initial plane features (non-zero so the MLP gets gradient)
         tv_weight: float = 1e-4    # weight of the total-variation loss on the planes
         velocity_scale: float = 1.0  # multiplies the reference velocities (kept 1 when training)
-        lr: float = 1e-2           # Adam learning rate
-        iterations: int = 12       # max optimisation steps per frame pair
-        patience: int = 4          # early stop after this many steps without improvement
-        min_improvement: float = 1e-3  # relative loss improvement that counts
-        reset_each_frame: bool = False  # re-initialise the field at every frame pair (else warm start)
 
         def validate(self) -> None:
             if self.resolution < 2 or self.features < 1 or self.hidden < 1:
                 raise ConfigError("velocity: resolution >= 2, features >= 1 and hidden >= 1 are required")
-            if self.iterations < 0 or self.lr <= 0:
-                raise ConfigError("velocity: iterations >= 0 and lr > 0 are required")
 
     trainable = True
 
@@ -103,12 +97,7 @@ class PerPartField(nn.Module):
 
     @dataclass
     class Config:
-        velocity_scale: float = 1.0
-        lr: float = 5e-2
-        iterations: int = 12
-        patience: int = 4
-        min_improvement: float = 1e-3
-        reset_each_frame: bool = False
+        velocity_scale: float = 1.0  # multiplies the reference velocities (kept 1 when training)
 
     trainable = True
 

@@ -1,6 +1,6 @@
 """What the viewer shows of a run folder, read lazily: Gaussian frames, the input video, particles.
 
-A finished run leaves (see :mod:`sync4d.render_outputs`) ``sequence.s4d`` (the target's Gaussians with
+A finished run leaves (see :mod:`sync4d.run.exports`) ``sequence.s4d`` (the target's Gaussians with
 part labels), ``reference.s4d`` (the reconstructed reference's), ``input.mp4`` (the input video, when
 the reference came from one) and ``trajectory.npz`` (the simulated points). A run without
 ``sequence.s4d`` (an older or interrupted run) is read from ``frames/*.ply`` instead, one file per frame.

@@ -39,7 +39,7 @@ from scipy.spatial.transform import Rotation
 from sync4d.errors import DataMissingError, InputError
 from sync4d.match import METHODS, MatchConfig, MatchResult, match_parts
 from sync4d.registry import build
-from sync4d.surface_sample import area_samples
+from sync4d.surface import area_samples
 from sync4d.types import Reference, TargetGaussians
 
 log = logging.getLogger(__name__)

@@ -49,14 +49,15 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sync4d.transfer import PAPER, TransferConfig
+from sync4d.transfer import PAPER, TransferConfig, run_transfer
 from sync4d.errors import ConfigError
 from sync4d.io.mesh import mesh_to_gaussians
 from sync4d.io.mocap import SkeletonMotion
-from sync4d.metrics import part_centroids, skinned_positions
-from sync4d.motion import driving_motion
-from sync4d.outputs import compute_metrics
-from sync4d.registry import build
+from sync4d.geometry import skinned_positions
+from sync4d.geometry import part_centroids
+from sync4d.transfer.motion import driving_motion
+from sync4d.run.writer import compute_metrics
+from sync4d.registry import build, component
 from sync4d.types import PartMap, Reference, TargetGaussians
 
 log = logging.getLogger(__name__)
@@ -219,14 +220,16 @@ def method_configs(name: str, mpm: dict[str, Any] | None = None
     ``mpm`` overrides keys of every ``sim=mpm_warp`` method (one setting for the whole suite); the paper's
     form keeps its own transfer options (:data:`sync4d.transfer.PAPER`).
     """
-    triplane = {"type": "triplane", **TRAIN}
+    triplane = {"type": "triplane"}
+    trained = dataclasses.replace(TransferConfig(), **TRAIN)
+    pointwise = TransferConfig(control_grid=None)  # point-wise deformation of every Gaussian
     table: dict[str, tuple[dict[str, Any], dict[str, Any], TransferConfig]] = {
-        "lbs_hard": ({"type": "lbs", "neighbours": 1}, {"type": "none"}, TransferConfig()),
-        "lbs_smooth": ({"type": "lbs", "neighbours": 16}, {"type": "none"}, TransferConfig()),
+        "lbs_hard": ({"type": "lbs", "neighbours": 1}, {"type": "none"}, pointwise),
+        "lbs_smooth": ({"type": "lbs", "neighbours": 16}, {"type": "none"}, pointwise),
         "kinematic": ({"type": "kinematic"}, {"type": "none"}, TransferConfig()),
         "mpm_none": ({"type": "mpm_warp"}, {"type": "none"}, TransferConfig()),
-        "mpm_triplane": ({"type": "mpm_warp"}, triplane, TransferConfig()),
-        "paper": ({"type": "mpm_warp"}, triplane, PAPER),
+        "mpm_triplane": ({"type": "mpm_warp"}, triplane, trained),
+        "paper": ({"type": "mpm_warp"}, triplane, dataclasses.replace(PAPER, **TRAIN)),
     }
     if name not in table:
         raise ConfigError(f"transfer_gt --methods: unknown method '{name}'; use {', '.join(METHODS)}")
@@ -301,8 +304,8 @@ def run_method(pair: GTPair, method: str, num_frames: int, mpm: dict[str, Any] |
         seconds.append(now - last[0])
         last[0] = now
 
-    traj = sim.run(pair.target, pair.part_map, motion, velocity_cfg=vel_cfg, num_frames=num_frames, transfer=transfer,
-                   seed=0, on_frame=on_frame)
+    traj = run_transfer(sim, component("velocity", vel_cfg).build, transfer, pair.target, pair.part_map, motion,
+                        num_frames=num_frames, seed=0, on_frame=on_frame)
     return score(pair, traj, motion, seconds)
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sync4d.surface_sample import area_samples
+from sync4d.surface import area_samples
 from sync4d.types import DrivingMotion, Reference
 
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from sync4d.types import TargetGaussians
+
 #: Surface points handed to matching for a target without a mesh (``match_parts``'s own bound).
 SURFACE_POINTS = 6000
 #: Points per sample point kept before the voxel search (by stride).
@@ -89,3 +91,14 @@ def splat_surface(means: np.ndarray, opacities: np.ndarray, *, max_points: int =
     if len(index) < 8:
         index = np.arange(len(means))
     return means[index[spread_sample(means[index], opacities[index], max_points)]]
+
+
+def target_surface(target: TargetGaussians, source: object) -> tuple[np.ndarray, np.ndarray | None]:
+    """The target's surface for matching and motion: its source's mesh (vertices (V, 3) [m], faces (F, 3))
+    when it has one, else a bounded, evenly spread sample of its opaque Gaussian centres (at most
+    ``SURFACE_POINTS``, however many Gaussians) and no faces."""
+    surface = getattr(source, "surface", None)
+    mesh = surface() if callable(surface) else None
+    if mesh is None:
+        return splat_surface(target.means, target.opacities), None
+    return mesh

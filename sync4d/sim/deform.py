@@ -17,7 +17,8 @@ import numpy as np
 
 from sync4d.errors import InputError
 from sync4d.render.sh import rotate_sh
-from sync4d.types import TargetGaussians, matrix_to_quat
+from sync4d.types import TargetGaussians
+from sync4d.geometry import matrix_to_quat
 
 
 def covariance_to_quat_scale(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -13,20 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-def bbox_diagonal(points: np.ndarray) -> float:
-    """Length of the axis-aligned bounding-box diagonal of (N, 3) points [m]."""
-    return float(np.linalg.norm(np.ptp(points, axis=0)))
-
-
-def part_centroids(x: np.ndarray, parts: np.ndarray, num_parts: int, mass: np.ndarray | None = None) -> np.ndarray:
-    """(B, 3) mass centroids of each part of (N, 3) points (NaN rows for empty parts)."""
-    w = np.ones(len(x)) if mass is None else np.asarray(mass, dtype=np.float64)
-    sums = np.zeros((num_parts, 3))
-    np.add.at(sums, parts, x * w[:, None])
-    totals = np.bincount(parts, weights=w, minlength=num_parts)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return sums / totals[:, None]
+from sync4d.geometry import part_centroids
 
 
 def displacement_error(
@@ -103,12 +90,6 @@ def peak_memory_mb() -> float:
     """Peak resident memory of this process so far [MB]."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 1024.0 if sys.platform != "darwin" else peak / (1024.0 * 1024.0)
-
-
-def skinned_positions(rest: np.ndarray, skinning: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-    """(N, 3) linear blend skinning of rest points [m] with (N, B) weights and (B, 4, 4) transforms."""
-    blended = np.einsum("nb,bij->nij", skinning, transforms)
-    return np.einsum("nij,nj->ni", blended[:, :3, :3], rest) + blended[:, :3, 3]
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -20,11 +20,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig
 
-from sync4d.io.mesh import mesh_to_gaussians
-from sync4d.metrics import skinned_positions
-from sync4d.registry import build, effective_config
+from sync4d.render.reference import reference_gaussians, reference_nearest
+from sync4d.registry import Component
 from sync4d.sim.control import bounded_subset, gaussian_trajectory
 from sync4d.types import Camera, DrivingMotion, PartMap, Reference, TargetGaussians, Trajectory, VideoClip
 
@@ -43,59 +41,6 @@ def sequence_gaussians(target: TargetGaussians, trajectory: Trajectory, globals_
     cov = rest_cov[None] if trajectory.F is None else trajectory.F @ rest_cov[None] @ np.swapaxes(trajectory.F, 2, 3)
     cov = np.einsum("tij,tnjk,tlk->tnil", rot, np.broadcast_to(cov, (len(rot), *rest_cov.shape)), rot)
     return means, cov
-
-
-def reference_gaussians(reference: Reference, num_frames: int, *, count: int = 3000) -> tuple[TargetGaussians, np.ndarray, np.ndarray]:
-    """The reference's rest surface as Gaussians, posed for every output frame (looped) by its own skinning.
-
-    Returns:
-        The rest Gaussians, world means (T, N, 3) and covariances (T, N, 3, 3).
-    """
-    if reference.rest_faces is not None and len(reference.rest_faces):
-        rest = mesh_to_gaussians(reference.rest_vertices, reference.rest_faces, num_surface=count,
-                                 vertex_colors=reference.vertex_colors, name=reference.name)
-    else:
-        from sync4d.types import matrix_to_quat
-
-        n = len(reference.rest_vertices)
-        size = 0.01 * np.linalg.norm(np.ptp(reference.rest_vertices, axis=0))
-        colors = reference.vertex_colors if reference.vertex_colors is not None else np.full((n, 3), 0.6)
-        rest = TargetGaussians(
-            means=reference.rest_vertices.astype(np.float32), quats=matrix_to_quat(np.tile(np.eye(3), (n, 1, 1))).astype(np.float32),
-            log_scales=np.full((n, 3), np.log(size), np.float32), opacity_logits=np.full(n, 2.0, np.float32),
-            sh=((colors - 0.5) / 0.28209479177387814)[:, None, :].astype(np.float32),
-        )
-    weights = reference.skinning[reference_nearest(reference, rest.means)]
-    means, covs = [], []
-    rest_cov = rest.covariances()
-    for t in range(num_frames):
-        i = t % reference.num_frames
-        x = skinned_positions(rest.means.astype(np.float64), weights, reference.bone_transforms[i])
-        blended = np.einsum("nb,bij->nij", weights, reference.bone_transforms[i][:, :3, :3])
-        G = reference.global_transforms[i]
-        means.append(x @ G[:3, :3].T + G[:3, 3])
-        R = G[:3, :3] @ blended
-        covs.append(R @ rest_cov @ np.swapaxes(R, 1, 2))
-    return rest, np.stack(means), np.stack(covs)
-
-
-def reference_nearest(reference: Reference, points: np.ndarray) -> np.ndarray:
-    """(M,) index of the nearest reference rest vertex of each of (M, 3) rest points [m]."""
-    from scipy.spatial import cKDTree
-
-    return cKDTree(reference.rest_vertices).query(points)[1]
-
-
-def input_video(cfg: DictConfig) -> VideoClip | None:
-    """The reference's input video, when its source has one (re-read from the source, which is cheap next to
-    the reconstruction it fed), else None."""
-    source = build("reference", group_config(cfg, "reference"), device=cfg.device, seed=cfg.seed)
-    return source.load().video
-
-
-def group_config(cfg: DictConfig, group: str) -> dict[str, Any]:
-    """A group's config with the ``shrink`` values (``debug=smoke``) its component knows."""
-    return effective_config(group, cfg[group], (cfg.get("shrink") or {}).get(group))
 
 
 def motion_camera(sequence: np.ndarray, rc: Any) -> Camera:
@@ -128,20 +73,23 @@ def write_videos(run_dir: Path, panels: list[tuple[str, np.ndarray]], fps: float
 
 def render_run_outputs(
     run_dir: Path,
-    cfg: DictConfig,
+    render: Component,
+    device: str,
     target: TargetGaussians,
     trajectory: Trajectory,
     motion: DrivingMotion,
     reference: Reference,
     *,
+    clip: VideoClip | None = None,
     part_map: PartMap | None = None,
     logger: Any = None,
 ) -> dict[str, Path]:
-    """Render and export a finished run (files listed in the module docstring). Returns them by name."""
+    """Render and export a finished run (files listed in the module docstring) with the ``render`` component;
+    ``clip`` is the reference's input video when it had one. Returns the files by name."""
     from sync4d.io.seq4d import Seq4DConfig, write_seq4d
     from sync4d.render.video import render_sequence, write_mp4
 
-    renderer = build("render", group_config(cfg, "render"), device=cfg.device)
+    renderer = render.build(device=device)
     rc = renderer.cfg
     fps = rc.fps or motion.fps
     num = trajectory.num_frames
@@ -159,7 +107,6 @@ def render_run_outputs(
                                  motion_camera(ref_means, rc), desc="render reference")
     panels = [("reference", ref_frames), ("target", frames)]
     files: dict[str, Path] = {}
-    clip = input_video(cfg)
     if clip is not None:
         panels.insert(0, ("video", clip.frames))
         files["input.mp4"] = write_mp4(run_dir / "input.mp4", clip.frames, clip.fps)

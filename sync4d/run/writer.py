@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
-from sync4d import metrics as M
-from sync4d.deform import deform_gaussians
+from sync4d.geometry import bbox_diagonal, skinned_positions
+from sync4d.run import metrics as M
+from sync4d.sim.deform import deform_gaussians
 from sync4d.errors import ConfigError
 from sync4d.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
 from sync4d.io.ply import write_gaussians_ply
@@ -314,18 +314,17 @@ def check_same_config(saved: dict[str, Any] | None, current: dict[str, Any] | No
         raise ConfigError(f"resume={resume}: that run used {shown}{more}; resume with the same overrides")
 
 
+#: Runs without a grid are judged with the cell of the default MPM grid fitted to the same rest shape: 32
+#: nodes over the longest extent padded by a quarter on each side, less 2 x 3 wall nodes and 2 (= 1.5 / 24).
+DEFAULT_CELL_OF_LONGEST = 1.5 / 24.0
+
+
 def fragment_gap(rest: np.ndarray, dx: float | None) -> float:
-    """Distance [m] beyond which a piece counts as detached: two cells of the run's grid.
-
-    Runs without a grid (``sim=lbs``, ``sim=kinematic``) use the cell of the default MPM grid fitted to
-    the same rest shape, so every method is judged with the same length.
-    """
+    """Distance [m] beyond which a piece counts as detached: two cells of the run's grid (``dx`` [m]), or
+    without one (``sim=lbs``, ``sim=kinematic``) of the default grid's, so every method is judged alike."""
     if dx is None:
-        from sync4d.sim import physics
-        from sync4d.sim.mpm_warp import MPMWarp
-
-        d = MPMWarp.Config()
-        dx = physics.fit_grid(rest, n_grid=d.n_grid, padding=d.grid_padding, wall=d.wall_cells).dx
+        longest = float(np.ptp(np.asarray(rest, dtype=np.float64), axis=0).max())
+        dx = DEFAULT_CELL_OF_LONGEST * (longest if longest > 0 else 1e-3)
     return 2.0 * float(dx)
 
 
@@ -338,13 +337,13 @@ def self_transfer_truth(reference: Reference, rest: np.ndarray, num_frames: int,
     """
     from scipy.spatial import cKDTree
 
-    from sync4d.motion import frame_indices
+    from sync4d.transfer.motion import frame_indices
 
     _, nearest = cKDTree(reference.rest_vertices).query(rest)
     weights = reference.skinning[nearest]
     idx = frame_indices(reference.num_frames, num_frames, loop=loop)
     bones = reference.bone_transforms[idx] @ np.linalg.inv(reference.bone_transforms[idx[0]])[None]
-    return np.stack([M.skinned_positions(rest, weights, bones[t]) for t in range(num_frames)])
+    return np.stack([skinned_positions(rest, weights, bones[t]) for t in range(num_frames)])
 
 
 def compute_metrics(
@@ -360,7 +359,7 @@ def compute_metrics(
     loop: bool = True,
     dx: float | None = None,
 ) -> dict[str, Any]:
-    """All metrics of a run, overall (frames 1..T) and per frame (see :mod:`sync4d.metrics`).
+    """All metrics of a run, overall (frames 1..T) and per frame (see :mod:`sync4d.run.metrics`).
 
     A control-point trajectory is carried to the Gaussians first; beyond ``METRIC_GAUSSIANS`` Gaussians
     every metric but the bounding-box diagonal is computed on that many, evenly by stride.
@@ -371,7 +370,7 @@ def compute_metrics(
         loop: the driving motion loops the reference (for the self-transfer truth's frame indices).
         dx: the simulator's grid cell [m] (sets the fragment gap; None: the default grid's).
     """
-    diagonal = M.bbox_diagonal(target.means)
+    diagonal = bbox_diagonal(target.means)
     index = bounded_subset(target.num, METRIC_GAUSSIANS)
     trajectory = gaussian_trajectory(trajectory, target.means, index)
     if index is not None and truth is not None:
@@ -430,7 +429,3 @@ def compute_metrics(
         "coverage_ratio": motion.coverage_ratio,
         "per_frame": per_frame,
     }
-
-
-def config_dict(cfg: DictConfig) -> dict[str, Any]:
-    return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]

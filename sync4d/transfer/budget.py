@@ -39,6 +39,7 @@ import numpy as np
 from sync4d.errors import ConfigError
 from sync4d.sim import physics
 from sync4d.sim.control import make_control_points
+from sync4d.transfer.config import TransferConfig
 from sync4d.types import DrivingMotion, TargetGaussians
 
 log = logging.getLogger(__name__)
@@ -163,9 +164,14 @@ class SimSettings:
     checkpoint_budget_mb: float = 512.0
 
     @staticmethod
-    def of(cfg: object) -> SimSettings:
-        """The settings of any config object holding these fields (e.g. ``MPMWarp.Config``)."""
-        return SimSettings(**{f: getattr(cfg, f) for f in SimSettings.__dataclass_fields__})
+    def fields() -> tuple[str, ...]:
+        return tuple(f for f in SimSettings.__dataclass_fields__ if f != "control_grid")
+
+    @staticmethod
+    def of(cfg: object, control_grid: int | None) -> SimSettings:
+        """The settings of a simulator config holding these fields (e.g. ``MPMWarp.Config``) with the
+        transfer's control lattice."""
+        return SimSettings(**{f: getattr(cfg, f) for f in SimSettings.fields()}, control_grid=control_grid)
 
 
 @dataclass(frozen=True)
@@ -300,13 +306,16 @@ def check_cost(estimate: CostEstimate, *, max_substeps: int, E: float) -> None:
 
 
 def check_run_cost(
-    sim_cfg: dict, velocity_cfg: dict, target: TargetGaussians, motion: DrivingMotion, *, frames: int
+    sim_config: object, transfer: TransferConfig, trainable: bool, target: TargetGaussians, motion: DrivingMotion, *,
+    frames: int,
 ) -> CostEstimate | None:
     """Estimate and log a run's cost before it simulates; refuse it when it exceeds ``sim.max_substeps``.
 
     Args:
-        sim_cfg: the ``sim`` group's values (with ``type``); only ``sim=mpm_warp`` has a cost model.
-        velocity_cfg: the ``velocity`` group's values (its ``iterations`` per frame, if trainable).
+        sim_config: the simulator's typed Config; only grid simulators (with the :class:`SimSettings` fields
+            and ``max_substeps``) have a cost model.
+        transfer: the transfer's options (control lattice, optimisation iterations per frame).
+        trainable: the velocity field trains (its iterations count).
         target: the Gaussians (after floater removal); motion: the driving motion; frames: T.
 
     Returns:
@@ -315,15 +324,11 @@ def check_run_cost(
     Raises:
         ConfigError: the estimate exceeds ``sim.max_substeps`` (see :func:`check_cost`).
     """
-    from sync4d.registry import make_config
-
-    if sim_cfg.get("type") != "mpm_warp":
+    if not all(hasattr(sim_config, f) for f in (*SimSettings.fields(), "max_substeps")):
         return None
-    _, sim = make_config("sim", sim_cfg)
-    _, velocity = make_config("velocity", velocity_cfg)
-    iterations = int(getattr(velocity, "iterations", 0) or 0)
-    estimate = estimate_cost(target.means, motion, SimSettings.of(sim), frames=frames, iterations=iterations,
-                             sh_coeffs=target.sh.shape[1])
+    iterations = transfer.iterations if trainable else 0
+    estimate = estimate_cost(target.means, motion, SimSettings.of(sim_config, transfer.control_grid),
+                             frames=frames, iterations=iterations, sh_coeffs=target.sh.shape[1])
     log.info("%s", estimate.summary())
-    check_cost(estimate, max_substeps=int(sim.max_substeps), E=float(sim.E))
+    check_cost(estimate, max_substeps=int(sim_config.max_substeps), E=float(sim_config.E))  # type: ignore[attr-defined]
     return estimate

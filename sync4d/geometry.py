@@ -1,0 +1,177 @@
+"""Geometry used across the library, each in one place: rotations (quaternions, axis-angle), rigid
+transforms and fits, linear blend skinning, the interpolation of a part's pose within a frame, and the
+degree-0 spherical-harmonic constant that maps colours to 3DGS coefficients. Pure NumPy functions."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Y_0^0 = 1 / (2 sqrt(pi)): a 3DGS colour is RGB = 0.5 + SH_C0 * f_dc.
+SH_C0 = 0.28209479177387814
+
+
+def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) RGB in [0, 1] -> (N, 1, 3) degree-0 SH coefficients (inverse of 0.5 + SH_C0 * c)."""
+    return ((np.asarray(rgb, dtype=np.float64) - 0.5) / SH_C0)[:, None, :]
+
+
+def quat_to_matrix(quats: np.ndarray) -> np.ndarray:
+    """(N, 4) wxyz quaternions (any length) -> (N, 3, 3) rotation matrices (float64)."""
+    q = np.asarray(quats, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def matrix_to_quat(mats: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices -> (N, 4) wxyz unit quaternions with w >= 0 (float64)."""
+    m = np.asarray(mats, dtype=np.float64)
+    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    cands = np.stack(
+        [
+            np.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+            np.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - trace, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+            np.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 + 2 * m[..., 1, 1] - trace, m[..., 1, 2] + m[..., 2, 1]], -1),
+            np.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 + 2 * m[..., 2, 2] - trace], -1),
+        ],
+        -2,
+    )
+    # Pick the numerically largest candidate (Shepperd's method) per matrix.
+    diag = np.stack([trace, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1)
+    best = np.argmax(diag, axis=-1)
+    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def rotation_about_axis(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations by ``angles`` [rad] (any shape) about one unit ``axis`` (3,) (Rodrigues)."""
+    k = np.asarray(axis, dtype=np.float64)
+    k = k / np.linalg.norm(k)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    a = np.asarray(angles, dtype=np.float64)[..., None, None]
+    return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
+
+
+def rotation_vector_to_matrix(v: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors (axis times angle [rad]) -> (..., 3, 3) rotations, exact at zero."""
+    v = np.asarray(v, dtype=np.float64)
+    theta = np.linalg.norm(v, axis=-1)[..., None, None]
+    zeros = np.zeros(v.shape[:-1])
+    K = np.stack([np.stack([zeros, -v[..., 2], v[..., 1]], -1),
+                  np.stack([v[..., 2], zeros, -v[..., 0]], -1),
+                  np.stack([-v[..., 1], v[..., 0], zeros], -1)], -2)
+    safe = np.where(theta > 1e-12, theta, 1.0)
+    a = np.where(theta > 1e-12, np.sin(theta) / safe, 1.0)
+    b = np.where(theta > 1e-12, (1.0 - np.cos(theta)) / safe**2, 0.5)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations -> (..., 3) rotation vectors (angle in [0, pi]), via the quaternion."""
+    q = matrix_to_quat(R)  # w >= 0
+    s = np.linalg.norm(q[..., 1:], axis=-1)
+    angle = 2.0 * np.arctan2(s, q[..., 0])
+    scale = np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 2.0)
+    return q[..., 1:] * scale[..., None]
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """(...) the angle [deg] of rotations (..., 3, 3), from the trace (clipped for rounding)."""
+    cos = (np.trace(np.asarray(R, dtype=np.float64), axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def bbox_diagonal(points: np.ndarray) -> float:
+    """Length of the axis-aligned bounding-box diagonal of (N, 3) points [m]."""
+    return float(np.linalg.norm(np.ptp(points, axis=0)))
+
+
+def part_centroids(x: np.ndarray, parts: np.ndarray, num_parts: int, mass: np.ndarray | None = None) -> np.ndarray:
+    """(B, 3) mass centroids of each part of (N, 3) points (NaN rows for empty parts)."""
+    w = np.ones(len(x)) if mass is None else np.asarray(mass, dtype=np.float64)
+    sums = np.zeros((num_parts, 3))
+    np.add.at(sums, parts, x * w[:, None])
+    totals = np.bincount(parts, weights=w, minlength=num_parts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums / totals[:, None]
+
+
+def apply_rigid(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 3) points [m] mapped by one (4, 4) transform."""
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def rigid_fit(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Best rigid transform (rotation + translation, no scale) taking ``src`` onto ``dst`` (Kabsch).
+
+    Args:
+        src: (..., N, 3) source points [m].
+        dst: (..., N, 3) target points [m], same correspondence.
+        weights: (..., N) non-negative weights, or None for uniform.
+
+    Returns:
+        (..., 4, 4) transforms T with ``dst ~= R src + t``, det(R) = +1.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    w = np.ones(src.shape[:-1]) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / np.maximum(w.sum(-1, keepdims=True), 1e-12)
+    mu_s = (w[..., None] * src).sum(-2)
+    mu_d = (w[..., None] * dst).sum(-2)
+    cov = np.einsum("...n,...ni,...nj->...ij", w, dst - mu_d[..., None, :], src - mu_s[..., None, :])
+    u, _, vt = np.linalg.svd(cov)
+    # Flip the last singular direction when needed so that R is a rotation, not a reflection.
+    d = np.sign(np.linalg.det(u @ vt))
+    d = np.where(d == 0, 1.0, d)
+    fix = np.ones(u.shape[:-2] + (3,))
+    fix[..., 2] = d
+    rot = (u * fix[..., None, :]) @ vt
+    out = np.zeros(src.shape[:-2] + (4, 4))
+    out[..., :3, :3] = rot
+    out[..., :3, 3] = mu_d - np.einsum("...ij,...j->...i", rot, mu_s)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def skinned_positions(rest: np.ndarray, skinning: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """(N, 3) linear blend skinning of rest points [m] with (N, B) weights and (B, 4, 4) transforms."""
+    blended = np.einsum("nb,bij->nij", skinning, transforms)
+    return np.einsum("nij,nj->ni", blended[:, :3, :3], rest) + blended[:, :3, 3]
+
+
+def interpolate_poses(start: np.ndarray, end: np.ndarray, pivots: np.ndarray, steps: int) -> np.ndarray:
+    """Rigid poses of B parts at ``steps + 1`` evenly spaced times between two poses.
+
+    Each part turns about its pivot at a constant rate (the rotation vector of end start^-1, scaled) while
+    the pivot moves on a straight line, so a lid swings about its own centre instead of cutting a chord.
+
+    Args:
+        start, end: (B, 4, 4) rest -> time transforms at the two ends.
+        pivots: (B, 3) rest-space points each part turns about [m] (e.g. its centroid).
+        steps: number of intervals N >= 1.
+
+    Returns:
+        (N + 1, B, 4, 4) poses; row 0 is ``start`` and row N is ``end`` (to float rounding).
+    """
+    start, end = np.asarray(start, dtype=np.float64), np.asarray(end, dtype=np.float64)
+    step_rotation = end[:, :3, :3] @ np.swapaxes(start[:, :3, :3], -1, -2)
+    omega = matrix_to_rotation_vector(step_rotation)  # (B, 3)
+    c0 = np.einsum("bij,bj->bi", start[:, :3, :3], pivots) + start[:, :3, 3]
+    c1 = np.einsum("bij,bj->bi", end[:, :3, :3], pivots) + end[:, :3, 3]
+    alpha = np.linspace(0.0, 1.0, steps + 1)
+    R = rotation_vector_to_matrix(alpha[:, None, None] * omega[None]) @ start[None, :, :3, :3]  # (N+1, B, 3, 3)
+    centre = (1.0 - alpha)[:, None, None] * c0[None] + alpha[:, None, None] * c1[None]
+    out = np.zeros((steps + 1, *start.shape))
+    out[..., :3, :3] = R
+    out[..., :3, 3] = centre - np.einsum("sbij,bj->sbi", R, pivots)
+    out[..., 3, 3] = 1.0
+    out[-1] = end
+    return out

@@ -1,0 +1,373 @@
+"""One MLS-MPM substep forward (:func:`step`) and in reverse (:func:`step_adjoint`), and a rollout of many
+(:class:`RolloutPlan`): the orchestration of :mod:`sync4d.sim.mpm_warp.kernels` over a :class:`Workspace`.
+
+Forward: ping-pong between two preallocated states (no per-substep allocation); when gradients are wanted
+every ``checkpoint_every``-th particle state is stored (x, v, C, F: 96 bytes per particle). Backward: per
+segment, the stored state is advanced again to recover the segment's states; then for each substep in
+reverse the grid is rebuilt (P2G + grid update) and the hand-written adjoint kernels of G2P, the grid
+update and P2G run, with one reused grid (never a copy per substep). Memory of a forward+backward rollout
+is O(P (substeps / k + k)) plus one grid with its adjoint.
+
+Both cores (CPU only): Warp's CPU backend runs a launch on one thread and its ctypes call releases the GIL.
+With T > 1 threads every particle kernel is launched as T contiguous chunks of the (cell-sorted) particles
+from T Python threads, each P2G and each G2P adjoint scattering into its own grid (the grid update and its
+adjoint sum the T grids, split into T slabs of nodes), so no two threads ever write the same memory.
+
+Driven particles (:attr:`MPMModel.driven`): after each G2P, :func:`kernels.drive_particles` puts them on
+their part's pose at the end of the substep (a kinematic boundary condition); in reverse their adjoint
+stops there.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+import warp as wp
+
+from sync4d.errors import SimulationDiverged
+from sync4d.sim.mpm_warp import kernels as K
+from sync4d.sim.mpm_warp.model import STATUS_OK, MPMModel, WarpState, Workspace
+
+
+@dataclass
+class DriveArrays:
+    """The driven particles of one rollout, in the rollout's (sorted) particle order.
+
+    Attributes:
+        rest: (P,) vec3 rest positions [m]; part: (P,) int32 parts; driven: (P,) int32, 1 = driven.
+        poses: ((N + 1) B,) mat44: rest -> start of substep s for part b at row s B + b.
+        num_parts: B.
+    """
+
+    rest: wp.array
+    part: wp.array
+    driven: wp.array
+    poses: wp.array
+    num_parts: int
+
+    def chunk(self, bounds: tuple[int, int]) -> DriveArrays:
+        lo, hi = bounds
+        return DriveArrays(self.rest[lo:hi], self.part[lo:hi], self.driven[lo:hi], self.poses, self.num_parts)
+
+
+@dataclass
+class Launch:
+    """Per-rollout constants of the kernels (model in sorted particle order, workspace, driven particles)."""
+
+    model: MPMModel
+    ws: Workspace
+    mass: wp.array
+    volume: wp.array
+    dt: float
+    mass_eps: float
+    drive: DriveArrays | None = None
+    mass_of: list[wp.array] = field(default_factory=list, repr=False)
+    volume_of: list[wp.array] = field(default_factory=list, repr=False)
+    drive_of: list[DriveArrays] = field(default_factory=list, repr=False)
+
+    def __post_init__(self) -> None:
+        bounds = self.ws.bounds
+        one = self.ws.threads == 1
+        self.mass_of = [self.mass] if one else [self.mass[lo:hi] for lo, hi in bounds]
+        self.volume_of = [self.volume] if one else [self.volume[lo:hi] for lo, hi in bounds]
+        if self.drive is not None:
+            self.drive_of = [self.drive] if one else [self.drive.chunk(b) for b in bounds]
+
+    def p2g_args(
+        self, s: WarpState, substep: int, *, store_rotation: bool = False, t: int = 0
+    ) -> tuple[list[Any], list[Any]]:
+        """P2G of thread t's particles (``s`` is that thread's view of the state) into its own grid."""
+        g = self.model.grid
+        inputs = [
+            s.x, s.v, s.C, s.F, self.mass_of[t], self.volume_of[t],
+            float(self.model.mu), float(self.model.lam),
+            wp.vec3(*g.origin), float(g.dx), float(1.0 / g.dx), float(self.dt),
+            int(g.dims[0]), int(g.dims[1]), int(g.dims[2]), int(substep), int(store_rotation),
+        ]  # fmt: skip
+        return inputs, [self.ws.grid_of[t], self.ws.status_of[t], self.ws.rotation_of[t]]
+
+    def grid_args(self, t: int = 0) -> tuple[list[Any], list[Any]]:
+        """Grid update of thread t's slab of nodes (the launch dimension is :meth:`slab_dim`)."""
+        m, g = self.model, self.model.grid
+        box = m.fixed_box if m.fixed_box is not None else np.zeros((2, 3))
+        inputs = [
+            self.ws.grids, int(self.ws.slabs[t][0]), wp.vec3(*m.gravity), float(self.dt), float(self.mass_eps),
+            int(g.wall), int(m.sticky), wp.vec3(*g.origin), float(g.dx), wp.vec3(*box[0]), wp.vec3(*box[1]),
+            int(m.fixed_box is not None), self.ws.driven_grid, int(self.drive is not None),
+        ]  # fmt: skip
+        return inputs, [self.ws.grid_v]
+
+    def slab_dim(self, t: int) -> tuple[int, int, int]:
+        lo, hi = self.ws.slabs[t]
+        return (hi - lo, self.ws.dims[1], self.ws.dims[2])
+
+    def g2p_args(self, s: WarpState, out: WarpState, substep: int, t: int = 0) -> tuple[list[Any], list[Any]]:
+        g = self.model.grid
+        inputs = [s.x, s.F, self.ws.grid_v, wp.vec3(*g.origin), float(1.0 / g.dx), float(self.dt), int(substep)]
+        return inputs, [out.x, out.v, out.C, out.F, self.ws.status_of[t]]
+
+    def count(self, t: int) -> int:
+        lo, hi = self.ws.bounds[t]
+        return hi - lo
+
+    def p2g(self, s: WarpState, substep: int, t: int, *, store_rotation: bool = False) -> None:
+        """Zero thread t's grid and scatter its particles (``s`` the whole state) into it."""
+        ws = self.ws
+        ws.grid_of[t].zero_()
+        i, o = self.p2g_args(s.parts(ws.bounds)[t], substep, store_rotation=store_rotation, t=t)
+        wp.launch(K.p2g, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
+
+    def scatter_driven(self, s: WarpState) -> None:
+        """The driven particles' P2G of state ``s`` into the workspace's driven grid (main thread, all particles)."""
+        if self.drive is None:
+            return
+        g, ws = self.model.grid, self.ws
+        ws.driven_grid.zero_()
+        wp.launch(
+            K.p2g_driven, dim=ws.n,
+            inputs=[s.x, s.v, s.C, self.mass, self.drive.driven, wp.vec3(*g.origin), float(g.dx), float(1.0 / g.dx),
+                    int(g.dims[0]), int(g.dims[1]), int(g.dims[2])],
+            outputs=[ws.driven_grid], device=ws.device,
+        )  # fmt: skip
+
+    def grid_update(self, t: int) -> None:
+        i, o = self.grid_args(t)
+        wp.launch(K.grid_update, dim=self.slab_dim(t), inputs=i, outputs=o, device=self.ws.device)
+
+    def g2p(self, s: WarpState, out: WarpState, substep: int, t: int) -> None:
+        """G2P of thread t's particles, then the driven ones put on their part's pose."""
+        ws = self.ws
+        out_t = out.parts(ws.bounds)[t]
+        i, o = self.g2p_args(s.parts(ws.bounds)[t], out_t, substep, t)
+        wp.launch(K.g2p, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
+        self.drive_thread(out_t, substep, t, at_start=False)
+
+    def drive_thread(self, state_t: WarpState, substep: int, t: int, *, at_start: bool) -> None:
+        """Put thread t's driven particles (``state_t`` its view) on their part's pose at the end of substep
+        ``substep`` (or its start, ``at_start``); nothing without driven particles."""
+        if self.drive is None:
+            return
+        d = self.drive_of[t]
+        wp.launch(
+            K.drive_particles, dim=self.count(t),
+            inputs=[d.rest, d.part, d.driven, d.poses, int(d.num_parts), int(substep), int(at_start), float(self.dt)],
+            outputs=[state_t.x, state_t.v, state_t.C, state_t.F], device=self.ws.device,
+        )  # fmt: skip
+
+    def stop_driven_adjoint(self, adj_out: WarpState, t: int) -> None:
+        """Zero the incoming adjoint of thread t's driven particles (their end state is prescribed)."""
+        if self.drive is None:
+            return
+        a = adj_out.parts(self.ws.bounds)[t]
+        wp.launch(K.drive_particles_adjoint, dim=self.count(t), inputs=[self.drive_of[t].driven],
+                  outputs=[a.x, a.v, a.C, a.F], device=self.ws.device)
+
+
+def step(
+    launch: Launch,
+    state_in: WarpState,
+    state_out: WarpState,
+    substep: int,
+    *,
+    p2g_done: bool = False,
+    prefetch: bool = False,
+    prefetch_rotation: bool = False,
+    timers: dict[str, float] | None = None,
+) -> None:
+    """One MLS-MPM substep ``state_in -> state_out`` (``state_in`` is only read).
+
+    Args:
+        launch: model, workspace, dt [s] of this rollout.
+        state_in: particle state at the start of the substep.
+        state_out: receives the state at the end of the substep (must not alias ``state_in``).
+        substep: substep index in the rollout (recorded if a particle leaves the grid or turns non-finite;
+            selects the driven particles' pose).
+        p2g_done: the grids already hold this substep's P2G (a previous call's ``prefetch``).
+        prefetch: also run the next substep's P2G of ``state_out`` (each thread right after its own G2P,
+            whose chunk it reads: one hand-over between threads fewer per substep).
+        prefetch_rotation: the prefetched P2G stores the polar rotations (for the backward pass).
+        timers: when given, accumulates wall time [s] per kernel under 'p2g', 'grid', 'g2p' (synchronises
+            after each launch, so only for profiling; no prefetching then).
+    """
+    ws, dev = launch.ws, launch.ws.device
+    marks: list[float] = []
+
+    def mark() -> None:
+        if timers is not None:
+            wp.synchronize_device(dev)
+            marks.append(time.perf_counter())
+
+    if timers is not None:
+        p2g_done = prefetch = False
+    mark()
+    if not p2g_done:
+        ws.run(lambda t: launch.p2g(state_in, substep, t))
+    launch.scatter_driven(state_in)
+    mark()
+    ws.run(launch.grid_update)
+    mark()
+
+    def g2p(t: int) -> None:
+        launch.g2p(state_in, state_out, substep, t)
+        if prefetch:
+            launch.p2g(state_out, substep + 1, t, store_rotation=prefetch_rotation)
+
+    ws.run(g2p)
+    mark()
+    if timers is not None:
+        for name, lo, hi in zip(("p2g", "grid", "g2p"), marks, marks[1:]):
+            timers[name] = timers.get(name, 0.0) + (hi - lo)
+
+
+def step_adjoint(
+    launch: Launch,
+    s: WarpState,
+    adj_out: WarpState,
+    adj_in: WarpState,
+    substep: int,
+    *,
+    p2g_done: bool = False,
+    prefetch: WarpState | None = None,
+) -> None:
+    """Reverse one substep: given dL/d(state_out) in ``adj_out``, write dL/d(state_in) into ``adj_in``.
+
+    ``p2g_done``: the grids and rotations already hold this substep's P2G of ``s``; ``prefetch``: the
+    state of the substep reversed next, whose P2G (with rotations) each thread runs right after its P2G
+    adjoint.
+
+    Rebuilds the substep's grid from ``s`` (P2G + grid update), then runs the adjoints in reverse order:
+    the driven particles' (their adjoint stops), G2P, grid update, and P2G fused with the fixed-corotated
+    stress, all by hand-written kernels (checked against finite differences and against Warp's generated
+    adjoints in the tests). The grid mass is differentiated like every other input. ``adj_out`` is consumed
+    (driven rows zeroed).
+    """
+    ws, dev = launch.ws, launch.ws.device
+    assert ws.adj_grid is not None and ws.adj_grid_v is not None
+    g = launch.model.grid
+    if not p2g_done:  # forward part: the grid this substep saw
+        ws.run(lambda t: launch.p2g(s, substep, t, store_rotation=True))
+    launch.scatter_driven(s)
+    ws.run(launch.grid_update)
+
+    origin, inv_dx, dt = wp.vec3(*g.origin), float(1.0 / g.dx), float(launch.dt)
+    sp, op, ip = s.parts(ws.bounds), adj_out.parts(ws.bounds), adj_in.parts(ws.bounds)
+
+    def g2p_adjoint(t: int) -> None:
+        launch.stop_driven_adjoint(adj_out, t)
+        ws.adj_grid_v_of[t].zero_()
+        wp.launch(
+            K.g2p_adjoint, dim=launch.count(t),
+            inputs=[sp[t].x, sp[t].F, ws.grid_v, origin, inv_dx, dt, op[t].x, op[t].v, op[t].C, op[t].F],
+            outputs=[ws.adj_grid_v_of[t], ip[t].x, ip[t].F], device=dev,
+        )  # fmt: skip
+
+    def grid_update_adjoint(t: int) -> None:
+        grid_in, _ = launch.grid_args(t)
+        wp.launch(
+            K.grid_update_adjoint, dim=launch.slab_dim(t), inputs=grid_in + [ws.adj_grid_v], outputs=[ws.adj_grid],
+            device=dev,
+        )  # fmt: skip
+
+    def p2g_adjoint(t: int) -> None:
+        p2g_in, _ = launch.p2g_args(sp[t], substep, t=t)
+        wp.launch(
+            K.p2g_adjoint, dim=launch.count(t),
+            inputs=p2g_in[:15] + [ws.rotation_of[t], ws.adj_grid],
+            outputs=[ip[t].x, ip[t].v, ip[t].C, ip[t].F], device=dev,
+        )  # fmt: skip
+        if prefetch is not None:  # after this thread's adjoint has read its chunk's rotations
+            launch.p2g(prefetch, substep - 1, t, store_rotation=True)
+
+    ws.run(g2p_adjoint)
+    ws.run(grid_update_adjoint)
+    ws.run(p2g_adjoint)
+
+
+@dataclass
+class RolloutPlan:
+    """What one rollout call runs; kept on the autograd context for its backward."""
+
+    launch: Launch
+    substeps: int
+    checkpoint_every: int
+    frame_index: int
+    checkpoints: list[WarpState] = field(default_factory=list)
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        v: torch.Tensor,
+        F: torch.Tensor,
+        C: torch.Tensor,
+        *,
+        store: bool,
+        timers: dict[str, float] | None = None,
+    ) -> WarpState:
+        """Run every substep; stores checkpoints when ``store``; stops early once a substep failed."""
+        ws = self.launch.ws
+        ws.status_all.fill_(STATUS_OK)
+        ws.ping.load(x, v, F, C)
+        # driven particles start on their pose with their bone's velocity, whatever the input says
+        ws.run(lambda t: self.launch.drive_thread(ws.ping.parts(ws.bounds)[t], 0, t, at_start=True))
+        cur, nxt = ws.ping, ws.pong
+        k = self.checkpoint_every
+        p2g_done = False
+        for s in range(self.substeps):
+            if s % k == 0:
+                if s > 0 and ws.status_value() != STATUS_OK:
+                    break  # diverged: stop early, the caller raises SimulationDiverged
+                if store:
+                    self.checkpoints.append(cur.clone())
+            prefetch = s + 1 < self.substeps
+            step(self.launch, cur, nxt, s, p2g_done=p2g_done, prefetch=prefetch, timers=timers)
+            p2g_done = prefetch and timers is None
+            cur, nxt = nxt, cur
+        return cur
+
+    def segment_states(self, seg_id: int, p2g_done: bool) -> list[WarpState]:
+        """The particle states at the start of each substep of segment ``seg_id``, recomputed from its
+        checkpoint (every step prefetches the next P2G with rotations for the adjoint)."""
+        ws, k = self.launch.ws, self.checkpoint_every
+        s0 = seg_id * k
+        s1 = min(s0 + k, self.substeps)
+        states = [self.checkpoints[seg_id]]
+        for j in range(1, s1 - s0):
+            out = ws.segment[j]
+            step(self.launch, states[-1], out, s0 + j - 1, p2g_done=p2g_done or j > 1, prefetch=True,
+                 prefetch_rotation=True)
+            states.append(out)
+        return states
+
+    def backward(self, grads: list[torch.Tensor | None], like: torch.Tensor) -> list[torch.Tensor]:
+        """dL/d(x, v, F, C) of the rollout's input from dL/d of its output (None = zero)."""
+        ws, n = self.launch.ws, self.launch.model.num_particles
+        k = self.checkpoint_every
+        ws.ensure_backward(k)
+        assert ws.adj_a is not None and ws.adj_b is not None
+        adj_next, adj_cur = ws.adj_a, ws.adj_b
+        shapes = ((n, 3), (n, 3), (n, 3, 3), (n, 3, 3))
+        adj_next.load(*(g if g is not None else torch.zeros(shape) for g, shape in zip(grads, shapes)))
+        # Every P2G is run ahead, by the threads that finish the step before it: the grids (and rotations)
+        # then hold the P2G of the state used next, and p2g_done says so.
+        p2g_done = False
+        for seg_id in reversed(range(len(self.checkpoints))):
+            states = self.segment_states(seg_id, p2g_done)
+            p2g_done = p2g_done or len(states) > 1
+            s0 = seg_id * k
+            for j in reversed(range(len(states))):
+                nxt = states[j - 1] if j > 0 else (self.checkpoints[seg_id - 1] if seg_id > 0 else None)
+                step_adjoint(self.launch, states[j], adj_next, adj_cur, s0 + j, p2g_done=p2g_done, prefetch=nxt)
+                p2g_done = nxt is not None
+                adj_next, adj_cur = adj_cur, adj_next
+        ws.run(lambda t: self.launch.stop_driven_adjoint(adj_next, t))  # the input drive, reversed
+        out = [g.to(like.device) for g in adj_next.to_torch()]
+        if not all(bool(torch.isfinite(g).all()) for g in out):
+            raise SimulationDiverged(
+                f"frame {self.frame_index}: the rollout's gradient is NaN/inf although its forward pass was "
+                "finite; lower dt (sim.cfl_safety) or the learning rate of the velocities"
+            )
+        return out
