@@ -145,33 +145,3 @@ def skinned_positions(rest: np.ndarray, skinning: np.ndarray, transforms: np.nda
     """(N, 3) linear blend skinning of rest points [m] with (N, B) weights and (B, 4, 4) transforms."""
     blended = np.einsum("nb,bij->nij", skinning, transforms)
     return np.einsum("nij,nj->ni", blended[:, :3, :3], rest) + blended[:, :3, 3]
-
-
-def interpolate_poses(start: np.ndarray, end: np.ndarray, pivots: np.ndarray, steps: int) -> np.ndarray:
-    """Rigid poses of B parts at ``steps + 1`` evenly spaced times between two poses.
-
-    Each part turns about its pivot at a constant rate (the rotation vector of end start^-1, scaled) while
-    the pivot moves on a straight line, so a lid swings about its own centre instead of cutting a chord.
-
-    Args:
-        start, end: (B, 4, 4) rest -> time transforms at the two ends.
-        pivots: (B, 3) rest-space points each part turns about [m] (e.g. its centroid).
-        steps: number of intervals N >= 1.
-
-    Returns:
-        (N + 1, B, 4, 4) poses; row 0 is ``start`` and row N is ``end`` (to float rounding).
-    """
-    start, end = np.asarray(start, dtype=np.float64), np.asarray(end, dtype=np.float64)
-    step_rotation = end[:, :3, :3] @ np.swapaxes(start[:, :3, :3], -1, -2)
-    omega = matrix_to_rotation_vector(step_rotation)  # (B, 3)
-    c0 = np.einsum("bij,bj->bi", start[:, :3, :3], pivots) + start[:, :3, 3]
-    c1 = np.einsum("bij,bj->bi", end[:, :3, :3], pivots) + end[:, :3, 3]
-    alpha = np.linspace(0.0, 1.0, steps + 1)
-    R = rotation_vector_to_matrix(alpha[:, None, None] * omega[None]) @ start[None, :, :3, :3]  # (N+1, B, 3, 3)
-    centre = (1.0 - alpha)[:, None, None] * c0[None] + alpha[:, None, None] * c1[None]
-    out = np.zeros((steps + 1, *start.shape))
-    out[..., :3, :3] = R
-    out[..., :3, 3] = centre - np.einsum("sbij,bj->sbi", R, pivots)
-    out[..., 3, 3] = 1.0
-    out[-1] = end
-    return out

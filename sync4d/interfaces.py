@@ -62,11 +62,8 @@ class Simulator(Protocol):
     differentiable: bool
     dtype: torch.dtype
 
-    def prepare(
-        self, points: np.ndarray, *, volume: np.ndarray | None = None, part: np.ndarray | None = None,
-        driven: np.ndarray | None = None,
-    ) -> Any:
-        """The model of (P, 3) rest particles [m] with (P,) volumes [m^3], parts and driven flags."""
+    def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None, part: np.ndarray | None = None) -> Any:
+        """The model of (P, 3) rest particles [m] with (P,) volumes [m^3] and parts."""
         ...
 
     def domain(self, model: Any) -> tuple[np.ndarray, np.ndarray]:

@@ -494,12 +494,10 @@ class FramePose:
     Attributes:
         start: (B, 4, 4) each part's rest -> frame t transform.
         end: (B, 4, 4) each part's rest -> frame t+1 transform.
-        pivots: (B, 3) rest-space point each part turns about between the two [m] (its centroid).
     """
 
     start: np.ndarray
     end: np.ndarray
-    pivots: np.ndarray
 
     @property
     def num_parts(self) -> int:
@@ -509,5 +507,4 @@ class FramePose:
         dims: dict[str, int] = {}
         check_array("FramePose", "start", self.start, ("B", 4, 4), dims)
         check_array("FramePose", "end", self.end, ("B", 4, 4), dims)
-        check_array("FramePose", "pivots", self.pivots, ("B", 3), dims)
         return self

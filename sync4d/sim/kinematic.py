@@ -1,7 +1,7 @@
 """``sim=kinematic``: the physics-free baseline of the MPM transfer (free flight, no grid, no stress).
 
 The same particles as ``sim=mpm_warp`` start every frame pair on the same initial velocities and fly freely
-for the frame: x <- x + N dt v, F <- (I + N dt C) F, with driven particles put on their part's pose. With
+for the frame: x <- x + N dt v, F <- (I + N dt C) F. With
 ``transfer.init=rigid`` that is exactly each part's rigid step, so every particle moves with its part's rigid
 motion. Whatever ``sim=mpm_warp`` does beyond this comes from the grid and the stress; this is the reference
 point that shows it. Written in torch, so it is differentiable too.
@@ -20,11 +20,9 @@ from sync4d.types import FramePose
 
 @dataclass(frozen=True)
 class KinematicModel:
-    """Rest particles (P, 3) [m], their parts (P,) and driven flags (P,) (or None)."""
+    """Rest particles (P, 3) [m]."""
 
     rest_points: np.ndarray
-    part: np.ndarray | None
-    driven: np.ndarray | None
 
 
 @register("sim", "kinematic")
@@ -41,10 +39,10 @@ class Kinematic:
     def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
         self.cfg = cfg
 
-    def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None, part: np.ndarray | None = None,
-                driven: np.ndarray | None = None) -> KinematicModel:
+    def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None,
+                part: np.ndarray | None = None) -> KinematicModel:
         """The particles as given (volumes play no part in free flight)."""
-        return KinematicModel(np.asarray(points, dtype=np.float64), part, driven)
+        return KinematicModel(np.asarray(points, dtype=np.float64))
 
     def domain(self, model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
         return padded_box(model.rest_points)
@@ -60,27 +58,11 @@ class Kinematic:
         self, model: KinematicModel, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *,
         substeps: int, dt: float, frame_index: int = 0, pose: FramePose | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Free flight for ``substeps * dt``: x + T v, F <- (I + T C) F; driven particles end on ``pose.end``."""
+        """Free flight for ``substeps * dt``: x + T v, F <- (I + T C) F."""
         horizon = float(substeps) * float(dt)
         x1 = x + horizon * v
         F1 = (torch.eye(3, dtype=F.dtype) + horizon * C) @ F
-        if model.driven is not None and pose is not None and bool(np.any(model.driven)):
-            x1, F1 = drive_to_pose(model, pose, x1, F1)
         return x1, v, F1, C
-
-
-def drive_to_pose(model: KinematicModel, pose: FramePose, x: torch.Tensor,
-                  F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Driven particles put on their part's pose at the frame's end (positions and rotation from rest)."""
-    assert model.part is not None and model.driven is not None
-    idx = np.flatnonzero(model.driven)
-    parts = model.part[idx]
-    end = pose.end[parts]
-    moved = np.einsum("pij,pj->pi", end[:, :3, :3], model.rest_points[idx]) + end[:, :3, 3]
-    x, F = x.clone(), F.clone()
-    x[idx] = torch.as_tensor(moved, dtype=x.dtype)
-    F[idx] = torch.as_tensor(end[:, :3, :3], dtype=F.dtype)
-    return x, F
 
 
 def padded_box(points: np.ndarray, padding: float = 0.25) -> tuple[np.ndarray, np.ndarray]:

@@ -57,8 +57,8 @@ class LinearBlendSkinning:
         cfg.validate()
         self.cfg = cfg
 
-    def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None, part: np.ndarray | None = None,
-                driven: np.ndarray | None = None) -> SkinningModel:
+    def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None,
+                part: np.ndarray | None = None) -> SkinningModel:
         """Blend weights of the rest particles from their parts (``part`` is required)."""
         if part is None:
             raise InputError("sim=lbs: prepare needs the particles' parts")

@@ -22,13 +22,6 @@ class TransferConfig:
             puts its rest position, (P_{t+1} P_0^-1 X - x) / (N dt): the rigid step plus the particle's offset from
             its pose, so drift is closed every frame) or ``centroid`` (the paper: one velocity per part from its
             bone centre's displacement, which turns no part).
-        drive: how the bones move the material: ``launch`` (the paper: they set the initial velocities and the
-            material then flies freely for the frame's substeps) or ``cores`` (also every substep: the
-            particles of each part's core, farther than ``core_margin`` from any other part, follow their
-            bone as a kinematic boundary condition and the rest is the elastic continuum between them).
-        core_margin: distance from another part beyond which a particle belongs to its part's core, as a
-            fraction of the target's bounding-box diagonal (a part with nothing that far keeps the half of
-            its particles farthest from the others as its core).
         loss_points: what the L1 loss compares: ``particles`` (every particle with its part's pose),
             ``anchors`` (the part centroid and six half-space centroids) or ``centroid`` (the paper).
         target_mode: ``absolute`` (the rest anchors moved by the reference's pose at t+1: drift is corrected)
@@ -42,8 +35,6 @@ class TransferConfig:
 
     control_grid: int | None = 40
     init: Literal["rigid", "pose", "centroid"] = "rigid"
-    drive: Literal["launch", "cores"] = "launch"
-    core_margin: float = 0.05
     loss_points: Literal["particles", "anchors", "centroid"] = "particles"
     target_mode: Literal["absolute", "relative"] = "absolute"
     lr: float = 1e-2
@@ -56,8 +47,6 @@ class TransferConfig:
         """Raise :class:`ConfigError` naming the offending ``transfer.*`` key."""
         if self.control_grid is not None and self.control_grid < 1:
             raise ConfigError(f"transfer.control_grid={self.control_grid}: must be >= 1, or null for every Gaussian")
-        if not 0.0 <= self.core_margin < 1.0:
-            raise ConfigError(f"transfer.core_margin={self.core_margin}: must be in [0, 1) (a fraction of the diagonal)")
         if not self.lr > 0:
             raise ConfigError(f"transfer.lr={self.lr}: must be > 0")
         if self.iterations < 0 or self.patience < 1:
@@ -68,5 +57,5 @@ class TransferConfig:
 
 
 #: The paper's form (the ablation people ask for): ``transfer.init=centroid transfer.loss_points=centroid
-#: transfer.target_mode=relative transfer.drive=launch``.
-PAPER = TransferConfig(init="centroid", loss_points="centroid", target_mode="relative", drive="launch")
+#: transfer.target_mode=relative``.
+PAPER = TransferConfig(init="centroid", loss_points="centroid", target_mode="relative")

@@ -6,8 +6,7 @@ pair t -> t+1:
      v0 plus the field's delta dv(x) (``transfer.init``: the bone's rigid velocity field, or the paper's one
      velocity per part);
   2. the simulator rolls out N substeps of dt (N dt = the simulated time of one frame), given the parts'
-     poses at t and t+1 (with ``transfer.drive=cores`` the particles of each part's core follow them every
-     substep);
+     poses at t and t+1 (point-wise simulators follow them; the MPM follows its initial velocities);
   3. the loss compares each part's end positions with the reference's motion (``transfer.loss_points``,
      ``transfer.target_mode``) plus the field's own regulariser (the triplane's total variation);
   4. Adam updates the field until the loss stops improving; the best field advances the state (x, F, C; v
@@ -27,11 +26,10 @@ import numpy as np
 import torch
 
 from sync4d.interfaces import Simulator, VelocityField
-from sync4d.geometry import bbox_diagonal, part_centroids
 from sync4d.sim.control import ControlPoints, with_control
 from sync4d.transfer.config import TransferConfig
 from sync4d.transfer.loss import PartLoss, anchor_targets, anchor_weights, initial_velocity
-from sync4d.transfer.particles import Particles, core_particles, make_particles
+from sync4d.transfer.particles import Particles, make_particles
 from sync4d.types import DrivingMotion, FramePose, PartMap, TargetGaussians, Trajectory
 
 log = logging.getLogger(__name__)
@@ -64,7 +62,6 @@ class Transfer:
     options: TransferConfig
     motion: DrivingMotion
     control: ControlPoints | None
-    pivots: np.ndarray
     initial_field: dict[str, torch.Tensor] = field(default_factory=dict)
 
     @property
@@ -78,16 +75,10 @@ class Transfer:
 
 def setup_transfer(simulator: Simulator, make_field: FieldFactory, options: TransferConfig, target: TargetGaussians,
                    part_map: PartMap, motion: DrivingMotion, *, seed: int) -> Transfer:
-    """The particles (control points split by part), their cores when driven, the simulator's model, the
-    velocity field over the simulated box and its optimiser."""
+    """The particles (control points split by part), the simulator's model, the velocity field over the
+    simulated box and its optimiser."""
     particles = make_particles(target, part_map, options.control_grid)
-    driven = None
-    if options.drive == "cores":
-        margin = options.core_margin * bbox_diagonal(particles.points)
-        driven = core_particles(particles.points, particles.part, margin)
-        log.info("transfer: %d of %d particles driven by their bones (core margin %.3g m)", int(driven.sum()),
-                 len(driven), margin)
-    model = simulator.prepare(particles.points, volume=particles.volume, part=particles.part, driven=driven)
+    model = simulator.prepare(particles.points, volume=particles.volume, part=particles.part)
     num_parts = part_map.num_parts
     velocity = make_field(num_parts=num_parts, bounds=simulator.domain(model), seed=seed)
     trains = velocity.trainable and options.iterations > 0
@@ -96,8 +87,7 @@ def setup_transfer(simulator: Simulator, make_field: FieldFactory, options: Tran
         trains = False
     optimizer = torch.optim.Adam(velocity.parameters(), lr=options.lr) if trains else None
     control = None if options.control_grid is None else ControlPoints(particles.points, particles.gaussian_to_point)
-    pivots = np.nan_to_num(part_centroids(particles.points, particles.part, num_parts))
-    return Transfer(simulator, model, particles, velocity, optimizer, options, motion, control, pivots,
+    return Transfer(simulator, model, particles, velocity, optimizer, options, motion, control,
                     {k: v.clone() for k, v in velocity.state_dict().items()})
 
 
@@ -109,10 +99,10 @@ def rest_state(transfer: Transfer) -> ParticleState:
 
 
 def frame_pose(transfer: Transfer, t: int) -> FramePose:
-    """The parts' rest -> t and rest -> t+1 poses in the target's frame, turning about their centroids."""
+    """The parts' rest -> t and rest -> t+1 poses in the target's frame."""
     P = transfer.motion.part_transforms
     rest_inverse = np.linalg.inv(P[0])
-    return FramePose(start=P[t] @ rest_inverse, end=P[t + 1] @ rest_inverse, pivots=transfer.pivots)
+    return FramePose(start=P[t] @ rest_inverse, end=P[t + 1] @ rest_inverse)
 
 
 def frame_loss(transfer: Transfer, x_np: np.ndarray, t: int) -> PartLoss:

@@ -1,12 +1,10 @@
-"""The simulated particle set of a transfer: control points (or the Gaussians themselves) with their parts,
-and which of them form each part's core."""
+"""The simulated particle set of a transfer: control points (or the Gaussians themselves) with their parts."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from sync4d.sim.control import make_control_points
 from sync4d.types import PartMap, TargetGaussians
@@ -57,30 +55,3 @@ def make_particles(target: TargetGaussians, part_map: PartMap, control_grid: int
     share = counts_split / np.bincount(cell_of, weights=counts_split)[cell_of]
     return Particles(sums / counts_split[:, None], part, g2p_split.astype(np.int64), counts_split.astype(np.int64),
                      volume=share * side**3)
-
-
-def distance_to_other_parts(points: np.ndarray, part: np.ndarray) -> np.ndarray:
-    """(P,) distance [m] from each point to the nearest point of another part (inf with one part only)."""
-    out = np.full(len(points), np.inf)
-    for b in np.unique(part):
-        mine = part == b
-        if mine.all():
-            continue
-        out[mine] = cKDTree(points[~mine]).query(points[mine])[0]
-    return out
-
-
-def core_particles(points: np.ndarray, part: np.ndarray, margin: float) -> np.ndarray:
-    """(P,) bool: the particles of each part's core, farther than ``margin`` [m] from every other part.
-
-    A part with no particle that far (thin, or small against the margin) keeps as its core the particles at
-    least half as far from the others as its farthest one, so every part is held by its bone.
-    """
-    distance = distance_to_other_parts(points, part)
-    core = distance > margin
-    for b in np.unique(part):
-        mine = part == b
-        if not core[mine].any():
-            far = distance[mine]
-            core[mine] = far >= 0.5 * far.max()
-    return core

@@ -305,60 +305,6 @@ def node_sum(grids: wp.array4d(dtype=wp.vec4), i: int, j: int, k: int) -> wp.vec
     return g
 
 
-#: A node is moved wholly with the driven particles once they bring this share of its mass.
-DRIVEN_SHARE = wp.constant(0.5)
-
-
-@wp.func
-def driven_blend(driven_mass: float, mass: float) -> float:
-    """How much of a node's velocity the driven particles set: min(1, (m_d / m) / DRIVEN_SHARE)."""
-    return wp.min(1.0, driven_mass / (mass * DRIVEN_SHARE))
-
-
-@wp.func
-def driven_blend_dm(driven_mass: float, mass: float) -> float:
-    """d :func:`driven_blend` / d mass (zero where the blend is saturated at 1)."""
-    r = driven_mass / (mass * DRIVEN_SHARE)
-    out = 0.0
-    if r < 1.0:
-        out = -r / mass
-    return out
-
-
-@wp.kernel(enable_backward=False)
-def p2g_driven(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    mass: wp.array(dtype=float),
-    driven: wp.array(dtype=wp.int32),
-    origin: wp.vec3,
-    dx: float,
-    inv_dx: float,
-    nx: int,
-    ny: int,
-    nz: int,
-    driven_grid: wp.array3d(dtype=wp.vec4),
-):
-    """The driven particles' share of P2G, on its own grid: vec4(m (v + C (x_i - x_p)), m) per node (no stress:
-    a driven particle's state is prescribed). Read by :func:`grid_update`; launched on one thread."""
-    p = wp.tid()
-    if driven[p] == 0:
-        return
-    gp = (x[p] - origin) * inv_dx
-    bx, by, bz, ok = stencil_base(gp, nx, ny, nz)
-    fx = gp - wp.vec3(float(bx), float(by), float(bz))
-    wx, wy, wz = bspline_weights(fx)
-    m = mass[p]
-    Cp = C[p]
-    for a in range(3):
-        for b in range(3):
-            for c in range(3):
-                w = wx[a] * wy[b] * wz[c]
-                mom = m * (v[p] + dx * (Cp * (wp.vec3(float(a), float(b), float(c)) - fx)))
-                wp.atomic_add(driven_grid, bx + a, by + b, bz + c, wp.vec4(w * mom[0], w * mom[1], w * mom[2], w * m))
-
-
 @wp.kernel
 def grid_update(
     grids: wp.array4d(dtype=wp.vec4),
@@ -373,16 +319,9 @@ def grid_update(
     fixed_lo: wp.vec3,
     fixed_hi: wp.vec3,
     use_fixed: int,
-    driven_grid: wp.array3d(dtype=wp.vec4),
-    use_driven: int,
     grid_v: wp.array3d(dtype=wp.vec3),
 ):
     """Node velocities v_i = (m v)_i / m_i + dt g, then boundary conditions (:func:`boundary_mask`).
-
-    With ``use_driven``, a node that driven particles reach (:func:`p2g_driven`) moves with them: its
-    velocity is blended towards theirs, v = (1 - b) v + b vd with vd = (m v)_d / m_d and
-    b = :func:`driven_blend` (1 where they bring at least half of the node's mass), so the material next to a
-    bone core moves with the bone instead of merely being averaged with it.
 
     Launched over the slab of nodes i0 <= i < i0 + dim[0] (the whole grid, or one thread's share).
 
@@ -405,11 +344,6 @@ def grid_update(
     vi = wp.vec3(0.0)
     if m > mass_eps:
         vi = wp.vec3(g[0], g[1], g[2]) / m + dt * gravity
-        if use_driven != 0:
-            d = driven_grid[i, j, k]
-            if d[3] > 0.0:
-                b = driven_blend(d[3], m)
-                vi = (1.0 - b) * vi + (b / d[3]) * wp.vec3(d[0], d[1], d[2])
         mask = boundary_mask(
             i,
             j,
@@ -444,8 +378,6 @@ def grid_update_adjoint(
     fixed_lo: wp.vec3,
     fixed_hi: wp.vec3,
     use_fixed: int,
-    driven_grid: wp.array3d(dtype=wp.vec4),
-    use_driven: int,
     adj_grid_v: wp.array4d(dtype=wp.vec3),
     adj_grid: wp.array3d(dtype=wp.vec4),
 ):
@@ -456,10 +388,6 @@ def grid_update_adjoint(
     what carries the weights' position dependence back correctly over many substeps. ``adj_grid`` is
     written, not accumulated (no zeroing needed). ``grids`` and ``adj_grid_v`` (T, nx, ny, nz) hold one
     grid per thread (P2G's and G2P-adjoint's scatters), summed here; the slab is as in :func:`grid_update`.
-
-    At a node driven particles reach, v = (1 - b) (p / m + dt g) + b vd with b = :func:`driven_blend` (m_d, m):
-    the driven momentum and mass are constants (the driven particles' states are prescribed), so
-    dL/dp = (1 - b) M dL/dv / m and dL/dm = (M dL/dv) . (-(1 - b) p / m^2 + db/dm (vd - p / m - dt g)).
     """
     i, j, k = wp.tid()
     i = i + i0
@@ -470,15 +398,6 @@ def grid_update_adjoint(
         p = wp.vec3(g[0], g[1], g[2])
         inv_m = 1.0 / m
         vi = p * inv_m + dt * gravity
-        keep = 1.0
-        dkeep_dm = 0.0
-        vd = wp.vec3(0.0)
-        if use_driven != 0:
-            d = driven_grid[i, j, k]
-            if d[3] > 0.0:
-                keep = 1.0 - driven_blend(d[3], m)
-                dkeep_dm = -driven_blend_dm(d[3], m)
-                vd = wp.vec3(d[0], d[1], d[2]) / d[3]
         mask = boundary_mask(
             i,
             j,
@@ -486,7 +405,7 @@ def grid_update_adjoint(
             grids.shape[1],
             grids.shape[2],
             grids.shape[3],
-            keep * vi + (1.0 - keep) * vd,
+            vi,
             wall,
             sticky,
             origin,
@@ -499,9 +418,8 @@ def grid_update_adjoint(
         for t in range(1, adj_grid_v.shape[0]):
             av = av + adj_grid_v[t, i, j, k]
         a = wp.cw_mul(av, mask)
-        ap = (keep * inv_m) * a
-        am = -wp.dot(ap, p) * inv_m - dkeep_dm * wp.dot(a, vd - vi)
-        out = wp.vec4(ap[0], ap[1], ap[2], am)
+        ap = a * inv_m
+        out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, p) * inv_m)
     adj_grid[i, j, k] = out
 
 
@@ -753,72 +671,3 @@ def grid_totals(grid: wp.array3d(dtype=wp.vec4), total: wp.array(dtype=wp.vec4))
     """Sum of vec4(m v, m) over the grid (diagnostics: mass and momentum conservation of P2G)."""
     i, j, k = wp.tid()
     wp.atomic_add(total, 0, grid[i, j, k])
-
-
-@wp.func
-def rotation_of(T: wp.mat44) -> wp.mat33:
-    """The upper-left 3x3 block of a rigid transform."""
-    return wp.mat33(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
-
-
-@wp.kernel(enable_backward=False)
-def drive_particles(
-    rest: wp.array(dtype=wp.vec3),
-    part: wp.array(dtype=wp.int32),
-    driven: wp.array(dtype=wp.int32),
-    poses: wp.array(dtype=wp.mat44),
-    num_parts: int,
-    substep: int,
-    at_start: int,
-    dt: float,
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    F_out: wp.array(dtype=wp.mat33),
-):
-    """Kinematic boundary condition: a driven particle ends the substep on its part's pose.
-
-    ``poses`` holds (substeps + 1) x B rest -> time transforms, row s * B + b for the start of substep s.
-    A driven particle's state after substep ``substep`` becomes x = T1 X (X its rest position), v = (T1 X -
-    T0 X) / dt, C = (R1 R0^T - I) / dt (the rigid velocity gradient) and F = R1 (a pure rotation from rest:
-    no elastic stress of its own), so it carries its bone's momentum into the next P2G and holds the
-    material around it. Free particles are left as G2P wrote them. With ``at_start`` the particle is put at the
-    start of substep ``substep`` instead (x = T0 X, F = R0) with the same velocities: the rollout's input state.
-    """
-    p = wp.tid()
-    if driven[p] == 0:
-        return
-    b = part[p]
-    T0 = poses[substep * num_parts + b]
-    T1 = poses[(substep + 1) * num_parts + b]
-    x0 = wp.transform_point(T0, rest[p])
-    x1 = wp.transform_point(T1, rest[p])
-    R0 = rotation_of(T0)
-    R1 = rotation_of(T1)
-    v_out[p] = (x1 - x0) / dt
-    C_out[p] = (R1 * wp.transpose(R0) - wp.identity(n=3, dtype=float)) / dt
-    if at_start != 0:
-        x_out[p] = x0
-        F_out[p] = R0
-    else:
-        x_out[p] = x1
-        F_out[p] = R1
-
-
-@wp.kernel(enable_backward=False)
-def drive_particles_adjoint(
-    driven: wp.array(dtype=wp.int32),
-    adj_x: wp.array(dtype=wp.vec3),
-    adj_v: wp.array(dtype=wp.vec3),
-    adj_C: wp.array(dtype=wp.mat33),
-    adj_F: wp.array(dtype=wp.mat33),
-):
-    """Adjoint of :func:`drive_particles`: a driven particle's end state does not depend on the substep's
-    input, so its incoming adjoint stops here (zeroed in place before the G2P adjoint reads it)."""
-    p = wp.tid()
-    if driven[p] == 0:
-        return
-    adj_x[p] = wp.vec3(0.0)
-    adj_v[p] = wp.vec3(0.0)
-    adj_C[p] = wp.mat33(0.0)
-    adj_F[p] = wp.mat33(0.0)

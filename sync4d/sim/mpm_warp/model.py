@@ -37,9 +37,6 @@ class MPMModel:
         sticky: walls stop every velocity component (True) or only the outward one (False, slip).
         fixed_box: (2, 3) world box [m] whose grid nodes are held still, or None.
         device: Warp device name.
-        part: (P,) part of each particle, or None (needed only when particles are driven).
-        driven: (P,) bool, True for particles moved by their part's pose every substep (a kinematic
-            boundary condition: bone cores), or None when every particle is free.
     """
 
     grid: physics.GridSpec
@@ -55,8 +52,6 @@ class MPMModel:
     sticky: bool
     fixed_box: np.ndarray | None
     device: str
-    part: np.ndarray | None = None
-    driven: np.ndarray | None = None
 
     @property
     def num_particles(self) -> int:
@@ -66,10 +61,6 @@ class MPMModel:
     def wave_speed(self) -> float:
         """p-wave speed sqrt((lam + 2 mu) / rho) [m/s]."""
         return math.sqrt((self.lam + 2.0 * self.mu) / self.density)
-
-    @property
-    def has_driven(self) -> bool:
-        return self.driven is not None and bool(np.any(self.driven))
 
     def with_grid(self, grid: physics.GridSpec) -> MPMModel:
         """The same particles and material on another grid."""
@@ -159,7 +150,6 @@ class Workspace:
         self.grid_of = [self.grids[t] for t in range(threads)]
         self.grid = self.grid_of[0]
         self.grid_v = wp.zeros(dims, dtype=wp.vec3, device=device)
-        self.driven_grid = wp.zeros(dims, dtype=wp.vec4, device=device)  # P2G of driven particles only
         self.status_all = wp.full(threads, STATUS_OK, dtype=wp.int32, device=device)
         self.status_of = [self.status_all[t : t + 1] for t in range(threads)]
         self.status = self.status_of[0]

@@ -25,13 +25,12 @@ import warp as wp
 
 from sync4d.device import torch_device, warp_device
 from sync4d.errors import ConfigError, InputError, SimulationDiverged
-from sync4d.geometry import interpolate_poses
 from sync4d.registry import register
 from sync4d.sim import physics
 from sync4d.sim.mpm_warp import budget
 from sync4d.sim.mpm_warp.bridge import run_rollout
 from sync4d.sim.mpm_warp.model import STATUS_OK, MPMModel, WarpState, Workspace
-from sync4d.sim.mpm_warp.solver import DriveArrays, Launch, RolloutPlan
+from sync4d.sim.mpm_warp.solver import Launch, RolloutPlan
 from sync4d.types import FramePose, validate_material
 
 log = logging.getLogger(__name__)
@@ -161,7 +160,6 @@ class MPMWarp:
         volume: float | np.ndarray | None = None,
         weights: np.ndarray | None = None,
         part: np.ndarray | None = None,
-        driven: np.ndarray | None = None,
     ) -> MPMModel:
         """Build the model of a particle set: fitted grid, masses and volumes, material.
 
@@ -171,9 +169,7 @@ class MPMWarp:
                 [m^3], or None to estimate the total from the points' voxel occupancy (cells of side
                 max(dx, (8 bbox volume / P)^(1/3)), i.e. ~8 points per cell for a filled box).
             weights: (P,) shares of the total volume (e.g. Gaussians per control point); uniform if None.
-            part: (P,) part of each particle (needed with ``driven``).
-            driven: (P,) bool: particles that follow their part's pose every substep (a kinematic boundary
-                condition), or None.
+            part: (P,) part of each particle (unused: the material is one continuum, whatever the parts).
 
         Returns:
             The immutable model.
@@ -182,16 +178,12 @@ class MPMWarp:
         pts = check_points(points)
         grid = physics.fit_grid(pts, n_grid=cfg.n_grid, padding=cfg.grid_padding, wall=cfg.wall_cells)
         vols = particle_volumes(pts, grid.dx, volume, weights)
-        if driven is not None and (part is None or np.shape(driven) != (len(pts),) or np.shape(part) != (len(pts),)):
-            raise InputError(f"sim.prepare: driven particles need (P,) = ({len(pts)},) 'driven' and 'part' arrays")
         mu, lam = physics.lame_parameters(cfg.E, cfg.nu)
         box = None if cfg.fixed_box is None else np.asarray(cfg.fixed_box, dtype=np.float64).reshape(2, 3)
         return MPMModel(
             grid=grid, rest_points=pts, mass=cfg.density * vols, volume=vols, E=cfg.E, nu=cfg.nu,
             density=cfg.density, mu=mu, lam=lam, gravity=np.asarray(cfg.gravity, dtype=np.float64),
             sticky=cfg.boundary == "sticky", fixed_box=box, device=self.wp_device,
-            part=None if part is None else np.asarray(part, dtype=np.int64),
-            driven=None if driven is None else np.asarray(driven, dtype=bool),
         )  # fmt: skip
 
     def domain(self, model: MPMModel) -> tuple[np.ndarray, np.ndarray]:
@@ -258,8 +250,8 @@ class MPMWarp:
             substeps: number of substeps N >= 1.
             dt: substep [s] > 0.
             frame_index: the output frame this rollout produces (for error messages).
-            pose: the parts' poses at the start and end of the rollout; required when the model has driven
-                particles (they follow it every substep), else unused.
+            pose: the parts' poses at the start and end of the rollout (unused: the material follows the
+                initial velocities it is given).
             check_cfl: apply the CFL guard (auto sub-stepping or SimulationUnstable); False only for tests.
             timers: accumulate per-kernel wall time [s] (forward only, no gradients; profiling).
 
@@ -280,7 +272,7 @@ class MPMWarp:
         perm = None if order is None else torch.as_tensor(order, device=x.device)
         if perm is not None:
             x, v, F, C = x[perm], v[perm], F[perm], C[perm]
-        plan = self.plan(model, order, substeps=substeps, dt=dt, pose=pose, frame_index=frame_index)
+        plan = self.plan(model, order, substeps=substeps, dt=dt, frame_index=frame_index)
         out = run_rollout(plan, x, v, F, C, self.check_status, timers=timers)
         if perm is not None:
             inv = torch.empty_like(perm)
@@ -289,35 +281,18 @@ class MPMWarp:
         return out
 
     def plan(self, model: MPMModel, order: np.ndarray | None, *, substeps: int, dt: float,
-             pose: FramePose | None, frame_index: int) -> RolloutPlan:
+             frame_index: int) -> RolloutPlan:
         """The rollout's kernels' constants in particle ``order`` (None = as given)."""
         n = model.num_particles
-        take = (lambda a: a) if order is None else (lambda a: a[order])
-        mass, volume = take(model.mass), take(model.volume)
+        mass, volume = (model.mass, model.volume) if order is None else (model.mass[order], model.volume[order])
         launch = Launch(
             model=model, ws=self.workspace_for(n, model.grid.dims),
             mass=wp.array(mass.astype(np.float32), dtype=float, device=self.wp_device),
             volume=wp.array(volume.astype(np.float32), dtype=float, device=self.wp_device),
             dt=float(dt), mass_eps=float(1e-9 * mass.min()),
-            drive=self.drive_arrays(model, take, pose, substeps) if model.has_driven else None,
         )  # fmt: skip
         return RolloutPlan(launch=launch, substeps=substeps, checkpoint_every=self.checkpoint_interval(n, substeps),
                            frame_index=frame_index)
-
-    def drive_arrays(self, model: MPMModel, take: object, pose: FramePose | None, substeps: int) -> DriveArrays:
-        """The driven particles' rest positions, parts and per-substep poses as Warp arrays."""
-        if pose is None:
-            raise InputError("sim.rollout: the model has driven particles; pass the frame's pose")
-        assert model.part is not None and model.driven is not None and callable(take)
-        poses = interpolate_poses(pose.start, pose.end, pose.pivots, substeps).astype(np.float32)
-        dev = self.wp_device
-        return DriveArrays(
-            rest=wp.array(take(model.rest_points).astype(np.float32), dtype=wp.vec3, device=dev),
-            part=wp.array(take(model.part).astype(np.int32), dtype=wp.int32, device=dev),
-            driven=wp.array(take(model.driven).astype(np.int32), dtype=wp.int32, device=dev),
-            poses=wp.array(poses.reshape(-1, 4, 4), dtype=wp.mat44, device=dev),
-            num_parts=pose.num_parts,
-        )
 
     def grid_for(self, model: MPMModel, x: np.ndarray, reach: float, frame_index: int) -> MPMModel:
         """``model`` on a grid that holds every particle within ``reach`` [m] of where it is now:
@@ -353,7 +328,7 @@ class MPMWarp:
         MLS-MPM's P2G conserves both exactly (partition of unity, zero first moment of the weights), so
         these equal sum m_p and sum m_p v_p up to float rounding.
         """
-        launch = self.plan(model, None, substeps=1, dt=dt, pose=None, frame_index=0).launch
+        launch = self.plan(model, None, substeps=1, dt=dt, frame_index=0).launch
         ws = launch.ws
         ws.ping.load(x, v, F, C)
         ws.run(lambda t: launch.p2g(ws.ping, 0, t))

@@ -12,10 +12,6 @@ Both cores (CPU only): Warp's CPU backend runs a launch on one thread and its ct
 With T > 1 threads every particle kernel is launched as T contiguous chunks of the (cell-sorted) particles
 from T Python threads, each P2G and each G2P adjoint scattering into its own grid (the grid update and its
 adjoint sum the T grids, split into T slabs of nodes), so no two threads ever write the same memory.
-
-Driven particles (:attr:`MPMModel.driven`): after each G2P, :func:`kernels.drive_particles` puts them on
-their part's pose at the end of the substep (a kinematic boundary condition); in reverse their adjoint
-stops there.
 """
 
 from __future__ import annotations
@@ -34,29 +30,8 @@ from sync4d.sim.mpm_warp.model import STATUS_OK, MPMModel, WarpState, Workspace
 
 
 @dataclass
-class DriveArrays:
-    """The driven particles of one rollout, in the rollout's (sorted) particle order.
-
-    Attributes:
-        rest: (P,) vec3 rest positions [m]; part: (P,) int32 parts; driven: (P,) int32, 1 = driven.
-        poses: ((N + 1) B,) mat44: rest -> start of substep s for part b at row s B + b.
-        num_parts: B.
-    """
-
-    rest: wp.array
-    part: wp.array
-    driven: wp.array
-    poses: wp.array
-    num_parts: int
-
-    def chunk(self, bounds: tuple[int, int]) -> DriveArrays:
-        lo, hi = bounds
-        return DriveArrays(self.rest[lo:hi], self.part[lo:hi], self.driven[lo:hi], self.poses, self.num_parts)
-
-
-@dataclass
 class Launch:
-    """Per-rollout constants of the kernels (model in sorted particle order, workspace, driven particles)."""
+    """Per-rollout constants of the kernels (model in sorted particle order, workspace)."""
 
     model: MPMModel
     ws: Workspace
@@ -64,18 +39,14 @@ class Launch:
     volume: wp.array
     dt: float
     mass_eps: float
-    drive: DriveArrays | None = None
     mass_of: list[wp.array] = field(default_factory=list, repr=False)
     volume_of: list[wp.array] = field(default_factory=list, repr=False)
-    drive_of: list[DriveArrays] = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         bounds = self.ws.bounds
         one = self.ws.threads == 1
         self.mass_of = [self.mass] if one else [self.mass[lo:hi] for lo, hi in bounds]
         self.volume_of = [self.volume] if one else [self.volume[lo:hi] for lo, hi in bounds]
-        if self.drive is not None:
-            self.drive_of = [self.drive] if one else [self.drive.chunk(b) for b in bounds]
 
     def p2g_args(
         self, s: WarpState, substep: int, *, store_rotation: bool = False, t: int = 0
@@ -97,7 +68,7 @@ class Launch:
         inputs = [
             self.ws.grids, int(self.ws.slabs[t][0]), wp.vec3(*m.gravity), float(self.dt), float(self.mass_eps),
             int(g.wall), int(m.sticky), wp.vec3(*g.origin), float(g.dx), wp.vec3(*box[0]), wp.vec3(*box[1]),
-            int(m.fixed_box is not None), self.ws.driven_grid, int(self.drive is not None),
+            int(m.fixed_box is not None),
         ]  # fmt: skip
         return inputs, [self.ws.grid_v]
 
@@ -121,51 +92,14 @@ class Launch:
         i, o = self.p2g_args(s.parts(ws.bounds)[t], substep, store_rotation=store_rotation, t=t)
         wp.launch(K.p2g, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
 
-    def scatter_driven(self, s: WarpState) -> None:
-        """The driven particles' P2G of state ``s`` into the workspace's driven grid (main thread, all particles)."""
-        if self.drive is None:
-            return
-        g, ws = self.model.grid, self.ws
-        ws.driven_grid.zero_()
-        wp.launch(
-            K.p2g_driven, dim=ws.n,
-            inputs=[s.x, s.v, s.C, self.mass, self.drive.driven, wp.vec3(*g.origin), float(g.dx), float(1.0 / g.dx),
-                    int(g.dims[0]), int(g.dims[1]), int(g.dims[2])],
-            outputs=[ws.driven_grid], device=ws.device,
-        )  # fmt: skip
-
     def grid_update(self, t: int) -> None:
         i, o = self.grid_args(t)
         wp.launch(K.grid_update, dim=self.slab_dim(t), inputs=i, outputs=o, device=self.ws.device)
 
     def g2p(self, s: WarpState, out: WarpState, substep: int, t: int) -> None:
-        """G2P of thread t's particles, then the driven ones put on their part's pose."""
         ws = self.ws
-        out_t = out.parts(ws.bounds)[t]
-        i, o = self.g2p_args(s.parts(ws.bounds)[t], out_t, substep, t)
+        i, o = self.g2p_args(s.parts(ws.bounds)[t], out.parts(ws.bounds)[t], substep, t)
         wp.launch(K.g2p, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
-        self.drive_thread(out_t, substep, t, at_start=False)
-
-    def drive_thread(self, state_t: WarpState, substep: int, t: int, *, at_start: bool) -> None:
-        """Put thread t's driven particles (``state_t`` its view) on their part's pose at the end of substep
-        ``substep`` (or its start, ``at_start``); nothing without driven particles."""
-        if self.drive is None:
-            return
-        d = self.drive_of[t]
-        wp.launch(
-            K.drive_particles, dim=self.count(t),
-            inputs=[d.rest, d.part, d.driven, d.poses, int(d.num_parts), int(substep), int(at_start), float(self.dt)],
-            outputs=[state_t.x, state_t.v, state_t.C, state_t.F], device=self.ws.device,
-        )  # fmt: skip
-
-    def stop_driven_adjoint(self, adj_out: WarpState, t: int) -> None:
-        """Zero the incoming adjoint of thread t's driven particles (their end state is prescribed)."""
-        if self.drive is None:
-            return
-        a = adj_out.parts(self.ws.bounds)[t]
-        wp.launch(K.drive_particles_adjoint, dim=self.count(t), inputs=[self.drive_of[t].driven],
-                  outputs=[a.x, a.v, a.C, a.F], device=self.ws.device)
-
 
 def step(
     launch: Launch,
@@ -184,8 +118,7 @@ def step(
         launch: model, workspace, dt [s] of this rollout.
         state_in: particle state at the start of the substep.
         state_out: receives the state at the end of the substep (must not alias ``state_in``).
-        substep: substep index in the rollout (recorded if a particle leaves the grid or turns non-finite;
-            selects the driven particles' pose).
+        substep: substep index in the rollout (recorded if a particle leaves the grid or turns non-finite).
         p2g_done: the grids already hold this substep's P2G (a previous call's ``prefetch``).
         prefetch: also run the next substep's P2G of ``state_out`` (each thread right after its own G2P,
             whose chunk it reads: one hand-over between threads fewer per substep).
@@ -206,7 +139,6 @@ def step(
     mark()
     if not p2g_done:
         ws.run(lambda t: launch.p2g(state_in, substep, t))
-    launch.scatter_driven(state_in)
     mark()
     ws.run(launch.grid_update)
     mark()
@@ -240,24 +172,21 @@ def step_adjoint(
     adjoint.
 
     Rebuilds the substep's grid from ``s`` (P2G + grid update), then runs the adjoints in reverse order:
-    the driven particles' (their adjoint stops), G2P, grid update, and P2G fused with the fixed-corotated
-    stress, all by hand-written kernels (checked against finite differences and against Warp's generated
-    adjoints in the tests). The grid mass is differentiated like every other input. ``adj_out`` is consumed
-    (driven rows zeroed).
+    G2P, grid update, and P2G fused with the fixed-corotated stress, all by hand-written kernels (checked
+    against finite differences and against Warp's generated adjoints in the tests). The grid mass is
+    differentiated like every other input.
     """
     ws, dev = launch.ws, launch.ws.device
     assert ws.adj_grid is not None and ws.adj_grid_v is not None
     g = launch.model.grid
     if not p2g_done:  # forward part: the grid this substep saw
         ws.run(lambda t: launch.p2g(s, substep, t, store_rotation=True))
-    launch.scatter_driven(s)
     ws.run(launch.grid_update)
 
     origin, inv_dx, dt = wp.vec3(*g.origin), float(1.0 / g.dx), float(launch.dt)
     sp, op, ip = s.parts(ws.bounds), adj_out.parts(ws.bounds), adj_in.parts(ws.bounds)
 
     def g2p_adjoint(t: int) -> None:
-        launch.stop_driven_adjoint(adj_out, t)
         ws.adj_grid_v_of[t].zero_()
         wp.launch(
             K.g2p_adjoint, dim=launch.count(t),
@@ -311,8 +240,6 @@ class RolloutPlan:
         ws = self.launch.ws
         ws.status_all.fill_(STATUS_OK)
         ws.ping.load(x, v, F, C)
-        # driven particles start on their pose with their bone's velocity, whatever the input says
-        ws.run(lambda t: self.launch.drive_thread(ws.ping.parts(ws.bounds)[t], 0, t, at_start=True))
         cur, nxt = ws.ping, ws.pong
         k = self.checkpoint_every
         p2g_done = False
@@ -363,7 +290,6 @@ class RolloutPlan:
                 step_adjoint(self.launch, states[j], adj_next, adj_cur, s0 + j, p2g_done=p2g_done, prefetch=nxt)
                 p2g_done = nxt is not None
                 adj_next, adj_cur = adj_cur, adj_next
-        ws.run(lambda t: self.launch.stop_driven_adjoint(adj_next, t))  # the input drive, reversed
         out = [g.to(like.device) for g in adj_next.to_torch()]
         if not all(bool(torch.isfinite(g).all()) for g in out):
             raise SimulationDiverged(
