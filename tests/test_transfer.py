@@ -56,7 +56,7 @@ def test_loss_decreases_in_every_frame(tiny_scene):
 def test_untrained_rigid_init_follows_the_hinge(tiny_scene):
     """With the bone's rigid velocity field and no training the lid still tracks the reference closely."""
     ref, target, part_map, motion = tiny_scene
-    sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4), device="cpu")  # transfer.init=rigid: the default
+    sim = MPMWarp(MPMWarp.Config(n_grid=16, frame_time=0.01, substeps=4), device="cpu")  # the default transfer (init=pose)
     traj = transfer(sim, tiny_scene)
     m = compute_metrics(traj, target, part_map, motion, ref, self_transfer=True, frame_seconds=[0.0] * 3)
     assert m["pose_error_max_pct"] < 2.0

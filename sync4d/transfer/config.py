@@ -34,7 +34,7 @@ class TransferConfig:
     """
 
     control_grid: int | None = 40
-    init: Literal["rigid", "pose", "centroid"] = "rigid"
+    init: Literal["rigid", "pose", "centroid"] = "pose"
     loss_points: Literal["particles", "anchors", "centroid"] = "particles"
     target_mode: Literal["absolute", "relative"] = "absolute"
     lr: float = 1e-2

@@ -80,7 +80,7 @@ class MPMWarp:
                 cores, one per 8192 particles at most. Ignored on CUDA.
         """
 
-        E: float = 1e4
+        E: float = 3e4
         nu: float = 0.3
         density: float = 1000.0
         n_grid: int = 32
