@@ -75,8 +75,9 @@ def _import_closure(module: str) -> frozenset[str]:
 def _imports_of(module: str, source: bytes) -> list[str]:
     """Module names a module's source imports (``from a import b`` yields ``a`` and ``a.b``)."""
     out: list[str] = []
-    package = module if _source(module) and Path(importlib.util.find_spec(module).origin).name == "__init__.py" \
-        else module.rpartition(".")[0]
+    spec = importlib.util.find_spec(module)
+    is_package = spec is not None and spec.origin is not None and Path(spec.origin).name == "__init__.py"
+    package = module if _source(module) and is_package else module.rpartition(".")[0]
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Import):
             out += [alias.name for alias in node.names]
@@ -100,7 +101,8 @@ def _is_module(name: str) -> bool:
 
 def save(folder: Path, value: Any) -> None:
     """Store a dataclass of arrays/scalars/strings/tuples (None allowed) in ``folder``."""
-    arrays, meta = {}, {"__class__": type(value).__name__}
+    arrays: dict[str, np.ndarray] = {}
+    meta: dict[str, Any] = {"__class__": type(value).__name__}
     for f in dataclasses.fields(value):
         item = getattr(value, f.name)
         if isinstance(item, np.ndarray):
@@ -131,7 +133,7 @@ def load(folder: Path, cls: type[T]) -> T | None:
         elif f.name in meta:
             item = meta[f.name]
             kwargs[f.name] = tuple(item) if isinstance(item, list) else item
-        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:  # type: ignore[misc]
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             kwargs[f.name] = None
     return cls(**kwargs)
 

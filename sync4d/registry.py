@@ -23,7 +23,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal, TypeVar
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
 
 from sync4d.errors import ConfigError, RegistryError
@@ -97,7 +97,7 @@ def make_config(group: str, cfg: Mapping[str, Any] | DictConfig) -> tuple[type, 
     if name is None:
         raise ConfigError(f"{group}: config has no 'type' key; set {group}=<one of {', '.join(available(group))}>")
     cls = lookup(group, str(name))
-    typed = typed_config(cls.Config, values, where=f"{group}", label=f"{group}={name}")
+    typed = typed_config(cls.Config, values, where=f"{group}", label=f"{group}={name}")  # type: ignore[attr-defined]
     check = getattr(typed, "validate", None)
     if callable(check):
         check()
@@ -137,9 +137,9 @@ def component(group: str, cfg: Mapping[str, Any] | DictConfig) -> Component:
     return Component(group, str(cls.registry_name), cls, typed)  # type: ignore[attr-defined]
 
 
-def plain_dict(cfg: Mapping[str, Any] | DictConfig) -> dict[str, Any]:
+def plain_dict(cfg: Mapping[str, Any] | DictConfig | ListConfig) -> dict[str, Any]:
     """A config node or mapping as a plain, resolved dict."""
-    values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+    values = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, (DictConfig, ListConfig)) else dict(cfg)
     assert isinstance(values, dict)
     return {str(k): v for k, v in values.items()}
 
@@ -158,11 +158,10 @@ def typed_config(config: type, values: Mapping[str, Any], *, where: str, label: 
         known = ", ".join(f.name for f in dataclasses.fields(config))
         raise ConfigError(f"{where}.{err.full_key or err.key}: unknown key for {label}; known keys: {known}") from None
     except ValidationError as err:
-        raise ConfigError(f"{where}.{err.full_key or err.key}: {err.msg.splitlines()[0]} (for {label})") from None
+        raise ConfigError(f"{where}.{err.full_key or err.key}: {str(err.msg).splitlines()[0]} (for {label})") from None
     except OmegaConfBaseException as err:
         raise ConfigError(f"{label}: {str(err).splitlines()[0]}") from None
-    plain = OmegaConf.to_container(merged, resolve=True)
-    assert isinstance(plain, dict)
+    plain = plain_dict(merged)
     hints = typing.get_type_hints(config)
     for key, value in plain.items():
         if dataclasses.is_dataclass(hints[key]) and isinstance(value, dict):
@@ -195,7 +194,7 @@ def omegaconf_schema(config: type) -> type:
         hint = hints[f.name]
         options = literal_options(hint)
         if dataclasses.is_dataclass(hint):
-            hint = omegaconf_schema(hint)
+            hint = omegaconf_schema(hint)  # type: ignore[arg-type]
         elif options is not None:
             kinds = {type(o) for o in options if o is not None}
             base = kinds.pop() if len(kinds) == 1 else Any
@@ -204,8 +203,8 @@ def omegaconf_schema(config: type) -> type:
             fields.append((f.name, hint, dataclasses.field(default_factory=hint)))
             continue
         default: Any = dataclasses.field(default=f.default) if f.default is not dataclasses.MISSING else (
-            dataclasses.field(default_factory=f.default_factory)  # type: ignore[misc]
-            if f.default_factory is not dataclasses.MISSING else dataclasses.field())  # type: ignore[misc]
+            dataclasses.field(default_factory=f.default_factory)
+            if f.default_factory is not dataclasses.MISSING else dataclasses.field())
         fields.append((f.name, hint, default))
     return dataclasses.make_dataclass(f"{config.__qualname__.replace('.', '_')}Schema", fields)
 

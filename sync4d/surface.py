@@ -35,7 +35,7 @@ def area_samples(tri: np.ndarray, count: int, rng: np.random.Generator) -> tuple
     return face, np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
 
 
-def _occupied(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+def _occupied(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
     """Voxel index of each point (N,) and the number of occupied voxels, for voxels of side ``cell``."""
     coords = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
     span = coords.max(axis=0) + 1

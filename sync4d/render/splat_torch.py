@@ -161,7 +161,7 @@ def footprint_boxes(
     *,
     sigma_cutoff: float = 3.0,
     alpha_min: float = 1.0 / 255.0,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Inclusive pixel boxes of the k-sigma ellipses, clipped to the image (no gradient).
 
     The exact axis-aligned bounding box of ``{d : d^T cov2d^-1 d <= k^2}`` has half-sizes
@@ -638,5 +638,5 @@ def deform_covariances(covariances: Any, deformation: Any) -> Any:
         F = torch.as_tensor(deformation)
         S = torch.as_tensor(covariances, dtype=F.dtype, device=F.device)
         return F @ S @ F.transpose(-1, -2)
-    F = np.asarray(deformation)
-    return F @ np.asarray(covariances) @ np.swapaxes(F, -1, -2)
+    F_np = np.asarray(deformation)
+    return F_np @ np.asarray(covariances) @ np.swapaxes(F_np, -1, -2)

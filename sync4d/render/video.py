@@ -113,7 +113,7 @@ def _resize_height(frame: np.ndarray, height: int) -> np.ndarray:
     if h == height:
         return frame
     width = max(int(round(w * height / h)), 1)
-    return np.asarray(Image.fromarray(frame).resize((width, height), Image.BILINEAR))
+    return np.asarray(Image.fromarray(frame).resize((width, height), Image.Resampling.BILINEAR))
 
 
 def _draw_label(frame: np.ndarray, text: str) -> np.ndarray:

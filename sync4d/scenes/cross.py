@@ -10,7 +10,7 @@ for interior samples are exact.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
@@ -95,7 +95,7 @@ class CrossTarget:
         subdivisions: int = 3       # mesh density (triangles grow 4x per step)
         num_surface: int = 3000     # surface Gaussians
         num_interior: int = 1500    # interior Gaussians (volume for the simulation)
-        color: list[float] = (0.8, 0.55, 0.3)  # type: ignore[assignment] - OmegaConf turns it into a list
+        color: list[float] = field(default_factory=lambda: [0.8, 0.55, 0.3])
 
         def validate(self) -> None:
             if min(self.height, self.bar_width, self.arm_span, self.arm_height, self.depth) <= 0:

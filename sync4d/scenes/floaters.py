@@ -240,8 +240,8 @@ def remove_floaters(means: np.ndarray, cfg: FloaterConfig, *, source: str) -> tu
             "check the file, or loosen target.floaters (min_neighbours, min_cluster_fraction) or set "
             "target.floaters.enabled=false"
         )
-    if report.removed:
-        box = np.round(report.removed_box, 4).tolist()  # type: ignore[union-attr]
+    if report.removed and report.removed_box is not None:
+        box = np.round(report.removed_box, 4).tolist()
         log.info("floaters: removed %d of %d Gaussians from %s (%d far, %d isolated, %d in small pieces; "
                  "removed box %s m); simulation domain: %s m", report.removed, report.total, source,
                  report.removed_far, report.removed_sparse, report.removed_clusters, box,

@@ -206,7 +206,8 @@ class LaptopReference:
         c = self.cfg
         renderer = build("render", {"type": "splat_torch", "width": c.video_width, "height": c.video_height},
                          device=self.device)
-        return film_reference(reference, renderer, self.film_settings())
+        clip, camera, *_ = film_reference(reference, renderer, self.film_settings())
+        return clip, camera
 
     def load(self) -> ReferenceInput:
         c = self.cfg

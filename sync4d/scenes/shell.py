@@ -56,14 +56,14 @@ def half_ellipsoid_mesh(a: float, b: float, c: float, *, up: bool, n_lat: int = 
     center_i = len(vertices) - 1
     last = rings[-1]
     faces += [[last[j], last[(j + 1) % n_lon], center_i] for j in range(n_lon)]
-    faces = np.array(faces, dtype=np.int64)
+    triangles = np.array(faces, dtype=np.int64)
     if not up:
-        faces = faces[:, ::-1]  # mirrored dome: flip winding so normals stay outward
+        triangles = triangles[:, ::-1]  # mirrored dome: flip winding so normals stay outward
     # Orientation check: the signed volume must be positive for outward normals.
-    tri = vertices[faces]
+    tri = vertices[triangles]
     if np.einsum("fi,fi->f", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() < 0:
-        faces = faces[:, ::-1]
-    return vertices, faces
+        triangles = triangles[:, ::-1]
+    return vertices, triangles
 
 
 def shell_mesh(

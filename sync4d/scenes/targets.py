@@ -101,7 +101,7 @@ class MeshTarget:
         up_axis: str = "y"             # the file's up axis: y or z
         num_surface: int = 3000
         num_interior: int = 1500
-        color: list[float] = (0.75, 0.7, 0.65)  # type: ignore[assignment] - OmegaConf turns it into a list
+        color: list[float] = field(default_factory=lambda: [0.75, 0.7, 0.65])
 
     def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
         self.cfg, self.seed = cfg, seed
@@ -118,7 +118,7 @@ class MeshTarget:
     def load(self) -> TargetGaussians:
         return mesh_to_gaussians(
             self.vertices, self.faces, num_surface=self.cfg.num_surface, num_interior=self.cfg.num_interior,
-            vertex_colors=self.colors, default_color=tuple(self.cfg.color), seed=self.seed, name=self.name,
+            vertex_colors=self.colors, default_color=(self.cfg.color[0], self.cfg.color[1], self.cfg.color[2]), seed=self.seed, name=self.name,
         )
 
 

@@ -208,6 +208,7 @@ def gaussian_trajectory(trajectory: Trajectory, means0: np.ndarray, index: np.nd
         return dataclasses.replace(
             trajectory, x=trajectory.x[:, index], F=None if trajectory.F is None else trajectory.F[:, index],
             v=None if trajectory.v is None else trajectory.v[:, index], extras={})
+    assert trajectory.F is not None, "a trajectory through control points carries F"
     g2p = control.gaussian_to_point if index is None else control.gaussian_to_point[index]
     mu = np.asarray(means0, dtype=np.float64)
     offset = (mu if index is None else mu[index]) - control.rest[g2p]

@@ -270,7 +270,7 @@ def estimate_cost(
     memory = ((BASE_MB + SIM_WORKING_MB) * 2**20 + stored + NODE_BYTES * nodes + (gaussian_bytes + CARRY_BYTES) * n
               + 2 * frames * p * 8 * (3 + 9))
     return CostEstimate(
-        particles=p, gaussians=n, grid_dims=tuple(int(d) for d in grid.dims), dx=float(grid.dx), wave_speed=c,
+        particles=p, gaussians=n, grid_dims=(int(grid.dims[0]), int(grid.dims[1]), int(grid.dims[2])), dx=float(grid.dx), wave_speed=c,
         v_max=float(v_max), substeps=int(substeps), dt=float(dt), iterations=int(iterations),
         seconds_per_frame=float(per_frame), total_seconds=float(per_frame * max(frames - 1, 0)),
         peak_memory_mb=float(memory / 2**20), cause=cause,

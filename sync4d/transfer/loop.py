@@ -57,7 +57,7 @@ class Transfer:
     simulator: Simulator
     model: Any
     particles: Particles
-    field: VelocityField
+    velocity_field: VelocityField
     optimizer: torch.optim.Optimizer | None
     options: TransferConfig
     motion: DrivingMotion
@@ -122,7 +122,7 @@ def optimise_field(transfer: Transfer, rollout: Callable[[bool], tuple[torch.Ten
                    loss_fn: PartLoss) -> list[float]:
     """Adam steps on the field until the data loss stops improving; the best field is kept. Returns the
     data loss of every step."""
-    options, velocity, optimizer = transfer.options, transfer.field, transfer.optimizer
+    options, velocity, optimizer = transfer.options, transfer.velocity_field, transfer.optimizer
     assert optimizer is not None
     losses: list[float] = []
     best, best_state, stale = np.inf, None, 0
@@ -149,7 +149,7 @@ def optimise_field(transfer: Transfer, rollout: Callable[[bool], tuple[torch.Ten
 def advance(transfer: Transfer, state: ParticleState, t: int) -> tuple[ParticleState, dict[str, float]]:
     """Frame pair t -> t+1: initial velocities, the field trained through the simulator, the state advanced."""
     started = time.perf_counter()
-    sim, motion, velocity, particles = transfer.simulator, transfer.motion, transfer.field, transfer.particles
+    sim, motion, velocity, particles = transfer.simulator, transfer.motion, transfer.velocity_field, transfer.particles
     x_np = state.x.double().numpy()
     P = motion.part_transforms
     frame_time = sim.frame_time_for(motion.fps)
@@ -191,7 +191,7 @@ def checkpoint_of(transfer: Transfer, state: ParticleState) -> dict[str, Any]:
     """Everything a resume needs after a frame: the particles, the field and its optimiser, the RNG states."""
     return {
         "x": state.x.numpy().copy(), "F": state.F.numpy().copy(), "C": state.C.numpy().copy(),
-        "field": {k: v.clone() for k, v in transfer.field.state_dict().items()},
+        "field": {k: v.clone() for k, v in transfer.velocity_field.state_dict().items()},
         "optimizer": None if transfer.optimizer is None else transfer.optimizer.state_dict(),
         "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
     }
@@ -200,7 +200,7 @@ def checkpoint_of(transfer: Transfer, state: ParticleState) -> dict[str, Any]:
 def restore(transfer: Transfer, saved: dict[str, Any]) -> ParticleState:
     """The state, field, optimiser and RNG states of a checkpoint (:func:`checkpoint_of`)."""
     x, F, C = (torch.as_tensor(saved[k]) for k in ("x", "F", "C"))
-    transfer.field.load_state_dict(saved["field"])
+    transfer.velocity_field.load_state_dict(saved["field"])
     if transfer.optimizer is not None and saved.get("optimizer") is not None:
         transfer.optimizer.load_state_dict(saved["optimizer"])
     torch.set_rng_state(saved["rng"]["torch"])

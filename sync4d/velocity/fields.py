@@ -72,12 +72,15 @@ class TriplaneField(nn.Module):
             nn.Linear(cfg.hidden, 3),
         )
         init_linear_layers(self.mlp, generator)
-        nn.init.zeros_(self.mlp[-1].weight)
-        nn.init.zeros_(self.mlp[-1].bias)
+        last = self.mlp[-1]
+        assert isinstance(last, nn.Linear)
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
 
     def forward(self, x: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
         """(P, 3) positions [m], (P,) parts -> (P, 3) delta velocities [m/s]."""
-        u = ((x - self.lo) / (self.hi - self.lo)) * 2.0 - 1.0  # [-1, 1] in the box
+        lo, hi = self.get_buffer("lo"), self.get_buffer("hi")
+        u = ((x - lo) / (hi - lo)) * 2.0 - 1.0  # [-1, 1] in the box
         pairs = (u[:, [0, 1]], u[:, [0, 2]], u[:, [1, 2]])
         feats = [
             F.grid_sample(self.planes[i : i + 1], uv.view(1, -1, 1, 2), align_corners=True, padding_mode="border")

@@ -19,7 +19,7 @@ class RolloutFunction(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(  # type: ignore[override]
+    def forward(
         ctx: Any, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, plan: RolloutPlan,
         check: Callable[[RolloutPlan, WarpState], None],
     ) -> tuple[torch.Tensor, ...]:
@@ -31,7 +31,7 @@ class RolloutFunction(torch.autograd.Function):
         return tuple(t.to(x.device) for t in final.to_torch())
 
     @staticmethod
-    def backward(ctx: Any, gx: torch.Tensor, gv: torch.Tensor, gF: torch.Tensor, gC: torch.Tensor) -> Any:  # type: ignore[override]
+    def backward(ctx: Any, gx: torch.Tensor, gv: torch.Tensor, gF: torch.Tensor, gC: torch.Tensor) -> Any:
         plan: RolloutPlan = ctx.plan
         grads = plan.backward([gx, gv, gF, gC], like=gx if gx is not None else torch.empty(0, device=ctx.device))
         ctx.plan = None  # free the checkpoints
@@ -44,7 +44,7 @@ def run_rollout(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Run ``plan`` on (x, v, F, C): through autograd, or, with ``timers``, forward only and profiled."""
     if timers is None:
-        return RolloutFunction.apply(x, v, F, C, plan, check)  # type: ignore[no-any-return]
+        return RolloutFunction.apply(x, v, F, C, plan, check)
     with torch.no_grad():
         final = plan.forward(x, v, F, C, store=False, timers=timers)
         check(plan, final)

@@ -8,6 +8,7 @@ import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 import torch
@@ -119,9 +120,9 @@ class WarpState:
         return x, v, F, C
 
 
-def to_warp(t: torch.Tensor, dtype: object) -> wp.array:
+def to_warp(t: torch.Tensor, dtype: type) -> wp.array:
     """A float32 Warp view of a torch tensor (detached, made contiguous)."""
-    return wp.from_torch(t.detach().to(torch.float32).contiguous(), dtype=dtype)
+    return cast(wp.array, wp.from_torch(t.detach().to(torch.float32).contiguous(), dtype=dtype))
 
 
 def split_range(n: int, parts: int) -> tuple[tuple[int, int], ...]:

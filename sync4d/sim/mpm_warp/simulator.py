@@ -385,7 +385,7 @@ def particle_volumes(pts: np.ndarray, dx: float, volume: float | np.ndarray | No
         cell = max(dx, (8.0 * box / n) ** (1.0 / 3.0))
         return physics.particle_volumes(n, total_volume=physics.voxel_volume(pts, cell), weights=weights)
     if np.ndim(volume) == 0:
-        return physics.particle_volumes(n, total_volume=float(volume), weights=weights)  # type: ignore[arg-type]
+        return physics.particle_volumes(n, total_volume=float(volume), weights=weights)
     vols = np.asarray(volume, dtype=np.float64)
     if vols.shape != (n,) or not np.all(vols > 0) or not np.isfinite(vols).all():
         raise InputError(f"sim.prepare: per-particle volumes must be ({n},) and > 0, got {vols.shape}")
