@@ -172,8 +172,8 @@ def child(n: int, frames: int) -> dict:
     from hydra import compose, initialize_config_dir
     from omegaconf import open_dict
 
-    from sync4d import budget, motion, outputs, pipeline, render_outputs, report_figures
     from sync4d.config_schemas import register_schemas
+    from sync4d.run import exports, figures, pipeline, writer
 
     ply = WORK / str(n) / "target.ply"
     run_dir = WORK / str(n) / "run"
@@ -193,27 +193,19 @@ def child(n: int, frames: int) -> dict:
     for owner, attribute, name in (
         (pipeline, "stage_target", "load"),
         (pipeline, "stage_reference", "reference"),
-        (pipeline, "write_frame", "load"),
-        (report_figures, "save_reference_parts", "figures"),
-        (report_figures, "save_match_figure", "figures"),
+        (pipeline, "write_gaussians_ply", "load"),
+        (figures, "save_reference_parts", "figures"),
+        (figures, "save_match_figure", "figures"),
         (pipeline, "stage_match", "match"),
-        (motion, "driving_motion", "motion"),
-        (budget, "check_run_cost", "cost"),
-        (outputs.FrameWriter, "on_frame", "carry+write"),
-        (outputs.FrameWriter, "finish", "metrics"),
-        (render_outputs, "render_run_outputs", "render+export"),
+        (pipeline, "driving_motion", "motion"),
+        (pipeline, "check_run_cost", "cost"),
+        (pipeline, "run_transfer", "simulate"),
+        (writer.FrameWriter, "on_frame", "carry+write"),
+        (writer.FrameWriter, "finish", "metrics"),
+        (exports, "render_run_outputs", "render+export"),
     ):
         stages.wrap(owner, attribute, name)
-    stages.wrap_thread(outputs.FrameWriter, "write_frame", "(.ply thread)")
-    build = pipeline.build
-
-    def build_timed(group, *args, **kwargs):  # the simulator's run, minus the frames it hands over
-        component = build(group, *args, **kwargs)
-        if group == "sim":
-            stages.wrap(component, "run", "simulate")
-        return component
-
-    pipeline.build = build_timed
+    stages.wrap_thread(writer.FrameWriter, "write_frame", "(.ply thread)")
     started, started_cpu = time.perf_counter(), time.process_time()
     metrics = pipeline.run_guarded(cfg)
     wall, cpu = time.perf_counter() - started, time.process_time() - started_cpu
