@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from sync4d.errors import InputError
-from sync4d.match import MatchConfig, match_parts, skeleton_points
-from sync4d.match_structure import assign_limbs, reference_limbs, yaw_rotations
-from sync4d.skeleton import SkeletonConfig, curve_skeleton, volume_points
+from sync4d.match import MatchConfig, match_parts
+from sync4d.match.surface_points import skeleton_points
+from sync4d.match.structure import assign_limbs, reference_limbs, yaw_rotations
+from sync4d.match.skeleton import SkeletonConfig, curve_skeleton, volume_points
 from sync4d.types import Reference, TargetGaussians
 from sync4d_tools.match_labels.procedural import box_union
 
@@ -87,7 +88,7 @@ def test_solid_depth_and_the_trunk_core() -> None:
     """Depth: one voxel at the skin, half the thickness at the middle; the core sits in the trunk and the
     levels measured from it give every leg its own terminal branch holding most of the leg (levels from
     the centre point also separate this long-legged box; on Spot they do not: docs/matching.md)."""
-    from sync4d.skeleton import fill_solid, trunk_core
+    from sync4d.match.skeleton import fill_solid, trunk_core
 
     box = np.random.default_rng(0).random((20000, 3)) * [1.0, 0.4, 0.4]
     skin = np.concatenate(
@@ -100,7 +101,7 @@ def test_solid_depth_and_the_trunk_core() -> None:
     assert depth.max() == pytest.approx(0.2, abs=0.03)
 
     v, f, part = animal()
-    from sync4d.match import skeleton_points_depth
+    from sync4d.match.surface_points import skeleton_points_depth
     from scipy.spatial import cKDTree
 
     pts, depth = skeleton_points_depth(v, f, SkeletonConfig(), np.random.default_rng(0))
@@ -108,7 +109,7 @@ def test_solid_depth_and_the_trunk_core() -> None:
     norm = (pts - centre) / size
     owner = part[cKDTree(v).query(pts)[1]]
     sk = curve_skeleton(norm, SkeletonConfig(), depth / size)
-    from sync4d.skeleton import neighbour_graph
+    from sync4d.match.skeleton import neighbour_graph
 
     core = trunk_core(neighbour_graph(norm, 10, 4.0), norm, depth / size, 0.8, 2.0)
     assert (owner[core] == 0).all()
@@ -265,7 +266,7 @@ def test_structure_match_refuses_a_bad_target_before_any_work() -> None:
 def test_mirror_pairs_and_the_repair_give_a_leg_back_from_the_tail() -> None:
     """Four legs left/right of the plane z = 0 and a tail on it; a tail holding the mirror image of the
     matched hind-left leg's branch hands it to the hind-right leg."""
-    from sync4d.match_structure import LimbSet, mirror_plane_pairs, mirror_repair
+    from sync4d.match.structure import LimbSet, mirror_plane_pairs, mirror_repair
 
     bases = np.array([[-1.0, 0, 0.3], [-1.0, 0, -0.3], [1.0, 0, 0.3], [1.0, 0, -0.3], [1.2, 0, 0.0]])
     scale = np.array([1.0, 1.0, 0.3])

@@ -375,7 +375,7 @@ def pair_mocap_bodies(extractor: Any, options: MatchConfig, *, seed: int = 0, n_
 
 def save_pair_figure(pair: PairResult, path: Path, *, views: tuple[tuple[float, float], ...] = ((0.0, 10.0), (90.0, 10.0))) -> None:
     """Reference vs target part colours of one pair (target drawn with its final Gaussian parts)."""
-    from sync4d.match_viz import save_match_figure
+    from sync4d.match.pictures import save_match_figure
 
     save_match_figure(
         path, pair.result.diagnostics, pair.reference.num_bones,
@@ -417,7 +417,7 @@ def load_label_target(spec: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | N
 def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: MatchConfig,
                   figures: Path | None) -> dict[str, Any]:
     """Match one label file's target to its reference body; limb accuracy, per label, and a picture."""
-    from sync4d.match_viz import save_match_figure
+    from sync4d.match.pictures import save_match_figure
     from sync4d_tools.match_labels.labels import limb_accuracy, vertex_areas, vertex_labels
 
     if spec.reference not in bodies:

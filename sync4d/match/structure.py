@@ -1,6 +1,6 @@
 """Structure-aware part matching: the target's curve skeleton matched to the reference's, branch by branch.
 
-Both shapes get a curve skeleton (:mod:`sync4d.skeleton`) in their own normalised frame (centroid at 0,
+Both shapes get a curve skeleton (:mod:`sync4d.match.skeleton`) in their own normalised frame (centroid at 0,
 unit RMS radius; both upright along ``up_axis``). Then:
 
 1. the reference's limbs come from its parts: the parts touching each other form a tree (spanning tree
@@ -31,8 +31,8 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from sync4d.align import axis_rotation, chamfer_distance
-from sync4d.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton, neighbour_graph
+from sync4d.match.align import axis_rotation, chamfer_distance
+from sync4d.match.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton, neighbour_graph
 
 UP_AXES = {"x": 0, "y": 1, "z": 2}
 
