@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from sync4d.align import (
+from sync4d.match.align import (
     Similarity,
     align_shapes,
     candidate_rotations,

@@ -8,22 +8,20 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from sync4d.errors import ConfigError, InputError
-from sync4d.match import (
+from sync4d.match import MatchConfig, match_parts
+from sync4d.match.features_match import (
     IN_ONE_BOX,
-    MatchConfig,
     IN_SEVERAL_BOXES,
     ORPHAN,
     assign_by_similarity,
     assign_to_boxes,
     cosine_similarity,
     gaussian_confidence,
-    match_parts,
-    match_parts_detailed,
     part_boxes,
     part_mean_features,
     remove_outliers,
-    target_surface,
 )
+from sync4d.match.surface_points import target_surface
 from sync4d.registry import build
 from sync4d.types import Reference, TargetGaussians
 
@@ -119,7 +117,7 @@ def test_oriented_boxes_are_tighter_around_a_slanted_limb() -> None:
     probe = np.array([[0.9, 0.1, 0.0]])  # inside its axis-aligned box, far from the segment
     for frame, inside in (("aligned", True), ("pca", False)):
         boxes, rots, valid, cents = part_boxes(limb, np.zeros(50, int), np.ones(50, bool), 1, frame=frame, padding=0.02)
-        from sync4d.match import points_in_boxes
+        from sync4d.match.features_match import points_in_boxes
 
         assert points_in_boxes(probe, boxes, rots, valid)[0, 0] == inside
 
@@ -156,7 +154,7 @@ def test_two_glued_boxes_match_their_parts(extractor) -> None:
     rot = Rotation.from_euler("xyz", [70, -120, 40], degrees=True).as_matrix()
     target = gaussians_at(2.5 * np.asarray(samples) @ rot.T + [3.0, 1.0, -2.0])
     cfg = MatchConfig(align="pca_icp", prototypes="1", tie_break="centroid")
-    result = match_parts_detailed(reference, target, extractor, cfg)
+    result = match_parts(reference, target, extractor, cfg)
     pm = result.part_map
     assert pm.tgt_part.shape == (1500,) and pm.ref_part.tolist() == part.tolist()
     assert (pm.tgt_part == truth).mean() > 0.95
@@ -179,7 +177,7 @@ def test_match_with_target_mesh_and_far_gaussian_orphan(extractor) -> None:
     far = np.array([[10.0, 10.0, 10.0]])
     target = gaussians_at(np.vstack([v, far]))
     cfg = MatchConfig(align="none", prototypes="1", tie_break="centroid")
-    result = match_parts_detailed(reference, target, extractor, cfg, target_vertices=v, target_faces=f)
+    result = match_parts(reference, target, extractor, cfg, target_vertices=v, target_faces=f)
     # Not 100% even for the identical shape: near the seam the compact part's mean feature has the
     # larger norm, so cosine similarity favours it over a band ~ the Fourier bandwidth wide, and the
     # box of that part then reaches into the other (the paper's box step inherits such seam errors).
@@ -196,7 +194,7 @@ def test_match_with_target_mesh_and_far_gaussian_orphan(extractor) -> None:
 
 
 def test_smooth_labels_fixes_an_isolated_label_and_keeps_a_clean_boundary():
-    from sync4d.match import smooth_labels
+    from sync4d.match.features_match import smooth_labels
 
     rng = np.random.default_rng(0)
     points = np.concatenate([rng.random((200, 3)), rng.random((200, 3)) + [2.0, 0.0, 0.0]])
@@ -209,7 +207,7 @@ def test_smooth_labels_fixes_an_isolated_label_and_keeps_a_clean_boundary():
 
 
 def test_prototype_count_parses_all_and_rejects_nonsense() -> None:
-    from sync4d.match import prototype_count
+    from sync4d.match.config import prototype_count
 
     assert prototype_count(1) == 1 and prototype_count("8") == 8 and prototype_count("all") == 0
     for bad in (0, -3, "many", None):
@@ -218,7 +216,7 @@ def test_prototype_count_parses_all_and_rejects_nonsense() -> None:
 
 
 def test_one_prototype_is_the_papers_part_mean_and_all_is_nearest_neighbour() -> None:
-    from sync4d.match import part_prototype_features, prototype_similarity
+    from sync4d.match.features_match import part_prototype_features, prototype_similarity
 
     rng = np.random.default_rng(3)
     ref = rng.normal(size=(60, 5))
@@ -236,7 +234,7 @@ def test_one_prototype_is_the_papers_part_mean_and_all_is_nearest_neighbour() ->
 
 def test_kmeans_prototypes_find_both_lobes_of_a_two_lobed_part() -> None:
     """A part made of two distant feature clusters: its mean matches neither lobe, two prototypes do."""
-    from sync4d.match import part_prototype_features, prototype_similarity
+    from sync4d.match.features_match import part_prototype_features, prototype_similarity
 
     rng = np.random.default_rng(0)
     lobe_a, lobe_b = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
@@ -258,8 +256,8 @@ def test_nearest_neighbour_prototypes_remove_the_seam_band(extractor) -> None:
     reference = reference_of(v, f, part)
     target = gaussians_at(v)
     options = {"target_vertices": v, "target_faces": f}
-    paper = match_parts_detailed(reference, target, extractor, MatchConfig(align="none", prototypes="1"), **options)
-    nearest = match_parts_detailed(reference, target, extractor, MatchConfig(align="none", prototypes="all"), **options)
+    paper = match_parts(reference, target, extractor, MatchConfig(align="none", prototypes="1"), **options)
+    nearest = match_parts(reference, target, extractor, MatchConfig(align="none", prototypes="all"), **options)
     paper_acc = (paper.diagnostics.vertex_part == part).mean()
     nearest_acc = (nearest.diagnostics.vertex_part == part).mean()
     assert nearest_acc > 0.99 and nearest_acc > paper_acc

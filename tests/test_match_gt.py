@@ -95,7 +95,12 @@ def test_labels_option_reports_limb_accuracy_per_pair(tmp_path, capsys) -> None:
         raise
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     pair = last["cross_category"]["dog_to_chair"]
-    assert pair["kind"] == "cross" and 0.0 <= pair["limb_accuracy"] <= 1.0 and out == last
+    assert pair["kind"] == "cross" and out == last
+    # the chair's legs, back and seat are all scored; the floors are what no matching reaches
+    assert set(pair["per_label"]) == {"legs", "back", "seat"}
+    assert pair["chance"] == max(pair["constant"], pair["random"]) and pair["constant_part"] != ""
+    # the structure match beats chance clearly (measured 0.6-0.7 at seeds 0-2; a map by chance scores ~0)
+    assert pair["accuracy"] > pair["chance"] and pair["corrected"] > 0.4
     from sync4d.errors import ConfigError
 
     with pytest.raises(ConfigError, match="match"):
@@ -119,3 +124,30 @@ def test_laptop_to_shell_pair_needs_no_shared_data_and_auto_keeps_the_features(c
     main(["--pairs", "", "--method", "structure", "--labels", str(shell)])
     pair = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["cross_category"]["laptop_to_shell"]
     assert pair["method"] == "structure" and pair["limb_accuracy"] > 0.9
+
+
+def test_score_puts_the_floors_beside_the_accuracy_and_can_fail() -> None:
+    """Two limb labels and a trunk label over four parts: the right map scores 1 (corrected 1), the best
+    constant assignment and a uniformly random one score what their definitions say, and a map that puts
+    every point on the trunk scores its area share, corrected to <= 0."""
+    from pathlib import Path
+
+    from sync4d_tools.match_labels.labels import LabelFile, LabelSpec, chance_corrected, score
+
+    names = ("trunk", "arm_l", "arm_r", "head")
+    spec = LabelFile(Path("t.json"), "t", "human", "procedural:t", "same_structure", "y", (
+        LabelSpec("arms", [], ("arm_l", "arm_r")), LabelSpec("head", [], ("head",)),
+        LabelSpec("body", [], ("trunk",), trunk=True)))
+    labels = np.array([0] * 30 + [1] * 20 + [2] * 50)          # 30 % arms, 20 % head, 50 % body
+    right = np.array([1] * 30 + [3] * 20 + [0] * 50)
+    weights = np.ones(100)
+    good = score(spec, labels, weights, right, names)
+    assert good["accuracy"] == 1.0 and good["limb_accuracy"] == 1.0 and good["corrected"] == 1.0
+    assert good["constant"] == pytest.approx(0.5) and good["constant_part"] == "trunk"
+    assert good["random"] == pytest.approx(0.3 * 2 / 4 + 0.2 / 4 + 0.5 / 4)
+    trunk_only = score(spec, labels, weights, np.zeros(100, dtype=np.int64), names)
+    assert trunk_only["accuracy"] == pytest.approx(0.5) and trunk_only["limb_accuracy"] == 0.0
+    assert trunk_only["corrected"] == pytest.approx(0.0)
+    swapped = score(spec, labels, weights, np.array([3] * 30 + [1] * 20 + [0] * 50), names)
+    assert swapped["limb_accuracy"] == 0.0 and swapped["corrected"] == pytest.approx(0.0)
+    assert chance_corrected(0.3, 0.5) < 0 and np.isnan(chance_corrected(1.0, 1.0))

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from sync4d.errors import InputError
-from sync4d.match import MatchConfig, match_parts, skeleton_points
-from sync4d.match_structure import assign_limbs, reference_limbs, yaw_rotations
-from sync4d.skeleton import SkeletonConfig, curve_skeleton, volume_points
+from sync4d.match import MatchConfig, match_parts
+from sync4d.match.surface_points import skeleton_points
+from sync4d.match.structure import assign_limbs, reference_limbs, yaw_rotations
+from sync4d.match.skeleton import SkeletonConfig, curve_skeleton, volume_points
 from sync4d.types import Reference, TargetGaussians
 from sync4d_tools.match_labels.procedural import box_union
 
@@ -87,7 +88,7 @@ def test_solid_depth_and_the_trunk_core() -> None:
     """Depth: one voxel at the skin, half the thickness at the middle; the core sits in the trunk and the
     levels measured from it give every leg its own terminal branch holding most of the leg (levels from
     the centre point also separate this long-legged box; on Spot they do not: docs/matching.md)."""
-    from sync4d.skeleton import fill_solid, trunk_core
+    from sync4d.match.skeleton import fill_solid, trunk_core
 
     box = np.random.default_rng(0).random((20000, 3)) * [1.0, 0.4, 0.4]
     skin = np.concatenate(
@@ -100,7 +101,7 @@ def test_solid_depth_and_the_trunk_core() -> None:
     assert depth.max() == pytest.approx(0.2, abs=0.03)
 
     v, f, part = animal()
-    from sync4d.match import skeleton_points_depth
+    from sync4d.match.surface_points import skeleton_points_depth
     from scipy.spatial import cKDTree
 
     pts, depth = skeleton_points_depth(v, f, SkeletonConfig(), np.random.default_rng(0))
@@ -108,7 +109,7 @@ def test_solid_depth_and_the_trunk_core() -> None:
     norm = (pts - centre) / size
     owner = part[cKDTree(v).query(pts)[1]]
     sk = curve_skeleton(norm, SkeletonConfig(), depth / size)
-    from sync4d.skeleton import neighbour_graph
+    from sync4d.match.skeleton import neighbour_graph
 
     core = trunk_core(neighbour_graph(norm, 10, 4.0), norm, depth / size, 0.8, 2.0)
     assert (owner[core] == 0).all()
@@ -197,9 +198,10 @@ def test_labels_score_the_expected_parts_and_fail_when_they_are_wrong(tmp_path) 
         np.where(names == "back", dog.index("tail"), 0),
     )
     acc, per = limb_accuracy(spec, labels, vertex_areas(v, f), right, dog)
-    assert acc == pytest.approx(1.0) and set(per) == {"legs", "back"}
-    wrong = np.zeros(len(v), dtype=np.int64)  # everything 'torso'
-    assert limb_accuracy(spec, labels, vertex_areas(v, f), wrong, dog)[0] == 0.0
+    assert acc == pytest.approx(1.0) and set(per) == {"legs", "back", "seat"}
+    wrong = np.zeros(len(v), dtype=np.int64)  # everything 'torso': only the seat (the trunk) is right
+    acc, per = limb_accuracy(spec, labels, vertex_areas(v, f), wrong, dog)
+    assert per == {"legs": 0.0, "back": 0.0, "seat": 1.0} and 0.0 < acc < 0.5
     bad = tmp_path / "bad.json"
     bad.write_text(
         json.dumps({"name": "x", "reference": "dog", "target": "procedural:chair", "kind": "nope", "labels": []})
@@ -265,7 +267,7 @@ def test_structure_match_refuses_a_bad_target_before_any_work() -> None:
 def test_mirror_pairs_and_the_repair_give_a_leg_back_from_the_tail() -> None:
     """Four legs left/right of the plane z = 0 and a tail on it; a tail holding the mirror image of the
     matched hind-left leg's branch hands it to the hind-right leg."""
-    from sync4d.match_structure import LimbSet, mirror_plane_pairs, mirror_repair
+    from sync4d.match.structure import LimbSet, mirror_plane_pairs, mirror_repair
 
     bases = np.array([[-1.0, 0, 0.3], [-1.0, 0, -0.3], [1.0, 0, 0.3], [1.0, 0, -0.3], [1.2, 0, 0.0]])
     scale = np.array([1.0, 1.0, 0.3])
@@ -314,3 +316,31 @@ def test_auto_uses_the_features_on_a_shape_of_the_same_kind_and_structure_across
         MatchConfig(auto_residual=-1.0).validate()
     with pytest.raises(ConfigError, match="features component"):
         match_parts(reference, gaussians_at(tv), None, MatchConfig(method="auto"))
+
+
+def test_local_thickness_and_limb_growth_stop_where_the_limb_enters_the_trunk():
+    """A thick ball (radius 1) with a thin rod (radius 0.2) leaving it: the rod's points are thin, the ball's
+    thick even near its surface; a limb seeded at the rod's tip grows up the rod and stops at the ball."""
+    from scipy.ndimage import distance_transform_edt
+
+    from sync4d.match.regions import grow_limbs, local_thickness
+    from sync4d.match.skeleton import neighbour_graph
+
+    pitch = 0.1
+    g = np.mgrid[-1.2:3.2:pitch, -1.2:1.2:pitch, -1.2:1.2:pitch].reshape(3, -1).T
+    ball = np.linalg.norm(g, axis=1) <= 1.0
+    rod = (g[:, 0] > 0) & (g[:, 0] <= 3.0) & (np.linalg.norm(g[:, 1:], axis=1) <= 0.2)
+    inside = ball | rod
+    shape = tuple(len(np.arange(lo, hi, pitch)) for lo, hi in ((-1.2, 3.2), (-1.2, 1.2), (-1.2, 1.2)))
+    depth = distance_transform_edt(np.pad(inside.reshape(shape), 1))[1:-1, 1:-1, 1:-1].reshape(-1) * pitch
+    pts, depth = g[inside], depth[inside]
+    thick = local_thickness(pts, depth)
+    shell = (np.linalg.norm(pts, axis=1) > 0.85) & (pts[:, 0] < 0.5)
+    assert thick[shell].min() > 0.8                                     # the ball's surface layer: thick
+    assert np.median(thick[pts[:, 0] > 1.5]) < 0.35                     # the rod: thin
+    labels = np.full(len(pts), -1)
+    tip = np.flatnonzero(pts[:, 0] > 2.5)
+    labels[tip] = 7
+    grown = grow_limbs(neighbour_graph(pts, 10, 4.0), labels, [tip], thick, reach=20.0)
+    assert (grown[(pts[:, 0] > 1.3) & rod[inside]] == 7).all()                # the whole rod outside the ball
+    assert (grown[np.linalg.norm(pts, axis=1) < 0.8] == -1).all()        # not into the ball

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from PIL import Image
 
-from sync4d.match_viz import OUTLIER_COLOR, label_colors, log_match_figure, match_figure, figure_to_array, part_colors
+from sync4d.match.pictures import OUTLIER_COLOR, label_colors, log_match_figure, match_figure, figure_to_array, part_colors
 
 
 def test_colours_distinct_and_outliers_black() -> None:

@@ -48,7 +48,7 @@ class GeometricFeatures:
         xyz_bandwidth: float = 0.15    # Fourier kernel width, in units of the shape's RMS radius
         xyz_dims: int = 512            # Fourier feature count per scale (few dims = noisy kernel)
         xyz_scales: int = 1            # Fourier octaves: bandwidths h, h/2, h/4, ... (multi-scale kernel)
-        normalize_xyz: bool = False    # re-centre/scale coordinates here (match.py already does it)
+        normalize_xyz: bool = False    # re-centre/scale coordinates here (sync4d.match already does it)
         n_neighbors: int = 30          # neighbours of the point-cloud Laplacian (no faces)
         laplacian: str = "auto"        # auto: mesh if connected, else point cloud | mesh | point_cloud
         seed: int = 0                  # Fourier projection seed (shared by reference and target)

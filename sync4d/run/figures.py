@@ -1,6 +1,6 @@
 """Pictures a run writes beside its outputs: the reference's parts, and the part matching.
 
-Drawing is :mod:`sync4d.match_viz`'s; this module only picks what a run shows and writes it (atomically,
+Drawing is :mod:`sync4d.match.pictures`'s; this module only picks what a run shows and writes it (atomically,
 and to TensorBoard).
 """
 
@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from sync4d.io.atomic import atomic_write_bytes
-from sync4d.match_viz import draw_points, figure_to_array, label_colors, match_figure
+from sync4d.match.pictures import draw_points, figure_to_array, label_colors, match_figure
 from sync4d.types import PartMap, Reference, TargetGaussians
 
 

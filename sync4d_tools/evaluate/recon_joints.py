@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from sync4d.align import umeyama
+from sync4d.match.align import umeyama
 from sync4d.errors import InputError
 from sync4d.recon.body_video import BodyVideoReconstructor
 from sync4d.recon.sources import VideoSource

@@ -13,7 +13,8 @@ A label file is JSON::
         {"name": "leg_front_left",
          "where": {"x": [0.0, 0.5], "y": [0.0, 0.3], "z": [0.0, 0.6]},   # a box in bounding-box fractions
          "expect": ["leg_a_upper", "leg_a_lower"]},                       # reference part names
-        {"name": "leg", "where": {"part": ["leg_fl", "leg_fr"]}, "expect": [...]}   # procedural part names
+        {"name": "leg", "where": {"part": ["leg_fl", "leg_fr"]}, "expect": [...]},  # procedural part names
+        {"name": "body", "where": {...}, "expect": ["torso"], "trunk": true}        # the trunk is scored too
       ]
     }
 
@@ -22,7 +23,12 @@ the target's axis-aligned bounding box (0 = min, 1 = max, per axis, in the file'
 ``"part"`` entry selects the named parts of a procedural target. A vertex takes the first label whose
 ``where`` it matches; vertices matching none are not scored. Limb accuracy is the fraction of the
 labelled surface area (one third of each face's area per vertex) whose matched reference part is in
-its label's ``expect`` list.
+its label's ``expect`` list; every file labels its trunk (``"trunk": true``) as well as its limbs.
+
+Beside a method's accuracy, :func:`score` gives what no matching at all reaches: the best constant
+assignment (every point one reference part) and a uniformly random one (each point any part with equal
+probability: its expected accuracy), and the accuracy corrected for the better of the two,
+``(acc - chance) / (1 - chance)`` (1 = every labelled point right, 0 = no better than chance, < 0 worse).
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ class LabelSpec:
     name: str
     where: list[dict[str, list]]
     expect: tuple[str, ...]
+    trunk: bool = False
 
 
 @dataclass(frozen=True)
@@ -78,7 +85,7 @@ def read_label_file(path: str | Path) -> LabelFile:
         if not {"name", "where", "expect"} <= set(lab):
             raise InputError(f"--labels {path}: labels[{i}] needs name, where and expect")
         where = lab["where"] if isinstance(lab["where"], list) else [lab["where"]]
-        specs.append(LabelSpec(str(lab["name"]), where, tuple(lab["expect"])))
+        specs.append(LabelSpec(str(lab["name"]), where, tuple(lab["expect"]), bool(lab.get("trunk", False))))
     return LabelFile(path, str(raw["name"]), str(raw["reference"]), str(raw["target"]), str(raw["kind"]),
                      str(raw.get("up_axis", "y")), tuple(specs))
 
@@ -103,9 +110,14 @@ def _matches(where: dict[str, list], frac: np.ndarray, part_names: np.ndarray | 
     return sel
 
 
-def vertex_labels(spec: LabelFile, vertices: np.ndarray, part_names: np.ndarray | None = None) -> np.ndarray:
-    """(V,) label index per vertex (first matching label), -1 where no label matches."""
-    lo, span = vertices.min(axis=0), np.maximum(np.ptp(vertices, axis=0), 1e-12)
+def vertex_labels(spec: LabelFile, vertices: np.ndarray, part_names: np.ndarray | None = None, *,
+                  box: np.ndarray | None = None) -> np.ndarray:
+    """(V,) label index per vertex (first matching label), -1 where no label matches.
+
+    ``box`` (2, 3): the bounding box the rules' fractions refer to (default: that of ``vertices``; give the
+    mesh's own when labelling samples of its surface)."""
+    lo = vertices.min(axis=0) if box is None else np.asarray(box[0])
+    span = np.maximum((vertices.max(axis=0) if box is None else np.asarray(box[1])) - lo, 1e-12)
     frac = (vertices - lo) / span
     out = np.full(len(vertices), -1, dtype=np.int64)
     for i, lab in enumerate(spec.labels):
@@ -136,19 +148,61 @@ def limb_accuracy(spec: LabelFile, labels: np.ndarray, areas: np.ndarray, matche
         matched: (V,) matched reference part index per vertex.
         part_names: the reference's part names.
     """
+    allowed = allowed_matrix(spec, part_names)
+    scored = labels >= 0
+    if not scored.any():
+        raise InputError(f"--labels {spec.path}: no vertex matches any label")
+    ok = np.zeros(len(labels), dtype=bool)
+    ok[scored] = allowed[labels[scored], matched[scored]]
+    per = {}
+    for i, lab in enumerate(spec.labels):
+        sel = labels == i
+        if sel.any():
+            per[lab.name] = float((areas[sel] * ok[sel]).sum() / areas[sel].sum())
+    return float((areas[scored] * ok[scored]).sum() / areas[scored].sum()), per
+
+
+def allowed_matrix(spec: LabelFile, part_names: tuple[str, ...]) -> np.ndarray:
+    """(L, B) bool: label l accepts reference part b; InputError naming any expected part the reference lacks."""
     unknown = {n for lab in spec.labels for n in lab.expect} - set(part_names)
     if unknown:
         raise InputError(f"--labels {spec.path}: expected parts {sorted(unknown)} are not parts of "
                          f"'{spec.reference}' ({', '.join(part_names)})")
-    ok = np.zeros(len(labels), dtype=bool)
-    per = {}
+    out = np.zeros((len(spec.labels), len(part_names)), dtype=bool)
     for i, lab in enumerate(spec.labels):
-        allowed = np.array([part_names.index(n) for n in lab.expect])
-        sel = labels == i
-        ok[sel] = np.isin(matched[sel], allowed)
-        if sel.any():
-            per[lab.name] = float((areas[sel] * ok[sel]).sum() / areas[sel].sum())
+        out[i, [part_names.index(n) for n in lab.expect]] = True
+    return out
+
+
+def chance_accuracies(spec: LabelFile, labels: np.ndarray, weights: np.ndarray,
+                      part_names: tuple[str, ...]) -> tuple[float, float, str]:
+    """Accuracy of the best constant assignment, the expected accuracy of a uniformly random one, and the
+    constant's part name, over the labelled points (weighted by ``weights``)."""
+    allowed = allowed_matrix(spec, part_names)
     scored = labels >= 0
-    if not scored.any():
-        raise InputError(f"--labels {spec.path}: no vertex matches any label")
-    return float((areas[scored] * ok[scored]).sum() / areas[scored].sum()), per
+    w = np.bincount(labels[scored], weights=weights[scored], minlength=len(spec.labels))
+    w = w / max(w.sum(), 1e-300)
+    constant = w @ allowed  # (B,) accuracy if every point took part b
+    best = int(np.argmax(constant))
+    random = float(w @ allowed.mean(axis=1))
+    return float(constant[best]), random, part_names[best]
+
+
+def chance_corrected(accuracy: float, chance: float) -> float:
+    """``(accuracy - chance) / (1 - chance)``; NaN when chance is 1 (the labels cannot tell anything apart)."""
+    return float("nan") if chance >= 1.0 - 1e-12 else (accuracy - chance) / (1.0 - chance)
+
+
+def score(spec: LabelFile, labels: np.ndarray, weights: np.ndarray, matched: np.ndarray,
+          part_names: tuple[str, ...]) -> dict[str, object]:
+    """Every number of one labelled pair: accuracy over all labels, limb accuracy (trunk labels left out),
+    per label, the constant and random floors, the chance-corrected accuracy (see the module docstring)."""
+    acc, per = limb_accuracy(spec, labels, weights, matched, part_names)
+    limb = np.array([not lab.trunk for lab in spec.labels])
+    limb_labels = np.where((labels >= 0) & limb[np.maximum(labels, 0)], labels, -1)
+    limb_acc = limb_accuracy(spec, limb_labels, weights, matched, part_names)[0] if (limb_labels >= 0).any() else acc
+    constant, random, constant_part = chance_accuracies(spec, labels, weights, part_names)
+    chance = max(constant, random)
+    return {"accuracy": acc, "limb_accuracy": limb_acc, "per_label": per, "constant": constant,
+            "constant_part": constant_part, "random": random, "chance": chance,
+            "corrected": chance_corrected(acc, chance)}

@@ -1,6 +1,6 @@
 """Structure-aware part matching: the target's curve skeleton matched to the reference's, branch by branch.
 
-Both shapes get a curve skeleton (:mod:`sync4d.skeleton`) in their own normalised frame (centroid at 0,
+Both shapes get a curve skeleton (:mod:`sync4d.match.skeleton`) in their own normalised frame (centroid at 0,
 unit RMS radius; both upright along ``up_axis``). Then:
 
 1. the reference's limbs come from its parts: the parts touching each other form a tree (spanning tree
@@ -31,8 +31,9 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from sync4d.align import axis_rotation, chamfer_distance
-from sync4d.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton, neighbour_graph
+from sync4d.match.align import axis_rotation, chamfer_distance
+from sync4d.match.regions import label_regions, local_thickness
+from sync4d.match.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton, neighbour_graph
 
 UP_AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -59,6 +60,8 @@ class StructureConfig:
             reference), the cost of turning it half a turn away from the fitted heading.
         profile_bins: bins of relative position along a limb in the part profile.
         mirror_repair: apply :func:`mirror_repair` to the chosen assignment.
+        limb_reach: a matched limb grows over the target's solid within this many limb thicknesses of its
+            branch, where the solid is thinner than half-way to the trunk (:func:`sync4d.match.regions.grow_limbs`).
     """
 
     skeleton: SkeletonConfig = field(default_factory=SkeletonConfig)
@@ -74,6 +77,7 @@ class StructureConfig:
     aligned_turn_cost: float = 4.0
     mirror_repair: bool = True
     profile_bins: int = 20
+    limb_reach: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -127,7 +131,10 @@ class StructureMatch:
 
 
 def limb_descriptors(
-    skeleton: CurveSkeleton, members: list[np.ndarray], depth: np.ndarray | None = None, base_share: float = 0.0
+    skeleton: CurveSkeleton,
+    members: list[np.ndarray],
+    depth: np.ndarray | None = None,
+    base_share: float = 0.0,
 ) -> LimbSet:
     """Descriptors of limbs given as point index sets of ``skeleton``; ``depth`` (M,) marks a solid's
     points (voxels), whose outer layer then stands for the surface in the limbs' shares.
@@ -502,6 +509,7 @@ def match_structure(
     ref_limbs = limb_descriptors(
         ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts], base_share=cfg.reference_base_share
     )
+    tgt_thick = None if tgt_depth is None else local_thickness(tgt_sk.points, tgt_depth)
     cand = np.arange(1, len(tgt_sk.branches))
     tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand], tgt_depth)
     rng = np.random.default_rng(0)
@@ -513,7 +521,15 @@ def match_structure(
     _, rot, pairs, total = turns[0]
     if cfg.mirror_repair and len(pairs):
         pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, horizontal_scale(tgt_points, rot, up))
-    point_part = label_target(ref_sk, ref_limbs, ref_labels, tgt_sk, tgt_limbs, pairs, rot, num_parts, cfg.profile_bins)
+    limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
+                                                   cfg.profile_bins)) for r, t in pairs]
+    in_trunk = np.isin(ref_labels, trunk)
+    point_part = label_regions(
+        tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(tgt_sk.branch == 0), limbs,
+        ref_sk.points[in_trunk], ref_labels[in_trunk],
+        thickness=tgt_thick,
+        reach=cfg.limb_reach,
+    )
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
     return StructureMatch(
@@ -563,48 +579,3 @@ def score_turns(
         score += turn_cost * (1.0 - cos_turn) / 2.0
         out.append((score, rot, pairs, total))
     return sorted(out, key=lambda t: t[0])
-
-
-def label_target(
-    ref: CurveSkeleton,
-    ref_limbs: LimbSet,
-    ref_labels: np.ndarray,
-    tgt: CurveSkeleton,
-    tgt_limbs: LimbSet,
-    pairs: list[tuple[int, int]],
-    rotation: np.ndarray,
-    num_parts: int,
-    bins: int,
-) -> np.ndarray:
-    """(M,) reference part per target point: matched limbs along their length, the rest by nearest trunk."""
-    out = np.full(len(tgt.points), -1, dtype=np.int64)
-    for r, t in pairs:
-        out[tgt_limbs.members[t]] = transfer_along(ref, ref_limbs, r, ref_labels, tgt, tgt_limbs, t, num_parts, bins)
-    in_matched_ref = np.zeros(len(ref.points), dtype=bool)
-    for r, _ in pairs:
-        in_matched_ref[ref_limbs.members[r]] = True
-    pool = np.flatnonzero(~in_matched_ref)
-    if len(pool) == 0:
-        pool = np.arange(len(ref.points))
-    rest = np.flatnonzero(out < 0)
-    if len(rest) == 0:
-        return out
-    # the trunk's core takes the part of the nearest reference point outside the matched limbs; the
-    # rest of the trunk (and unmatched branches) grows from the core and the matched limbs over the
-    # solid, each point taking the part of its geodesically nearest labelled point: the boundary between
-    # a limb and the trunk lies halfway between the limb's branch and the trunk's core
-    core = np.intersect1d(tgt.core, rest)
-    if len(core):
-        _, j = cKDTree(ref.points[pool]).query(tgt.points[core] @ rotation.T)
-        out[core] = ref_labels[pool[j]]
-    seeds = np.flatnonzero(out >= 0)
-    rest = np.flatnonzero(out < 0)
-    if len(rest) and len(seeds) and tgt.graph is not None:
-        dist, _, source = dijkstra(tgt.graph, directed=False, indices=seeds, return_predecessors=True, min_only=True)
-        reach = rest[np.isfinite(dist[rest])]
-        out[reach] = out[source[reach]]
-    rest = np.flatnonzero(out < 0)
-    if len(rest):
-        _, j = cKDTree(ref.points[pool]).query(tgt.points[rest] @ rotation.T)
-        out[rest] = ref_labels[pool[j]]
-    return out

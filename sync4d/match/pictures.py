@@ -116,11 +116,11 @@ def figure_to_array(fig) -> np.ndarray:
 
 
 def save_match_figure(path: str | Path, diagnostics, num_parts: int, **kwargs) -> np.ndarray:
-    """Draw a :class:`sync4d.match.MatchDiagnostics` (common frame; outliers black) and write a PNG.
+    """Draw a :class:`sync4d.match.result.MatchDiagnostics` (common frame; outliers black) and write a PNG.
 
     Args:
         path: output .png.
-        diagnostics: from :func:`sync4d.match.match_parts_detailed`.
+        diagnostics: from :func:`sync4d.match.match_parts`.
         num_parts: B.
         **kwargs: forwarded to :func:`match_figure` (``views``, ``titles``, ``suptitle``, ...). The
             reference labels must be passed as ``reference_labels``.

@@ -1,0 +1,98 @@
+"""Every option of part matching and its default (:class:`MatchConfig`), checked by ``validate``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from sync4d.errors import ConfigError
+from sync4d.match.structure import StructureConfig
+
+BOX_FRAMES: tuple[str, ...] = ("aligned", "pca")
+TIE_BREAKS: tuple[str, ...] = ("centroid", "nearest_vertex")
+METHODS: tuple[str, ...] = ("auto", "features", "structure")
+
+
+def prototype_count(spec: int | str) -> int:
+    """``match.prototypes`` as a count: ``"all"`` -> 0 (every reference vertex), else an int >= 1."""
+    if isinstance(spec, str) and spec.strip().lower() == "all":
+        return 0
+    try:
+        count = int(spec)
+    except (TypeError, ValueError):
+        count = -1
+    if count < 1:
+        raise ConfigError(
+            f"match.prototypes={spec!r}: use 1 (the paper's part mean), k > 1 (k prototypes per part) or 'all'"
+        )
+    return count
+
+
+
+
+@dataclass
+class MatchConfig:
+    """Every option of part matching, with its defaults (the single source of them).
+
+    Attributes:
+        method: ``structure`` (curve skeletons matched branch by branch, :mod:`sync4d.match.structure`;
+            shapes given upright along ``up_axis``, facing any way), ``features`` (the paper's cosine
+            assignment of per-vertex features, then part boxes) or ``auto``: ``features`` when the
+            aligned target lies on the reference (alignment residual at most ``auto_residual``: the
+            same kind of shape), else ``structure`` (:func:`sync4d.match.auto.choose_method`).
+        auto_residual: with ``auto``, the largest alignment residual (symmetric chamfer distance after
+            ``align``, in RMS radii of the reference) at which the features are used.
+        up_axis: the up axis shared by the reference and the (aligned) target.
+        align: ``none`` | ``pca`` | ``pca_icp`` | ``upright_icp`` (:func:`sync4d.match.align.align_shapes`). With
+            ``structure``, ``pca``/``pca_icp`` first bring an arbitrarily turned target into the
+            reference's frame; ``none``/``upright_icp`` trust that both are upright (the turn about the up
+            axis is searched by the structure match itself).
+        icp_iterations: ICP iterations of the alignment.
+        outlier_sigma: (features) robust spreads beyond which a target vertex is an outlier (<= 0 disables).
+        prototypes: (features) ``"1"`` (the paper's part mean), ``"k"`` (k-means prototypes) or ``"all"``.
+        smooth_neighbours: (features) k of the label vote after the cosine assignment (0 = off).
+        tie_break: (features) ``centroid`` | ``nearest_vertex``: the part of a Gaussian in several boxes.
+        box_frame: (features) ``aligned`` | ``pca`` part boxes.
+        box_padding: (features) box growth as a fraction of its size per side.
+        max_target_vertices: Gaussian means used as the surface when the target has no mesh.
+        min_opacity: Gaussians below this opacity are not surface points.
+        structure: options of the structure match.
+    """
+
+    method: Literal["auto", "features", "structure"] = "auto"
+    auto_residual: float = 0.155
+    up_axis: Literal["x", "y", "z"] = "y"
+    align: Literal["none", "pca", "pca_icp", "upright_icp"] = "upright_icp"
+    icp_iterations: int = 100
+    outlier_sigma: float = 2.5
+    prototypes: str = "all"
+    smooth_neighbours: int = 0
+    tie_break: Literal["centroid", "nearest_vertex"] = "nearest_vertex"
+    box_frame: Literal["aligned", "pca"] = "aligned"
+    box_padding: float = 0.02
+    max_target_vertices: int = 6000
+    min_opacity: float = 0.1
+    structure: StructureConfig = field(default_factory=StructureConfig)
+
+    def validate(self) -> MatchConfig:
+        """Raise ConfigError naming the first bad option."""
+        choices = {
+            "method": METHODS,
+            "up_axis": ("x", "y", "z"),
+            "align": ("none", "pca", "pca_icp", "upright_icp"),
+            "tie_break": TIE_BREAKS,
+            "box_frame": BOX_FRAMES,
+        }
+        for key, allowed in choices.items():
+            if getattr(self, key) not in allowed:
+                raise ConfigError(f"match.{key}={getattr(self, key)!r}: use one of {', '.join(allowed)}")
+        prototype_count(self.prototypes)
+        if not self.auto_residual >= 0.0:
+            raise ConfigError(f"match.auto_residual={self.auto_residual}: use a residual >= 0 (RMS radii)")
+        if self.icp_iterations < 1 or self.max_target_vertices < 16 or self.structure.yaw_steps < 1:
+            raise ConfigError(
+                "match.icp_iterations, match.structure.yaw_steps must be >= 1 and " "match.max_target_vertices >= 16"
+            )
+        if self.structure.skeleton.samples < 64 or self.structure.skeleton.neighbours < 3:
+            raise ConfigError("match.structure.skeleton.samples must be >= 64 and .neighbours >= 3")
+        return self

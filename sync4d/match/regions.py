@@ -1,0 +1,130 @@
+"""Where a matched limb ends and the trunk begins on the target, and the part of every target point.
+
+A target branch of the curve skeleton starts where the geodesic levels split, which is often below where
+the limb leaves the trunk (levels from the trunk's core reach a leg's top only after crossing the belly).
+The limb is grown from its branch over the solid while the solid stays as thin as the limb (local
+thickness, :func:`local_thickness`) and within a few limb thicknesses (:func:`grow_limbs`): it stops where
+the cross-section widens into the trunk. The trunk (the root branch's points no limb took) takes the
+reference's trunk parts by position; the remaining points (target branches no reference limb matched)
+take the part of the region they hang from (:func:`label_regions`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+
+def local_thickness(points: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(M,) radius of the largest inscribed ball containing each point of a solid.
+
+    Args:
+        points: (M, 3) voxel centres of the solid; depth: (M,) each one's distance to the outside (same unit).
+
+    A point's own depth is small near the surface even inside a thick trunk; the largest ball that holds
+    it (centred at any deeper point whose depth reaches it) says how thick the solid is there.
+    """
+    radius = np.asarray(depth, dtype=np.float64)
+    out = radius.copy()
+    balls = cKDTree(points).query_ball_point(points, r=radius)
+    for i, idx in enumerate(balls):
+        np.maximum.at(out, idx, radius[i])
+    return out
+
+
+def limb_thickness(thickness: np.ndarray, members: np.ndarray) -> float:
+    """A limb's thickness: the median of the thinner half of its points' (its base may lie in the trunk's balls)."""
+    if len(members) == 0:
+        return 0.0
+    return float(np.median(np.sort(thickness[members])[: max(len(members) // 2, 1)]))
+
+
+def grow_limbs(
+    graph: csr_matrix,
+    labels: np.ndarray,
+    limbs: list[np.ndarray],
+    thickness: np.ndarray,
+    *,
+    reach: float,
+) -> np.ndarray:
+    """(M,) ``labels`` with each limb grown over the unlabelled points thinner than the limb-trunk junction.
+
+    Args:
+        graph: (M, M) neighbour graph of the points.
+        labels: (M,) part per point, -1 where unlabelled (the limbs' points are labelled).
+        limbs: per matched limb, the indices of its points.
+        thickness: (M,) local thickness (:func:`local_thickness`).
+        reach: a point joins a limb if it lies within ``reach`` x the limb's thickness of it (geodesically)
+            (the limb's thickness: the median of its thinner half; its base may lie in the trunk's balls)
+            and is thinner than the geometric mean of the limb's thickness and the trunk's (the thickest
+            point's): the limb ends where the cross-section has widened half-way (in log) to the trunk's.
+
+    Returns:
+        (M,) labels; a grown point takes the part of the limb point it was reached from.
+    """
+    out = labels.copy()
+    free = out < 0
+    best = np.full(len(out), np.inf)
+    take = np.full(len(out), -1, dtype=np.int64)
+    trunk = float(thickness.max())
+    for members in limbs:
+        if len(members) == 0:
+            continue
+        t = limb_thickness(thickness, members)
+        allowed = np.flatnonzero(free & (thickness <= np.sqrt(t * trunk)))
+        nodes = np.union1d(members, allowed)
+        sub = graph[nodes][:, nodes]
+        seeds = np.searchsorted(nodes, members)
+        dist, _, source = dijkstra(sub, directed=False, indices=seeds, return_predecessors=True, min_only=True,
+                                   limit=reach * t)
+        grown = np.flatnonzero(np.isfinite(dist) & free[nodes])
+        closer = dist[grown] < best[nodes[grown]]
+        best[nodes[grown[closer]]] = dist[grown[closer]]
+        take[nodes[grown[closer]]] = labels[nodes[source[grown[closer]]]]
+    out[take >= 0] = take[take >= 0]
+    return out
+
+
+def label_regions(
+    points: np.ndarray,
+    graph: csr_matrix | None,
+    root_points: np.ndarray,
+    limbs: list[tuple[np.ndarray, np.ndarray]],
+    trunk_points: np.ndarray,
+    trunk_labels: np.ndarray,
+    *,
+    thickness: np.ndarray | None,
+    reach: float,
+) -> np.ndarray:
+    """(M,) reference part of every target point.
+
+    Args:
+        points: (M, 3) target points in the reference's (turned, normalised) frame.
+        graph: (M, M) their neighbour graph, or None.
+        root_points: indices of the points of the skeleton's root branch (the trunk's candidates).
+        limbs: per matched limb, (indices of its points, the part of each of them).
+        trunk_points: (K, 3) the reference's trunk points, same frame; trunk_labels: (K,) their parts.
+        thickness: (M,) local thickness, or None (limbs are then not grown).
+        reach: see :func:`grow_limbs`.
+    """
+    out = np.full(len(points), -1, dtype=np.int64)
+    for members, parts in limbs:
+        out[members] = parts
+    if thickness is not None and graph is not None and limbs:
+        out = grow_limbs(graph, out, [m for m, _ in limbs], thickness, reach=reach)
+    tree = cKDTree(trunk_points)
+    trunk = root_points[out[root_points] < 0]
+    if len(trunk):
+        out[trunk] = trunk_labels[tree.query(points[trunk])[1]]
+    seeds, rest = np.flatnonzero(out >= 0), np.flatnonzero(out < 0)
+    if len(rest) and len(seeds) and graph is not None:
+        # unmatched branches hang from what they touch: the part of their geodesically nearest labelled point
+        dist, _, source = dijkstra(graph, directed=False, indices=seeds, return_predecessors=True, min_only=True)
+        reached = rest[np.isfinite(dist[rest])]
+        out[reached] = out[source[reached]]
+    rest = np.flatnonzero(out < 0)
+    if len(rest):
+        out[rest] = trunk_labels[tree.query(points[rest])[1]]
+    return out
