@@ -4,15 +4,21 @@ degree-0 spherical-harmonic constant that maps colours to 3DGS coefficients. Pur
 
 from __future__ import annotations
 
+from typing import Any, TypeVar
+
 import numpy as np
+
+#: A NumPy array or a torch tensor (functions written once for both).
+ArrayT = TypeVar("ArrayT", bound=Any)
 
 #: Y_0^0 = 1 / (2 sqrt(pi)): a 3DGS colour is RGB = 0.5 + SH_C0 * f_dc.
 SH_C0 = 0.28209479177387814
 
 
-def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
-    """(N, 3) RGB in [0, 1] -> (N, 1, 3) degree-0 SH coefficients (inverse of 0.5 + SH_C0 * c)."""
-    return ((np.asarray(rgb, dtype=np.float64) - 0.5) / SH_C0)[:, None, :]
+def rgb_to_sh_dc(rgb: ArrayT) -> ArrayT:
+    """(N, 3) RGB in [0, 1] -> (N, 1, 3) degree-0 SH coefficients (inverse of 0.5 + SH_C0 * c); NumPy arrays
+    and torch tensors alike (differentiable)."""
+    return ((rgb - 0.5) / SH_C0)[:, None, :]  # type: ignore[no-any-return]
 
 
 def quat_to_matrix(quats: np.ndarray) -> np.ndarray:

@@ -11,7 +11,8 @@ import torch
 from sync4d.errors import ConfigError, InputError
 from sync4d.registry import build
 from sync4d.render.camera import look_at
-from sync4d.render.sh import SH_C0, SH_C1, rgb_to_sh_dc
+from sync4d.geometry import SH_C0, rgb_to_sh_dc
+from sync4d.render.sh import SH_C1
 from sync4d.render.splat_torch import SplatTorch, footprint_boxes, project_gaussians
 from sync4d.types import Camera
 

@@ -15,7 +15,7 @@ import trimesh
 
 from sync4d.errors import InputError
 from sync4d.types import TargetGaussians
-from sync4d.geometry import SH_C0, matrix_to_quat
+from sync4d.geometry import matrix_to_quat, rgb_to_sh_dc
 
 
 def load_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -98,11 +98,6 @@ def _tangent_frames(normals: np.ndarray) -> np.ndarray:
     return np.stack([t1, t2, n], axis=2)
 
 
-def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
-    """(N, 3) RGB in [0, 1] -> (N, 1, 3) degree-0 SH coefficients (inverse of 0.5 + SH_C0 * c)."""
-    return ((np.asarray(rgb, dtype=np.float64) - 0.5) / SH_C0)[:, None, :]
-
-
 def mesh_to_gaussians(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -171,7 +166,7 @@ def mesh_to_gaussians(
         quats=matrix_to_quat(np.concatenate(rots)).astype(np.float32),
         log_scales=np.log(np.concatenate(scales)).astype(np.float32),
         opacity_logits=np.full(n, logit, dtype=np.float32),
-        sh=rgb_to_sh_dc(np.concatenate(cols)).astype(np.float32),
+        sh=rgb_to_sh_dc(np.concatenate(cols).astype(np.float64)).astype(np.float32),
         name=name,
     ).validate()
 

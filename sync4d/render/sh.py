@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-SH_C0 = 0.28209479177387814
+from sync4d.geometry import SH_C0
+
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (
@@ -84,11 +85,6 @@ def sh_to_rgb(sh: torch.Tensor, dirs: torch.Tensor, degree: int | None = None) -
     """(N, 3) RGB = max(0, 0.5 + SH(d)) as in 3DGS (no upper clamp: compositing may exceed 1 only if
     the coefficients say so; images are clipped when encoded)."""
     return torch.clamp_min(eval_sh(sh, dirs, degree) + 0.5, 0.0)
-
-
-def rgb_to_sh_dc(rgb: torch.Tensor) -> torch.Tensor:
-    """(N, 3) RGB -> (N, 1, 3) degree-0 coefficients such that ``sh_to_rgb`` gives back ``rgb``."""
-    return ((rgb - 0.5) / SH_C0)[:, None, :]
 
 
 def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
