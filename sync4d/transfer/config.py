@@ -15,8 +15,9 @@ class TransferConfig:
 
     Attributes:
         control_grid: cells per axis of the control-point lattice the target is simulated through (paper:
-            41 for millions of Gaussians), or null to simulate every Gaussian. Cells that straddle a part
-            boundary are split per part, so a particle never mixes parts.
+            41 for millions of Gaussians), or null to simulate every Gaussian: 40 against the MPM's default
+            48-node grid (27 cells across the object) is 1.5 lattice cells per grid cell. Cells that
+            straddle a part boundary are split per part, so a particle never mixes parts.
         init: initial velocities: ``rigid`` (each particle on its bone's rigid velocity field
             (T_rel x - x) / (N dt), with the matching APIC matrix), ``pose`` (towards where its part's pose at t+1
             puts its rest position, (P_{t+1} P_0^-1 X - x) / (N dt): the rigid step plus the particle's offset from

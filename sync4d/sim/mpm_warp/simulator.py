@@ -61,11 +61,6 @@ class MPMWarp:
             cfl_safety: CFL number aimed for, dt <= cfl_safety dx / (c + |v|max) (stable to ~0.47 measured).
             max_substeps: a run whose estimated substeps per frame exceed this is refused before it starts
                 (:func:`sync4d.transfer.budget.check_cost`), naming the cause (e.g. E) and the fix.
-            control_grid: cells per axis of the control-point lattice (paper: 41), or null to simulate
-                every Gaussian. 40 against n_grid 32 gives ~2.5 lattice cells per grid cell along the
-                object's longest axis (up to ~15 particles per filled grid cell; 3-6 measured on the
-                transfer_gt bodies, where thin limbs and lids are one or two cells thick); cells that
-                straddle a part boundary are split per part, so seams get more particles.
             gravity: (3,) acceleration [m/s^2]; off for motion transfer.
             checkpoint_every: store every k-th substep state for the backward pass, which recomputes the
                 other (k-1)/k substeps once (memory ~ N/k + k states of 96 bytes per particle); null picks
@@ -83,7 +78,7 @@ class MPMWarp:
         E: float = 3e4
         nu: float = 0.3
         density: float = 1000.0
-        n_grid: int = 32
+        n_grid: int = 48
         grid_padding: float = 0.25
         wall_cells: int = 3
         boundary: Literal["slip", "sticky"] = "slip"
