@@ -123,7 +123,12 @@ def stage_reference(ctx: RunContext) -> tuple[Reference, str]:
     def compute() -> Reference:
         reconstructor = build("recon", recon_cfg, device=cfg.device)
         started = time.perf_counter()
-        reference = reconstructor.reconstruct(source.load()).validate()
+        loaded = source.load()
+        if loaded.video is not None:  # what the reconstruction is given: recon/masks.mp4, recon/camera.json
+            from sync4d.frontend.outputs import write_video_inputs
+
+            write_video_inputs(ctx.run_dir / "recon", loaded.video, loaded.camera)
+        reference = reconstructor.reconstruct(loaded).validate()
         log.info("recon=%s: %d bones, %d frames, %d vertices in %.1f s", cfg.recon.type, reference.num_bones,
                  reference.num_frames, len(reference.rest_vertices), time.perf_counter() - started)
         return reference

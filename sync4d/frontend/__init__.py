@@ -10,6 +10,6 @@ Modules: :mod:`~sync4d.frontend.config` (options), :mod:`~sync4d.frontend.stage`
 """
 
 from sync4d.frontend.config import CameraConfig, FrontEndConfig, SubjectConfig
-from sync4d.frontend.stage import FrontEndResult, Prompt, run_front_end
+from sync4d.frontend.stage import FrontEndResult, Prompt, complete_video, run_front_end
 
-__all__ = ["CameraConfig", "FrontEndConfig", "FrontEndResult", "Prompt", "SubjectConfig", "run_front_end"]
+__all__ = ["CameraConfig", "FrontEndConfig", "FrontEndResult", "Prompt", "SubjectConfig", "complete_video", "run_front_end"]

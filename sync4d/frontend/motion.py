@@ -15,6 +15,10 @@ GRID_SAMPLES = 1500
 MAX_PLANES = 3
 #: ... each after the first explaining at least this share of the image (a subject is rarely that large)
 MIN_PLANE_SHARE = 0.2
+#: a pixel the background's motion explains changes by less than this many grey levels (of 255) ...
+PHOTOMETRIC_LEVELS = 10.0
+#: ... and so do its neighbours within 2 px (a textured subject's plain patches count as changed)
+NEAR = np.ones((5, 5), np.uint8)
 
 
 def dense_flow(grey_a: np.ndarray, grey_b: np.ndarray) -> np.ndarray:
@@ -32,36 +36,38 @@ def grid_points(height: int, width: int, count: int) -> np.ndarray:
     return np.stack([uu.ravel(), vv.ravel()], axis=1)
 
 
-def plane_residuals(here: np.ndarray, there: np.ndarray, index: np.ndarray) -> tuple[list[np.ndarray], list[float]]:
-    """Residuals [px] (N,) of up to ``MAX_PLANES`` homographies fitted in turn (RANSAC) to the grid samples
-    ``index`` of the correspondences here -> there (N, 2), each on what the previous ones left, kept while
-    it explains at least ``MIN_PLANE_SHARE`` of all samples; and each one's robust spread [px]."""
+def plane_predictions(here: np.ndarray, there: np.ndarray, index: np.ndarray) -> tuple[list[np.ndarray], list[float]]:
+    """Where up to ``MAX_PLANES`` background planes send every pixel (each (N, 2) [px]): homographies
+    fitted in turn (RANSAC) to the grid samples ``index`` of the correspondences here -> there (N, 2), each
+    on what the previous ones left, kept while it explains at least ``MIN_PLANE_SHARE`` of all samples; and
+    each one's robust spread [px]."""
     import cv2
 
-    residuals: list[np.ndarray] = []
+    predictions: list[np.ndarray] = []
     spreads: list[float] = []
     left = index
     for _ in range(MAX_PLANES):
         if len(left) < 8:
             break
         H, inliers = cv2.findHomography(here[left], there[left], cv2.RANSAC, 1.0)
-        if H is None or (residuals and inliers.sum() < MIN_PLANE_SHARE * len(index)):
+        if H is None or (predictions and inliers.sum() < MIN_PLANE_SHARE * len(index)):
             break
-        residual = np.linalg.norm(cv2.perspectiveTransform(here.reshape(-1, 1, 2), H).reshape(-1, 2) - there, axis=1)
-        fit = residual[left[inliers.ravel() > 0]]
-        residuals.append(residual)
+        predicted = cv2.perspectiveTransform(here.reshape(-1, 1, 2), H).reshape(-1, 2)
+        fit = np.linalg.norm(predicted - there, axis=1)[left[inliers.ravel() > 0]]
+        predictions.append(predicted)
         spreads.append(max(1.4826 * float(np.median(fit)) if len(fit) else 0.25, 0.1))
         left = left[inliers.ravel() == 0]
-    return residuals, spreads
+    return predictions, spreads
 
 
-def background_residual(flow: np.ndarray, *, static: bool) -> tuple[np.ndarray, np.ndarray]:
-    """What the background's motion cannot explain in a flow field, each (H, W): in units of the
-    background's robust spread (the score) and in pixels.
+def background_residual(flow: np.ndarray, *, static: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the background's motion cannot explain in a flow field: the residual in units of the
+    background's robust spread (H, W), in pixels (H, W), and where the background's motion sends each
+    pixel (H, W, 2) [px].
 
     The background is a few planes (floor, walls, a far backdrop), each moving by a homography under any
     camera motion: homographies are fitted in turn by RANSAC to a grid of flow samples while each explains
-    a large share of the image (:func:`plane_residuals`), and a pixel's residual is the smallest over them.
+    a large share of the image (:func:`plane_predictions`), and a pixel's residual is the smallest over them.
     A fundamental matrix would absorb all parallax, but also a subject moving along the epipolar lines, the
     common case of a phone panning to follow a walking animal (``cat-pikachu-0``: the cat vanishes).
 
@@ -70,22 +76,31 @@ def background_residual(flow: np.ndarray, *, static: bool) -> tuple[np.ndarray, 
         static: the camera does not move (the background's motion is zero; spread 0.25 px assumed).
     """
     h, w = flow.shape[:2]
-    if static:
-        residual = np.linalg.norm(flow, axis=-1)
-        return residual / 0.25, residual
     uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     here = np.stack([uu, vv], axis=-1).reshape(-1, 2)
     there = here + flow.reshape(-1, 2)
     grid = grid_points(h, w, GRID_SAMPLES)
-    residuals, spreads = plane_residuals(here, there, grid[:, 1] * w + grid[:, 0])
-    if not residuals:
-        residual = np.linalg.norm(flow, axis=-1)
-        return residual / max(float(np.median(residual)), 0.25), residual
-    stacked = np.stack(residuals)
+    predictions, spreads = ([here], [0.25]) if static else plane_predictions(here, there, grid[:, 1] * w + grid[:, 0])
+    if not predictions:
+        predictions, spreads = [here], [max(float(np.median(np.linalg.norm(flow, axis=-1))), 0.25)]
+    stacked = np.stack([np.linalg.norm(p - there, axis=1) for p in predictions])
     best = np.argmin(stacked, axis=0)
     residual = stacked[best, np.arange(stacked.shape[1])]
     score = residual / np.asarray(spreads)[best]
-    return score.reshape(h, w), residual.reshape(h, w)
+    target = np.stack(predictions)[best, np.arange(len(best))]
+    return score.reshape(h, w), residual.reshape(h, w), target.reshape(h, w, 2).astype(np.float32)
+
+
+def photometric_change(grey_t: np.ndarray, grey_s: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(H, W) grey-level difference between frame t and frame s sampled where the background's motion sends
+    each pixel (H, W, 2): near zero wherever the background's motion explains the picture, textureless
+    regions included (whose flow is unreliable)."""
+    import cv2
+
+    a = cv2.GaussianBlur(grey_t.astype(np.float32), (3, 3), 0)
+    b = cv2.GaussianBlur(grey_s.astype(np.float32), (3, 3), 0)
+    warped = cv2.remap(b, target[..., 0], target[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.abs(a - warped)
 
 
 def motion_evidence(grey: np.ndarray, *, static: bool, sigma: float, min_px: float,
@@ -94,10 +109,13 @@ def motion_evidence(grey: np.ndarray, *, static: bool, sigma: float, min_px: flo
     frames (``{(t, s): (H, W, 2) flow from t to s}`` for |t - s| = 1).
 
     A pixel moves when, for some gap g in ``gaps``, the flows to frame t - g and to frame t + g both leave
-    more than ``sigma`` robust spreads and ``min_px`` pixels unexplained by the background's motion: a pixel
+    more than ``sigma`` robust spreads and ``min_px`` pixels unexplained by the background's motion, and
+    the picture there (within 2 px) is not explained by it either (:func:`photometric_change`): a pixel
     the subject covers or uncovers has a wrong flow in one direction only, so asking both keeps the
     subject and drops that halo (frames within g of the clip's ends get no evidence from gap g).
     """
+    import cv2
+
     n_frames, h, w = grey.shape
     moving = np.zeros((n_frames, h, w), bool)
     neighbours: dict[tuple[int, int], np.ndarray] = {}
@@ -110,7 +128,9 @@ def motion_evidence(grey: np.ndarray, *, static: bool, sigma: float, min_px: flo
             both = np.ones((h, w), bool)
             for s in (t - gap, t + gap):
                 flow = neighbours[(t, s)] if gap == 1 else dense_flow(grey[t], grey[s])
-                score, pixels = background_residual(flow, static=static)
-                both &= (score > sigma) & (pixels > min_px)
+                score, pixels, target = background_residual(flow, static=static)
+                changed = cv2.dilate((photometric_change(grey[t], grey[s], target) > PHOTOMETRIC_LEVELS).astype(np.uint8),
+                                     NEAR) > 0
+                both &= (score > sigma) & (pixels > min_px) & changed
             moving[t] |= both
     return moving, neighbours

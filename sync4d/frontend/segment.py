@@ -4,12 +4,18 @@ optical flow, each carried mask refined again by GrabCut and joined by what move
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 #: GrabCut's mask labels (OpenCV's GC_BGD, GC_FGD, GC_PR_BGD, GC_PR_FGD)
 BGD, FGD, PR_BGD, PR_FGD = 0, 1, 2, 3
 #: GrabCut may grow a prior by at most this fraction of its size (the square root of its area)
 GROWTH = 0.1
+#: colour histogram levels per RGB channel of the subject's colour model
+BINS = 16
+#: a carried mask is the subject lost when less than this share of the first frame's colour support remains
+LOST_SUPPORT = 0.5
 
 
 def disk(radius: int) -> np.ndarray:
@@ -98,13 +104,64 @@ def grabcut(image: np.ndarray, prior: np.ndarray, *, sure: np.ndarray | None, it
     return morph(out, "open", 1)
 
 
+def box_around(mask: np.ndarray, margin: float) -> np.ndarray:
+    """(H, W) bool: the bounding box of ``mask`` grown by ``margin`` x its width / height on every side."""
+    vv, uu = np.nonzero(mask)
+    h, w = mask.shape
+    dx, dy = margin * (np.ptp(uu) + 1), margin * (np.ptp(vv) + 1)
+    box = np.zeros_like(mask, dtype=bool)
+    box[max(int(vv.min() - dy), 0): int(vv.max() + dy) + 1, max(int(uu.min() - dx), 0): int(uu.max() + dx) + 1] = True
+    return box
+
+
+def first_mask(image: np.ndarray, region: np.ndarray, iterations: int, *, margin: float = 1.0) -> np.ndarray:
+    """(H, W) bool subject on its first frame from what moves there (``region``): GrabCut inside the region's
+    box grown by ``margin``, the region's core sure, the rest of the box undecided, outside it background.
+    An object's parts that do not move (a laptop's base under a moving lid) join by colour here."""
+    import cv2
+
+    if not region.any():
+        return region.copy()
+    size = size_of(region)
+    box = box_around(region, margin)
+    labels = np.where(box, PR_BGD, BGD).astype(np.uint8)
+    labels[region] = PR_FGD
+    labels[morph(region, "erode", int(0.1 * size))] = FGD
+    if (labels == BGD).sum() < 64:
+        labels[[0, -1], :] = BGD
+        labels[:, [0, -1]] = BGD
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(np.ascontiguousarray(image[..., ::-1]), labels, None, bgd, fgd, max(iterations, 1),
+                    cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        return region.copy()
+    out = morph((labels == FGD) | (labels == PR_FGD), "open", 1)
+    labelled, _ = components(out)
+    keep = np.unique(labelled[region & (labelled > 0)])
+    return np.isin(labelled, keep[keep > 0]) if len(keep) else region.copy()
+
+
+def box_grabcut(image: np.ndarray, box: np.ndarray, iterations: int) -> np.ndarray:
+    """(H, W) bool subject inside a (H, W) bool box: GrabCut started from the box (outside: background)."""
+    import cv2
+
+    labels = np.where(box, PR_FGD, BGD).astype(np.uint8)
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    try:
+        cv2.grabCut(np.ascontiguousarray(image[..., ::-1]), labels, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        return box.copy()
+    return morph((labels == FGD) | (labels == PR_FGD), "open", 1)
+
+
 def seed_from_motion(moving: np.ndarray, flows: dict[tuple[int, int], np.ndarray],
                      min_area_px: float) -> tuple[int, np.ndarray] | None:
     """The frame whose largest coherent moving region is biggest and most stable (area x its overlap with the
     next frame's region carried back by the flow), and that region (H, W) bool; None when no frame has a
     region of at least ``min_area_px`` pixels."""
     h, w = moving.shape[1:]
-    radius = max(2, int(0.02 * max(h, w)))
+    radius = max(3, int(0.03 * max(h, w)))
     regions = [largest_component(morph(morph(m, "open", 1), "close", radius)) for m in moving]
     best_t, best_score = -1, 0.0
     for t in range(len(regions) - 1):
@@ -139,24 +196,71 @@ def seed_from_prompt(prompt: np.ndarray, moving: np.ndarray, image: np.ndarray) 
     return prior
 
 
+@dataclass(frozen=True)
+class ColourModel:
+    """Colour histograms of the subject and of its surroundings on the frame it was found on.
+
+    Attributes:
+        subject, background: (BINS^3,) normalised RGB histograms (Laplace-smoothed).
+        support: the share of that frame's mask whose colour is more the subject's than the background's.
+    """
+
+    subject: np.ndarray
+    background: np.ndarray
+    support: float
+
+    def likeness(self, image: np.ndarray) -> np.ndarray:
+        """(H, W) in [0, 1]: how much more each pixel's colour is the subject's than the background's."""
+        index = colour_bins(image)
+        fg, bg = self.subject[index], self.background[index]
+        return fg / (fg + bg)
+
+
+def colour_bins(image: np.ndarray) -> np.ndarray:
+    """(H, W) int histogram bin of each RGB pixel (``BINS`` levels per channel)."""
+    q = (image.astype(np.int64) * BINS) // 256
+    return (q[..., 0] * BINS + q[..., 1]) * BINS + q[..., 2]
+
+
+def colour_model(image: np.ndarray, mask: np.ndarray) -> ColourModel:
+    """The subject's and its surroundings' (a band of its size around it) colour histograms."""
+    index = colour_bins(image)
+    around = morph(mask, "dilate", int(0.5 * size_of(mask)) + 2) & ~mask
+    fg = np.bincount(index[mask], minlength=BINS**3) + 1.0
+    bg = np.bincount(index[around], minlength=BINS**3) + 1.0
+    fg, bg = fg / fg.sum(), bg / bg.sum()
+    likeness = fg[index[mask]] / (fg[index[mask]] + bg[index[mask]])
+    return ColourModel(fg, bg, float((likeness > 0.5).mean()) if mask.any() else 0.0)
+
+
 def propagate(frames: np.ndarray, start: int, first: np.ndarray, moving: np.ndarray,
               flows: dict[tuple[int, int], np.ndarray], iterations: int) -> np.ndarray:
     """(T, H, W) bool masks carried from frame ``start`` (mask ``first``) forwards and backwards along the
-    flow, each carried mask joined by what moves just around it and refined by GrabCut."""
+    flow, each carried mask joined by what moves just around it and refined by GrabCut.
+
+    The subject's colours on frame ``start`` keep the carried masks honest: only pixels of the subject's
+    colours are sure foreground, and a mask whose colours stop being the subject's (less than half the
+    first frame's support) is the subject lost (it left the frame): that frame and those beyond stay empty.
+    """
     n_frames = len(frames)
     masks = np.zeros(moving.shape, bool)
     masks[start] = first
+    model = colour_model(frames[start], first)
     for step in (1, -1):
         t = start + step
         while 0 <= t < n_frames:
             carried = pull_warp(masks[t - step], flows[(t, t - step)])
             if not carried.any():
                 break
+            like = model.likeness(frames[t]) > 0.5
             # what moves just outside the carried mask joins it (a limb the flow lost), nothing farther: a
             # whole moving region touching it may be background parallax of the subject's colour
             joined = carried | (moving[t] & morph(carried, "dilate", int(0.08 * size_of(carried)) + 1))
-            refined = grabcut(frames[t], joined, sure=morph(carried, "erode", int(0.15 * size_of(carried))),
-                              iterations=iterations)
-            masks[t] = largest_component(refined) if refined.any() else carried
+            sure = morph(carried, "erode", int(0.15 * size_of(carried))) & like
+            refined = grabcut(frames[t], joined, sure=sure, iterations=iterations)
+            mask = largest_component(refined) if refined.any() else carried
+            if like[mask].mean() < LOST_SUPPORT * model.support:
+                break
+            masks[t] = mask
             t += step
     return masks

@@ -19,9 +19,11 @@ from sync4d.frontend.checks import check_clip, check_prompt, check_subject
 from sync4d.frontend.config import FrontEndConfig, SubjectConfig
 from sync4d.frontend.geometry import intrinsics_from_fov
 from sync4d.frontend.motion import motion_evidence
-from sync4d.frontend.segment import grabcut, largest_component, propagate, seed_from_motion, seed_from_prompt
+from sync4d.frontend.segment import (
+    box_grabcut, first_mask, grabcut, largest_component, propagate, seed_from_motion, seed_from_prompt,
+)
 from sync4d.frontend.tracks import track_corners
-from sync4d.types import VideoClip
+from sync4d.types import Camera, VideoClip
 
 log = logging.getLogger(__name__)
 
@@ -105,18 +107,20 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, cfg: SubjectC
         start = prompt.frame
         values = np.asarray(prompt.values) * factor
         prior = seed_from_prompt(values, moving[start], work[start])
-        sure = np.zeros((h, w), bool)
-        if len(values) == 2:  # the pixels next to the point are the subject
+        if len(values) == 4:  # GrabCut's own start: outside the box background, inside undecided
+            first = largest_component(box_grabcut(work[start], prior, max(cfg.grabcut_iters, 1)))
+        else:  # the pixels next to the point are the subject
+            sure = np.zeros((h, w), bool)
             x, y = int(min(values[0], w - 1)), int(min(values[1], h - 1))
             sure[max(y - 2, 0): y + 3, max(x - 2, 0): x + 3] = True
-        first = largest_component(grabcut(work[start], prior, sure=sure, iterations=max(cfg.grabcut_iters, 1)))
+            first = largest_component(grabcut(work[start], prior, sure=sure, iterations=max(cfg.grabcut_iters, 1)))
     else:
         seed = seed_from_motion(moving, flows, cfg.min_area * h * w)
         if seed is None:
             raise InputError(f"{source}: no subject found (nothing moves against the background); film a moving "
                              "subject, or point at it: reference.prompt=[x, y] or [x0, y0, x1, y1]")
         start, region = seed
-        first = largest_component(grabcut(work[start], region, sure=None, iterations=cfg.grabcut_iters))
+        first = first_mask(work[start], region, cfg.grabcut_iters)
     log.info("frontend: subject seeded in frame %d (%d px at work size)", start, int(first.sum()))
     return propagate(work, start, first, moving, flows, cfg.grabcut_iters)
 
@@ -167,3 +171,20 @@ def run_front_end(clip: VideoClip, cfg: FrontEndConfig, *, prompt: Prompt | None
     log.info("frontend: %s masks, camera %s (focal %s, %.1f px), %.1f s CPU", method, fit.mode, fit.focal_source,
              K_full[0, 0], seconds)
     return FrontEndResult(out, fit, method, masks_given, camera_given, seconds)
+
+
+def complete_video(clip: VideoClip, camera: Camera | None, cfg: FrontEndConfig, *, masks_given: bool,
+                   prompt: Prompt | None = None) -> tuple[VideoClip, Camera]:
+    """A reference video with whatever it lacks found by the front end: masks when not ``masks_given``, the
+    camera when ``camera`` is None. Returns the clip (masks, intrinsics, per-frame extrinsics) and the
+    first frame's :class:`Camera` (the one a static-camera reconstructor uses)."""
+    if masks_given and camera is not None:
+        return clip, camera
+    given = clip
+    if camera is not None:
+        given = replace(clip, intrinsics=camera.K, extrinsics=np.tile(camera.world_to_cam, (clip.num_frames, 1, 1)))
+    found = run_front_end(given, cfg, prompt=prompt, masks_given=masks_given, camera_given=camera is not None)
+    out = found.clip
+    first = camera if camera is not None else Camera(K=np.asarray(out.intrinsics), world_to_cam=out.extrinsics[0],
+                                                     width=out.frames.shape[2], height=out.frames.shape[1]).validate()
+    return out, first

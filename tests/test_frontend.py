@@ -1,0 +1,160 @@
+"""The video front end (sync4d.frontend): masks and camera found in synthetic clips, and the refusals of
+input it cannot use (one line, before the reconstruction)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sync4d.errors import InputError
+from sync4d.frontend import FrontEndConfig, Prompt, complete_video, run_front_end
+from sync4d.frontend.bundle import bundle_adjust
+from sync4d.frontend.camera import static_camera
+from sync4d.frontend.geometry import intrinsics_from_fov, pose_matrix, project, rodrigues, rotation_angle_deg
+from sync4d.frontend.outputs import write_video_inputs
+from sync4d.frontend.tracks import Tracks
+from sync4d.types import VideoClip
+
+W, H = 128, 96
+
+
+def texture(width: int, height: int, seed: int) -> np.ndarray:
+    """(height, width, 3) uint8 a blotchy colour texture with corners to track."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    small = rng.uniform(0, 255, (height // 3 + 1, width // 3 + 1, 3)).astype(np.uint8)
+    return cv2.resize(small, (width, height), interpolation=cv2.INTER_NEAREST)
+
+
+def square_clip(n_frames: int = 8, *, pan_px: float = 0.0, speed: float = 3.0, start: float = 40.0,
+                with_subject: bool = True) -> tuple[VideoClip, np.ndarray]:
+    """A textured square moving right over a textured background that pans ``pan_px`` per frame; the clip
+    (no masks) and the true masks."""
+    big = texture(W + int(abs(pan_px) * n_frames) + 8, H, seed=1)
+    big[..., 0] //= 2  # a blue-green room ...
+    # ... and a red subject: their colours differ, as a real subject's and background's mostly do
+    patch = np.clip(0.6 * texture(28, 28, seed=2) + [100, 0, 0], 0, 255).astype(np.uint8)
+    patch[..., 1:] //= 2
+    frames, masks = [], []
+    for t in range(n_frames):
+        x0 = int(round(pan_px * t))
+        frame = big[:, x0: x0 + W].copy()
+        mask = np.zeros((H, W), bool)
+        if with_subject:
+            u = int(round(start + speed * t))
+            lo, hi = max(u, 0), min(u + 28, W)
+            if hi > lo:
+                frame[34:62, lo:hi] = patch[:, lo - u: hi - u]
+                mask[34:62, lo:hi] = True
+        frames.append(frame)
+        masks.append(mask)
+    clip = VideoClip(np.stack(frames), np.zeros((n_frames, H, W), bool), 10.0, source="synthetic").validate()
+    return clip, np.stack(masks)
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def test_a_moving_square_is_found_and_a_still_camera_is_static():
+    clip, truth = square_clip()
+    found = run_front_end(clip, FrontEndConfig())
+    assert found.subject == "motion"
+    assert found.camera.static and np.allclose(found.clip.extrinsics, np.eye(4))
+    assert np.median([iou(a, b) for a, b in zip(found.clip.masks, truth)]) > 0.8
+    assert found.clip.intrinsics is not None and found.camera.focal_source == "fov_guess"
+
+
+def test_a_panning_camera_is_found_turning_and_the_square_still_found():
+    clip, truth = square_clip(pan_px=2.0)
+    found = run_front_end(clip, FrontEndConfig())
+    assert not found.camera.static
+    turn = rotation_angle_deg(found.clip.extrinsics[-1, :3, :3])
+    expected = np.degrees(np.arctan(2.0 * (len(truth) - 1) / found.clip.intrinsics[0, 0]))
+    assert abs(turn - expected) < 1.0  # a pure image shift is nearly a pan by atan(shift / f)
+    assert np.median([iou(a, b) for a, b in zip(found.clip.masks, truth)]) > 0.7
+
+
+def test_a_prompt_box_picks_the_subject():
+    clip, truth = square_clip()
+    found = run_front_end(clip, FrontEndConfig(), prompt=Prompt((36.0, 30.0, 74.0, 66.0), 0))
+    assert found.subject == "prompt"
+    assert np.median([iou(a, b) for a, b in zip(found.clip.masks, truth)]) > 0.7
+
+
+def test_bundle_adjustment_recovers_poses_from_noisy_starts():
+    rng = np.random.default_rng(0)
+    K = intrinsics_from_fov(W, H, 60.0)
+    points = rng.uniform([-1, -1, 4], [1, 1, 6], (80, 3))
+    poses = np.stack([pose_matrix(rodrigues(np.array([0.0, 0.03 * t, 0.0])), np.array([-0.1 * t, 0, 0]))
+                      for t in range(5)])
+    uv = np.stack([project(points, K, p)[0] for p in poses])
+    tracks = Tracks(uv=uv, valid=np.ones(uv.shape[:2], bool))
+    noisy = poses.copy()
+    noisy[1:, :3, :3] = rodrigues(rng.normal(0, 0.01, (4, 3))) @ noisy[1:, :3, :3]
+    result = bundle_adjust(tracks, K, noisy, points + rng.normal(0, 0.05, points.shape), iterations=100,
+                           refine_focal=False, scale_frame=4)
+    err = rotation_angle_deg(result.poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2))
+    assert err.max() < 0.05 and result.median_error_px < 0.05
+    assert static_camera(tracks, 0.35) is False
+
+
+def test_too_short_clip_is_refused():
+    clip, _ = square_clip(2)
+    with pytest.raises(InputError, match="at least 3"):
+        run_front_end(clip, FrontEndConfig())
+
+
+def test_a_still_image_is_refused():
+    clip, _ = square_clip(6, speed=0.0)
+    with pytest.raises(InputError, match="still image"):
+        run_front_end(clip, FrontEndConfig())
+
+
+def test_a_clip_with_no_subject_is_refused():
+    clip, _ = square_clip(8, pan_px=2.0, with_subject=False)
+    with pytest.raises(InputError, match="no subject"):
+        run_front_end(clip, FrontEndConfig())
+
+
+def test_a_subject_leaving_the_frame_is_refused():
+    clip, _ = square_clip(10, speed=12.0, start=40.0)
+    with pytest.raises(InputError, match="leaves the frame"):
+        run_front_end(clip, FrontEndConfig())
+
+
+@pytest.mark.parametrize("prompt", [(500.0, 20.0), (10.0, 10.0, 40.0, 300.0), (-1.0, 5.0), (30.0, 30.0, 20.0, 40.0)])
+def test_a_prompt_outside_the_image_is_refused(prompt: tuple[float, ...]):
+    clip, _ = square_clip()
+    with pytest.raises(InputError, match="reference.prompt"):
+        run_front_end(clip, FrontEndConfig(), prompt=Prompt(prompt, 0))
+
+
+def test_given_masks_keep_and_the_camera_is_filled_then_written(tmp_path: Path):
+    clip, truth = square_clip()
+    given = VideoClip(clip.frames, truth, clip.fps, source="synthetic").validate()
+    out, camera = complete_video(given, None, FrontEndConfig(), masks_given=True)
+    assert np.array_equal(out.masks, truth)
+    assert out.extrinsics.shape == (len(truth), 4, 4) and np.allclose(camera.world_to_cam, np.eye(4))
+    write_video_inputs(tmp_path, out, camera)
+    record = json.loads((tmp_path / "camera.json").read_text())
+    assert record["static"] and len(record["world_to_camera"]) == len(truth)
+    assert (tmp_path / "masks.mp4").stat().st_size > 0
+
+
+def test_video_source_runs_the_front_end_when_nothing_is_given(tmp_path: Path):
+    from sync4d.io.video import write_video
+    from sync4d.recon.sources import VideoSource
+
+    clip, truth = square_clip()
+    write_video(tmp_path / "clip.mp4", clip.frames, clip.fps)
+    source = VideoSource(VideoSource.Config(video=str(tmp_path / "clip.mp4"))).load()
+    assert source.camera is not None and source.video.extrinsics is not None
+    assert np.median([iou(a, b) for a, b in zip(source.video.masks, truth)]) > 0.6  # after video compression
+    cfg = VideoSource.Config(video=str(tmp_path / "clip.mp4"), prompt=[1000.0, 5.0])
+    with pytest.raises(InputError, match="outside"):
+        VideoSource(cfg).load()
