@@ -202,8 +202,10 @@ def relative_rotations(cameras: list[Camera]) -> np.ndarray:
 
 
 def rotation_errors(extrinsics: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """(T,) angle [deg] between estimated (T, 4, 4) and true (T, 3, 3) relative rotations."""
-    return rotation_angle_deg(extrinsics[:, :3, :3] @ np.swapaxes(truth, 1, 2))
+    """(T,) angle [deg] between the estimated (T, 4, 4) world-to-camera rotations relative to the first and
+    the true relative rotations (T, 3, 3)."""
+    relative = extrinsics[:, :3, :3] @ extrinsics[0, :3, :3].T
+    return rotation_angle_deg(relative @ np.swapaxes(truth, 1, 2))
 
 
 def hinge_error(clip: VideoClip, camera: Camera, labels: np.ndarray, gt: dict[str, np.ndarray]) -> dict[str, float]:

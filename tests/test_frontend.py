@@ -15,6 +15,7 @@ from sync4d.frontend.bundle import bundle_adjust
 from sync4d.frontend.camera import static_camera
 from sync4d.frontend.geometry import intrinsics_from_fov, pose_matrix, project, rodrigues, rotation_angle_deg
 from sync4d.frontend.outputs import write_video_inputs
+from sync4d.frontend.stage import CAMERA_TO_YUP
 from sync4d.frontend.tracks import Tracks
 from sync4d.types import VideoClip
 
@@ -64,7 +65,7 @@ def test_a_moving_square_is_found_and_a_still_camera_is_static():
     clip, truth = square_clip()
     found = run_front_end(clip, FrontEndConfig())
     assert found.subject == "motion"
-    assert found.camera.static and np.allclose(found.clip.extrinsics, np.eye(4))
+    assert found.camera.static and np.allclose(found.clip.extrinsics, CAMERA_TO_YUP)  # world: camera 0, Y up
     assert np.median([iou(a, b) for a, b in zip(found.clip.masks, truth)]) > 0.8
     assert found.clip.intrinsics is not None and found.camera.focal_source == "fov_guess"
 
@@ -73,7 +74,8 @@ def test_a_panning_camera_is_found_turning_and_the_square_still_found():
     clip, truth = square_clip(pan_px=2.0)
     found = run_front_end(clip, FrontEndConfig())
     assert not found.camera.static
-    turn = rotation_angle_deg(found.clip.extrinsics[-1, :3, :3])
+    ext = found.clip.extrinsics
+    turn = rotation_angle_deg(ext[-1, :3, :3] @ ext[0, :3, :3].T)
     expected = np.degrees(np.arctan(2.0 * (len(truth) - 1) / found.clip.intrinsics[0, 0]))
     assert abs(turn - expected) < 1.0  # a pure image shift is nearly a pan by atan(shift / f)
     assert np.median([iou(a, b) for a, b in zip(found.clip.masks, truth)]) > 0.7
@@ -139,7 +141,7 @@ def test_given_masks_keep_and_the_camera_is_filled_then_written(tmp_path: Path):
     given = VideoClip(clip.frames, truth, clip.fps, source="synthetic").validate()
     out, camera = complete_video(given, None, FrontEndConfig(), masks_given=True)
     assert np.array_equal(out.masks, truth)
-    assert out.extrinsics.shape == (len(truth), 4, 4) and np.allclose(camera.world_to_cam, np.eye(4))
+    assert out.extrinsics.shape == (len(truth), 4, 4) and np.allclose(camera.world_to_cam, CAMERA_TO_YUP)
     write_video_inputs(tmp_path, out, camera)
     record = json.loads((tmp_path / "camera.json").read_text())
     assert record["static"] and len(record["world_to_camera"]) == len(truth)

@@ -1,9 +1,11 @@
 """The camera from the static background: intrinsics, static-camera test, per-frame poses, bundle adjustment.
 
-World = the first frame's camera frame (OpenCV axes), so ``extrinsics[0]`` is the identity. Poses come
+Here the world is the first frame's camera frame (OpenCV axes), so ``extrinsics[0]`` is the identity (the
+stage turns it to Y up for its callers). Poses come
 from background corner tracks (the subject's tracks removed when its masks are known):
 
-1. static camera: the background moves less than ``static_px`` in every frame -> every pose the identity;
+1. static camera: the background moves less than ``static_px`` in every frame (or has no texture to track:
+   a plain backdrop) -> every pose the identity;
 2. otherwise the pair (0, k) with the most rotation-compensated parallax gives an essential matrix
    (RANSAC) and ``recoverPose``; its inliers are triangulated and every other frame is placed by PnP
    (RANSAC), new tracks triangulated as frames are added; a camera that only turns (no parallax) gets
@@ -66,7 +68,7 @@ class CameraFit:
             "static": self.static, "mode": self.mode, "focal_source": self.focal_source,
             "reprojection_px": round(float(self.reprojection_px), 3),
             "rotation_from_first_deg": np.round(rotation_angle_deg(self.extrinsics[:, :3, :3]), 3).tolist(),
-            "world": "the first frame's camera frame (OpenCV axes: x right, y down, z forward)",
+            "world": "the first frame's camera frame (OpenCV axes: x right, y down, z forward)",  # before the stage's turn
             "translation_unit": "the median depth of the background seen in the first frame",
         }
 
@@ -239,6 +241,10 @@ def solve_camera(tracks: Tracks, K: np.ndarray, cfg: CameraConfig, *, focal_give
     n_frames = tracks.num_frames
     source = "given" if focal_given else "fov_guess"
     empty = np.zeros((0, 3))
+    if tracks.valid.sum(axis=1).max(initial=0) < MIN_COMMON:
+        log.warning("frontend camera: the background has no texture to track (%d corners at most); the camera "
+                    "is taken as static", int(tracks.valid.sum(axis=1).max(initial=0)))
+        return CameraFit(K, np.tile(np.eye(4), (n_frames, 1, 1)), True, "static", source, 0.0, empty)
     if static_camera(tracks, cfg.static_px):
         return CameraFit(K, np.tile(np.eye(4), (n_frames, 1, 1)), True, "static", source, 0.0, empty)
     k, parallax = best_pair(tracks, K)

@@ -55,10 +55,11 @@ def check_subject(masks: np.ndarray, *, min_area: float, edge_margin: float, sou
     """
     n_frames, h, w = masks.shape
     area = masks.reshape(n_frames, -1).mean(axis=1)
-    if float(np.median(area)) < min_area:
-        raise InputError(f"{source}: no subject found (nothing moves against the background in most frames); "
-                         "film a moving subject, or point at it: reference.prompt=[x, y] or [x0, y0, x1, y1]")
-    gone = np.flatnonzero(area < 0.15 * float(np.median(area)))
+    if float(area.max()) < min_area:
+        raise InputError(f"{source}: no subject found (nothing moves against the background); film a moving "
+                         "subject, or point at it: reference.prompt=[x, y] or [x0, y0, x1, y1]")
+    typical = float(np.median(area[area >= min_area]))
+    gone = np.flatnonzero(area < 0.15 * typical)
     if len(gone):
         raise InputError(f"{source}: the subject leaves the frame (frames {summary(gone)}); trim the clip with "
                          "reference.max_frames / reference.stride to where it stays in view")

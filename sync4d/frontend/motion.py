@@ -7,18 +7,26 @@ robust spread, is the evidence that a pixel moves by itself.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 #: dense-flow samples per frame pair used to fit the background's motion
 GRID_SAMPLES = 1500
 #: background planes (homographies) fitted per frame pair at most ...
-MAX_PLANES = 3
-#: ... each after the first explaining at least this share of the image (a subject is rarely that large)
-MIN_PLANE_SHARE = 0.2
+MAX_PLANES = 4
+#: ... each after the first explaining at least this share of the image ...
+MIN_PLANE_SHARE = 0.08
+#: ... with at least this share of its samples on the image's border
+BORDER_SHARE = 0.1
 #: a pixel the background's motion explains changes by less than this many grey levels (of 255) ...
 PHOTOMETRIC_LEVELS = 10.0
 #: ... and so do its neighbours within 2 px (a textured subject's plain patches count as changed)
 NEAR = np.ones((5, 5), np.uint8)
+#: a textured pixel whose flow the background's motion explains within this [px] is still
+STILL_PX = 0.5
+#: a pixel is textured when its 5x5 neighbourhood's grey levels spread by more than this (std)
+TEXTURE_LEVELS = 6.0
 
 
 def dense_flow(grey_a: np.ndarray, grey_b: np.ndarray) -> np.ndarray:
@@ -36,27 +44,33 @@ def grid_points(height: int, width: int, count: int) -> np.ndarray:
     return np.stack([uu.ravel(), vv.ravel()], axis=1)
 
 
-def plane_predictions(here: np.ndarray, there: np.ndarray, index: np.ndarray) -> tuple[list[np.ndarray], list[float]]:
+def plane_predictions(here: np.ndarray, there: np.ndarray, index: np.ndarray,
+                      border: np.ndarray) -> tuple[list[np.ndarray], list[float]]:
     """Where up to ``MAX_PLANES`` background planes send every pixel (each (N, 2) [px]): homographies
     fitted in turn (RANSAC) to the grid samples ``index`` of the correspondences here -> there (N, 2), each
-    on what the previous ones left, kept while it explains at least ``MIN_PLANE_SHARE`` of all samples; and
-    each one's robust spread [px]."""
+    on what the previous ones left, kept while it explains at least ``MIN_PLANE_SHARE`` of all samples and
+    reaches the image border (``border``: (len(index),) bool samples on the grid's outer ring) with at
+    least ``BORDER_SHARE`` of its samples: a floor or a wall runs out of the picture, a subject rarely
+    does; and each one's robust spread [px]."""
     import cv2
 
     predictions: list[np.ndarray] = []
     spreads: list[float] = []
-    left = index
+    left = np.arange(len(index))
     for _ in range(MAX_PLANES):
         if len(left) < 8:
             break
-        H, inliers = cv2.findHomography(here[left], there[left], cv2.RANSAC, 1.0)
-        if H is None or (predictions and inliers.sum() < MIN_PLANE_SHARE * len(index)):
+        H, inliers = cv2.findHomography(here[index[left]], there[index[left]], cv2.RANSAC, 1.0)
+        if H is None:
+            break
+        fits = inliers.ravel() > 0
+        if predictions and (fits.sum() < MIN_PLANE_SHARE * len(index) or border[left[fits]].mean() < BORDER_SHARE):
             break
         predicted = cv2.perspectiveTransform(here.reshape(-1, 1, 2), H).reshape(-1, 2)
-        fit = np.linalg.norm(predicted - there, axis=1)[left[inliers.ravel() > 0]]
+        fit = np.linalg.norm(predicted - there, axis=1)[index[left[fits]]]
         predictions.append(predicted)
         spreads.append(max(1.4826 * float(np.median(fit)) if len(fit) else 0.25, 0.1))
-        left = left[inliers.ravel() == 0]
+        left = left[~fits]
     return predictions, spreads
 
 
@@ -80,7 +94,10 @@ def background_residual(flow: np.ndarray, *, static: bool) -> tuple[np.ndarray, 
     here = np.stack([uu, vv], axis=-1).reshape(-1, 2)
     there = here + flow.reshape(-1, 2)
     grid = grid_points(h, w, GRID_SAMPLES)
-    predictions, spreads = ([here], [0.25]) if static else plane_predictions(here, there, grid[:, 1] * w + grid[:, 0])
+    ring = (grid[:, 0] == grid[:, 0].min()) | (grid[:, 0] == grid[:, 0].max()) \
+        | (grid[:, 1] == grid[:, 1].min()) | (grid[:, 1] == grid[:, 1].max())
+    predictions, spreads = ([here], [0.25]) if static else \
+        plane_predictions(here, there, grid[:, 1] * w + grid[:, 0], ring)
     if not predictions:
         predictions, spreads = [here], [max(float(np.median(np.linalg.norm(flow, axis=-1))), 0.25)]
     stacked = np.stack([np.linalg.norm(p - there, axis=1) for p in predictions])
@@ -103,34 +120,59 @@ def photometric_change(grey_t: np.ndarray, grey_s: np.ndarray, target: np.ndarra
     return np.abs(a - warped)
 
 
-def motion_evidence(grey: np.ndarray, *, static: bool, sigma: float, min_px: float,
-                    gaps: tuple[int, ...] = (1,)) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
-    """(T, H, W) bool: pixels of frame t moving against the background, and the flows between neighbouring
-    frames (``{(t, s): (H, W, 2) flow from t to s}`` for |t - s| = 1).
+@dataclass(frozen=True)
+class MotionEvidence:
+    """What moves in a clip.
 
-    A pixel moves when, for some gap g in ``gaps``, the flows to frame t - g and to frame t + g both leave
-    more than ``sigma`` robust spreads and ``min_px`` pixels unexplained by the background's motion, and
-    the picture there (within 2 px) is not explained by it either (:func:`photometric_change`): a pixel
-    the subject covers or uncovers has a wrong flow in one direction only, so asking both keeps the
-    subject and drops that halo (frames within g of the clip's ends get no evidence from gap g).
+    Attributes:
+        moving: (T, H, W) bool, moving against the background (see :func:`motion_evidence`).
+        still: (T, H, W) bool, textured pixels the background's motion explains in every neighbouring pair
+            (flow within ``STILL_PX`` and picture within ``PHOTOMETRIC_LEVELS``): surely background unless a
+            known subject part holds still there.
+        flows: ``{(t, s): (H, W, 2) flow from t to s [px]}`` for |t - s| = 1.
+    """
+
+    moving: np.ndarray
+    still: np.ndarray
+    flows: dict[tuple[int, int], np.ndarray]
+
+
+def textured(grey: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels whose 5x5 neighbourhood varies by more than ``TEXTURE_LEVELS`` grey levels (std)."""
+    import cv2
+
+    g = grey.astype(np.float32)
+    mean = cv2.blur(g, (5, 5))
+    return np.sqrt(np.maximum(cv2.blur(g * g, (5, 5)) - mean * mean, 0.0)) > TEXTURE_LEVELS
+
+
+def motion_evidence(grey: np.ndarray, *, static: bool, sigma: float, min_px: float) -> MotionEvidence:
+    """Pixels of each frame moving against the background, and those surely explained by it.
+
+    A pixel moves when the flows to the previous and to the next frame both leave more than ``sigma``
+    robust spreads and ``min_px`` pixels unexplained by the background's motion, and the picture there
+    (within 2 px) is not explained by it either (:func:`photometric_change`): a pixel the subject covers or
+    uncovers has a wrong flow in one direction only, so asking both keeps the subject and drops that halo
+    (the clip's first and last frames get no evidence).
     """
     import cv2
 
     n_frames, h, w = grey.shape
     moving = np.zeros((n_frames, h, w), bool)
-    neighbours: dict[tuple[int, int], np.ndarray] = {}
+    still = np.zeros((n_frames, h, w), bool)
+    flows: dict[tuple[int, int], np.ndarray] = {}
     for t in range(n_frames):
+        both = np.ones((h, w), bool)
+        calm = textured(grey[t])
         for s in (t - 1, t + 1):
-            if 0 <= s < n_frames:
-                neighbours[(t, s)] = dense_flow(grey[t], grey[s])
-    for gap in gaps:
-        for t in range(gap, n_frames - gap):
-            both = np.ones((h, w), bool)
-            for s in (t - gap, t + gap):
-                flow = neighbours[(t, s)] if gap == 1 else dense_flow(grey[t], grey[s])
-                score, pixels, target = background_residual(flow, static=static)
-                changed = cv2.dilate((photometric_change(grey[t], grey[s], target) > PHOTOMETRIC_LEVELS).astype(np.uint8),
-                                     NEAR) > 0
-                both &= (score > sigma) & (pixels > min_px) & changed
-            moving[t] |= both
-    return moving, neighbours
+            if not 0 <= s < n_frames:
+                continue
+            flows[(t, s)] = dense_flow(grey[t], grey[s])
+            score, pixels, target = background_residual(flows[(t, s)], static=static)
+            change = photometric_change(grey[t], grey[s], target)
+            changed = cv2.dilate((change > PHOTOMETRIC_LEVELS).astype(np.uint8), NEAR) > 0
+            both &= (score > sigma) & (pixels > min_px) & changed
+            calm &= (pixels < STILL_PX) & (change < PHOTOMETRIC_LEVELS)
+        moving[t] = both if 0 < t < n_frames - 1 else False
+        still[t] = calm
+    return MotionEvidence(moving, still, flows)

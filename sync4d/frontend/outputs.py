@@ -27,8 +27,10 @@ def mask_overlay(frames: np.ndarray, masks: np.ndarray) -> np.ndarray:
 
 
 def camera_record(clip: VideoClip, camera: Camera | None) -> dict[str, Any]:
-    """``camera.json``: intrinsics [px], per-frame world-to-camera (world = the first frame's camera when
-    the front end found them), each frame's rotation from the first [deg], and whether the camera is still."""
+    """``camera.json``: intrinsics [px], per-frame world-to-camera (when the front end found them: world =
+    the first frame's camera turned to Y up, x right, z towards the viewer; translations in units of the
+    background's median depth in the first frame), each frame's rotation from the first [deg], and whether
+    the camera is still."""
     record: dict[str, Any] = {"known": camera is not None or clip.intrinsics is not None}
     K = camera.K if camera is not None else clip.intrinsics
     if K is not None:

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sync4d.frontend.motion import MotionEvidence
+
 #: GrabCut's mask labels (OpenCV's GC_BGD, GC_FGD, GC_PR_BGD, GC_PR_FGD)
 BGD, FGD, PR_BGD, PR_FGD = 0, 1, 2, 3
 #: GrabCut may grow a prior by at most this fraction of its size (the square root of its area)
@@ -104,44 +106,6 @@ def grabcut(image: np.ndarray, prior: np.ndarray, *, sure: np.ndarray | None, it
     return morph(out, "open", 1)
 
 
-def box_around(mask: np.ndarray, margin: float) -> np.ndarray:
-    """(H, W) bool: the bounding box of ``mask`` grown by ``margin`` x its width / height on every side."""
-    vv, uu = np.nonzero(mask)
-    h, w = mask.shape
-    dx, dy = margin * (np.ptp(uu) + 1), margin * (np.ptp(vv) + 1)
-    box = np.zeros_like(mask, dtype=bool)
-    box[max(int(vv.min() - dy), 0): int(vv.max() + dy) + 1, max(int(uu.min() - dx), 0): int(uu.max() + dx) + 1] = True
-    return box
-
-
-def first_mask(image: np.ndarray, region: np.ndarray, iterations: int, *, margin: float = 1.0) -> np.ndarray:
-    """(H, W) bool subject on its first frame from what moves there (``region``): GrabCut inside the region's
-    box grown by ``margin``, the region's core sure, the rest of the box undecided, outside it background.
-    An object's parts that do not move (a laptop's base under a moving lid) join by colour here."""
-    import cv2
-
-    if not region.any():
-        return region.copy()
-    size = size_of(region)
-    box = box_around(region, margin)
-    labels = np.where(box, PR_BGD, BGD).astype(np.uint8)
-    labels[region] = PR_FGD
-    labels[morph(region, "erode", int(0.1 * size))] = FGD
-    if (labels == BGD).sum() < 64:
-        labels[[0, -1], :] = BGD
-        labels[:, [0, -1]] = BGD
-    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    try:
-        cv2.grabCut(np.ascontiguousarray(image[..., ::-1]), labels, None, bgd, fgd, max(iterations, 1),
-                    cv2.GC_INIT_WITH_MASK)
-    except cv2.error:
-        return region.copy()
-    out = morph((labels == FGD) | (labels == PR_FGD), "open", 1)
-    labelled, _ = components(out)
-    keep = np.unique(labelled[region & (labelled > 0)])
-    return np.isin(labelled, keep[keep > 0]) if len(keep) else region.copy()
-
-
 def box_grabcut(image: np.ndarray, box: np.ndarray, iterations: int) -> np.ndarray:
     """(H, W) bool subject inside a (H, W) bool box: GrabCut started from the box (outside: background)."""
     import cv2
@@ -196,6 +160,18 @@ def seed_from_prompt(prompt: np.ndarray, moving: np.ndarray, image: np.ndarray) 
     return prior
 
 
+def near_motion(moving: np.ndarray, carried: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the moving regions that lie mostly (over half) within a small reach of the carried mask
+    (a limb the flow lost), clipped to that reach; a moving region reaching far beyond it is left out: it
+    may be background parallax of the subject's colour (a sofa behind a cat)."""
+    reach = morph(carried, "dilate", int(0.08 * size_of(carried)) + 1)
+    labels, areas = components(moving)
+    inside = np.bincount(labels[reach], minlength=len(areas))
+    keep = np.flatnonzero(inside > 0.5 * areas)
+    keep = keep[keep > 0]
+    return np.isin(labels, keep) & reach
+
+
 @dataclass(frozen=True)
 class ColourModel:
     """Colour histograms of the subject and of its surroundings on the frame it was found on.
@@ -233,15 +209,17 @@ def colour_model(image: np.ndarray, mask: np.ndarray) -> ColourModel:
     return ColourModel(fg, bg, float((likeness > 0.5).mean()) if mask.any() else 0.0)
 
 
-def propagate(frames: np.ndarray, start: int, first: np.ndarray, moving: np.ndarray,
-              flows: dict[tuple[int, int], np.ndarray], iterations: int) -> np.ndarray:
+def propagate(frames: np.ndarray, start: int, first: np.ndarray, evidence: MotionEvidence,
+              iterations: int) -> np.ndarray:
     """(T, H, W) bool masks carried from frame ``start`` (mask ``first``) forwards and backwards along the
     flow, each carried mask joined by what moves just around it and refined by GrabCut.
 
     The subject's colours on frame ``start`` keep the carried masks honest: only pixels of the subject's
     colours are sure foreground, and a mask whose colours stop being the subject's (less than half the
     first frame's support) is the subject lost (it left the frame): that frame and those beyond stay empty.
+    A mask grows only where the background's motion does not surely explain the picture (``still``).
     """
+    moving, flows = evidence.moving, evidence.flows
     n_frames = len(frames)
     masks = np.zeros(moving.shape, bool)
     masks[start] = first
@@ -253,11 +231,10 @@ def propagate(frames: np.ndarray, start: int, first: np.ndarray, moving: np.ndar
             if not carried.any():
                 break
             like = model.likeness(frames[t]) > 0.5
-            # what moves just outside the carried mask joins it (a limb the flow lost), nothing farther: a
-            # whole moving region touching it may be background parallax of the subject's colour
-            joined = carried | (moving[t] & morph(carried, "dilate", int(0.08 * size_of(carried)) + 1))
+            joined = carried | near_motion(moving[t], carried)
             sure = morph(carried, "erode", int(0.15 * size_of(carried))) & like
             refined = grabcut(frames[t], joined, sure=sure, iterations=iterations)
+            refined &= carried | ~evidence.still[t]
             mask = largest_component(refined) if refined.any() else carried
             if like[mask].mean() < LOST_SUPPORT * model.support:
                 break

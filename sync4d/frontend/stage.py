@@ -20,12 +20,16 @@ from sync4d.frontend.config import FrontEndConfig, SubjectConfig
 from sync4d.frontend.geometry import intrinsics_from_fov
 from sync4d.frontend.motion import motion_evidence
 from sync4d.frontend.segment import (
-    box_grabcut, first_mask, grabcut, largest_component, propagate, seed_from_motion, seed_from_prompt,
+    box_grabcut, grabcut, largest_component, propagate, seed_from_motion, seed_from_prompt,
 )
 from sync4d.frontend.tracks import track_corners
 from sync4d.types import Camera, VideoClip
 
 log = logging.getLogger(__name__)
+
+#: the front end's world: the first frame's camera axes turned half a turn about x (x right, y up, z towards
+#: the viewer), so an upright phone's world is Y up like the project's scenes (its own inverse)
+CAMERA_TO_YUP = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 @dataclass(frozen=True)
@@ -42,7 +46,8 @@ class FrontEndResult:
 
     Attributes:
         clip: the input clip with ``masks`` (T, H, W) bool, ``intrinsics`` (3, 3) [px] and ``extrinsics``
-            (T, 4, 4) world-to-camera (world = frame 0's camera) filled in.
+            (T, 4, 4) world-to-camera filled in (world = frame 0's camera turned to Y up,
+            :data:`CAMERA_TO_YUP`; translations in units of the background's median depth in frame 0).
         camera: the camera fit (mode, focal source, reprojection error) at the video's size.
         subject: how the masks were found: ``given``, ``person``, ``motion`` or ``prompt``.
         masks_given, camera_given: whether the input already had them (then they are kept as given).
@@ -100,7 +105,8 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, cfg: SubjectC
 
         return np.stack([largest_component(m) for m in
                          person_masks(PersonModels(), work, cfg.person_threshold, source=source)])
-    moving, flows = motion_evidence(grey, static=static, sigma=cfg.motion_sigma, min_px=cfg.min_motion_px)
+    evidence = motion_evidence(grey, static=static, sigma=cfg.motion_sigma, min_px=cfg.min_motion_px)
+    moving, flows = evidence.moving, evidence.flows
     h, w = grey.shape[1:]
     if method == "prompt":
         assert prompt is not None
@@ -120,9 +126,9 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, cfg: SubjectC
             raise InputError(f"{source}: no subject found (nothing moves against the background); film a moving "
                              "subject, or point at it: reference.prompt=[x, y] or [x0, y0, x1, y1]")
         start, region = seed
-        first = first_mask(work[start], region, cfg.grabcut_iters)
+        first = largest_component(grabcut(work[start], region, sure=None, iterations=cfg.grabcut_iters))
     log.info("frontend: subject seeded in frame %d (%d px at work size)", start, int(first.sum()))
-    return propagate(work, start, first, moving, flows, cfg.grabcut_iters)
+    return propagate(work, start, first, evidence, cfg.grabcut_iters)
 
 
 def run_front_end(clip: VideoClip, cfg: FrontEndConfig, *, prompt: Prompt | None = None, masks_given: bool = False,
@@ -164,6 +170,8 @@ def run_front_end(clip: VideoClip, cfg: FrontEndConfig, *, prompt: Prompt | None
     else:
         fit = solve_camera(background_only(tracks, masks_work), K_work, cfg.camera, focal_given=focal_given)
     K_full = np.diag([1.0 / factor, 1.0 / factor, 1.0]) @ fit.K
+    if not (camera_given and clip.extrinsics is not None):  # world: the first camera's, turned to Y up
+        fit = replace(fit, extrinsics=fit.extrinsics @ CAMERA_TO_YUP, background_points=fit.background_points * [1, -1, -1])
     fit = replace(fit, K=K_full)
     masks = clip.masks if masks_given else resize_masks(masks_work, height, width)
     out = replace(clip, masks=np.ascontiguousarray(masks), intrinsics=K_full, extrinsics=fit.extrinsics).validate()

@@ -254,11 +254,13 @@ class VideoSource:
             camera = load_camera(camera_file, clip.frames.shape[2], clip.frames.shape[1])
             clip = type(clip)(clip.frames, clip.masks, clip.fps, camera.K, None, clip.source).validate()
         prompt = Prompt(tuple(float(v) for v in self.cfg.prompt), int(self.cfg.prompt_frame)) if self.cfg.prompt else None
+        # the front end's world is Y up when the phone is held upright (its first camera turned to Y up)
+        up = None if camera is not None else np.array([0.0, 1.0, 0.0])
         if masks is None or camera is None or prompt is not None:
             clip, camera = complete_video(clip, camera, self.cfg.frontend, masks_given=masks is not None and prompt is None,
                                           prompt=prompt)
         return ReferenceInput(name=video.parent.name if video.is_file() else video.name, fps=clip.fps, video=clip,
-                              camera=camera, path=str(video))
+                              camera=camera, path=str(video), world_up=up)
 
 
 def beside(video: Path, value: str, name: str, *, what: str) -> Path | None:
