@@ -124,7 +124,7 @@ def test_a_clip_with_no_subject_is_refused():
 
 
 def test_a_subject_leaving_the_frame_is_refused():
-    clip, _ = square_clip(10, speed=12.0, start=40.0)
+    clip, _ = square_clip(14, speed=6.0, start=60.0)  # out of view from frame 12 on
     with pytest.raises(InputError, match="leaves the frame"):
         run_front_end(clip, FrontEndConfig())
 
@@ -160,3 +160,50 @@ def test_video_source_runs_the_front_end_when_nothing_is_given(tmp_path: Path):
     cfg = VideoSource.Config(video=str(tmp_path / "clip.mp4"), prompt=[1000.0, 5.0])
     with pytest.raises(InputError, match="outside"):
         VideoSource(cfg).load()
+
+
+def bad_clip(kind: str, folder: Path) -> tuple[str, ...]:
+    """Write one bad reference video into ``folder``; returns the ``train.py`` overrides that feed it."""
+    import imageio.v2 as imageio
+
+    from sync4d.io.video import write_video
+
+    clips = {"short": square_clip(2)[0], "still_video": square_clip(6, speed=0.0)[0],
+             "no_subject": square_clip(8, pan_px=2.0, with_subject=False)[0],
+             "leaves": square_clip(14, speed=6.0, start=60.0)[0], "prompt": square_clip()[0]}
+    if kind == "image":
+        imageio.imwrite(folder / "photo.png", square_clip()[0].frames[0])
+        return ("reference.video=" + str(folder / "photo.png"), "reference.fps=10")
+    write_video(folder / f"{kind}.mp4", clips[kind].frames, 10.0)
+    extra = ("reference.prompt=[500,20]",) if kind == "prompt" else ()
+    return ("reference.video=" + str(folder / f"{kind}.mp4"), *extra)
+
+
+@pytest.mark.parametrize("kind, expect", [
+    ("short", ("short.mp4", "at least 3")), ("image", ("photo.png", "at least 3")),
+    ("still_video", ("still_video.mp4", "still image")), ("no_subject", ("no_subject.mp4", "no subject")),
+    ("leaves", ("leaves.mp4", "leaves the frame")), ("prompt", ("reference.prompt", "outside")),
+])
+def test_bad_videos_stop_train_py_with_one_line(kind: str, expect: tuple[str, ...], tmp_path: Path):
+    """Through the pipeline: exit 2, one ``sync4d:`` line naming the input, before the reconstruction."""
+    from _runs import train_in_process
+
+    overrides = bad_clip(kind, tmp_path)
+    code, stderr = train_in_process(tmp_path / "run", "reference=video", "recon=video", *overrides)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("sync4d: "), stderr[-2000:]
+    for word in expect:
+        assert word.lower() in lines[0].lower(), lines[0]
+    assert not (tmp_path / "run" / "recon" / "masks.mp4").exists()  # refused before anything was written
+
+
+def test_the_viewer_shows_the_masks_beside_the_video(tmp_path: Path):
+    from _viewrun import make_run
+
+    from sync4d.view.data import load_run
+
+    run = make_run(tmp_path / "a", frames=3, n=200)
+    clip, truth = square_clip(3)
+    write_video_inputs(run / "recon", VideoClip(clip.frames, truth, 10.0).validate(), None)
+    data = load_run(run)
+    assert data.masks is not None and data.masks(0).shape == clip.frames.shape[1:]

@@ -177,7 +177,7 @@ class ColourModel:
     """Colour histograms of the subject and of its surroundings on the frame it was found on.
 
     Attributes:
-        subject, background: (BINS^3,) normalised RGB histograms (Laplace-smoothed).
+        subject, background: (BINS^3,) normalised RGB histograms (plus the same small floor).
         support: the share of that frame's mask whose colour is more the subject's than the background's.
     """
 
@@ -202,9 +202,9 @@ def colour_model(image: np.ndarray, mask: np.ndarray) -> ColourModel:
     """The subject's and its surroundings' (a band of its size around it) colour histograms."""
     index = colour_bins(image)
     around = morph(mask, "dilate", int(0.5 * size_of(mask)) + 2) & ~mask
-    fg = np.bincount(index[mask], minlength=BINS**3) + 1.0
-    bg = np.bincount(index[around], minlength=BINS**3) + 1.0
-    fg, bg = fg / fg.sum(), bg / bg.sum()
+    # the same small floor on both: a colour seen on neither side is a tie (not the subject's)
+    fg = np.bincount(index[mask], minlength=BINS**3) / max(int(mask.sum()), 1) + 1e-4
+    bg = np.bincount(index[around], minlength=BINS**3) / max(int(around.sum()), 1) + 1e-4
     likeness = fg[index[mask]] / (fg[index[mask]] + bg[index[mask]])
     return ColourModel(fg, bg, float((likeness > 0.5).mean()) if mask.any() else 0.0)
 
@@ -231,7 +231,7 @@ def propagate(frames: np.ndarray, start: int, first: np.ndarray, evidence: Motio
             if not carried.any():
                 break
             like = model.likeness(frames[t]) > 0.5
-            joined = carried | near_motion(moving[t], carried)
+            joined = carried | (near_motion(moving[t], carried) & like)
             sure = morph(carried, "erode", int(0.15 * size_of(carried))) & like
             refined = grabcut(frames[t], joined, sure=sure, iterations=iterations)
             refined &= carried | ~evidence.still[t]

@@ -126,7 +126,9 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, cfg: SubjectC
             raise InputError(f"{source}: no subject found (nothing moves against the background); film a moving "
                              "subject, or point at it: reference.prompt=[x, y] or [x0, y0, x1, y1]")
         start, region = seed
-        first = largest_component(grabcut(work[start], region, sure=None, iterations=cfg.grabcut_iters))
+        # no sure core: the moving region is blurred by the flow beyond the subject; colour decides within it
+        first = largest_component(grabcut(work[start], region, sure=np.zeros_like(region),
+                                          iterations=max(cfg.grabcut_iters, 1)))
     log.info("frontend: subject seeded in frame %d (%d px at work size)", start, int(first.sum()))
     return propagate(work, start, first, evidence, cfg.grabcut_iters)
 
