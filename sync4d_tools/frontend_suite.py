@@ -2,6 +2,8 @@
 
     python -m sync4d_tools.frontend_suite                 # every case, table + one JSON line
     python -m sync4d_tools.frontend_suite --cases laptop_static person_moving --no-recon
+    python -m sync4d_tools.frontend_suite --real ../shared/data/video/davis_bear/bear.mp4 --stride 3 \
+        --max-frames 27 --picture docs/results/img/video_frontend_bear.jpg   # a real clip: picture, no truth
 
 Each subject is made by the project with exact truth: the procedural laptop (an object, its hinge angles
 known), a mannequin posed by CMU mocap (a person, :mod:`sync4d_tools.body_clips`) and the capsule dog
@@ -331,6 +333,36 @@ def table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def real_clip(path: str, *, stride: int, max_frames: int, picture: str) -> dict[str, Any]:
+    """The front end on a real video (no truth): a picture of the masks over four frames, and a summary."""
+    from sync4d.frontend.outputs import mask_overlay
+    from sync4d.io.video import read_video_clip
+    from sync4d.recon.sources import resolve_path
+
+    clip = read_video_clip(resolve_path(path, what="video"), None, max_frames=max_frames or None, stride=stride)
+    cpu = time.process_time()
+    found = run_front_end(clip, FrontEndConfig())
+    cpu = time.process_time() - cpu
+    if picture:
+        import cv2
+        import imageio.v2 as imageio
+
+        picks = np.linspace(0, clip.num_frames - 1, 4).round().astype(int)
+        tiles = mask_overlay(clip.frames[picks], found.clip.masks[picks])
+        scale = 240.0 / tiles.shape[1]
+        tiles = [cv2.resize(t, (round(t.shape[1] * scale), 240), interpolation=cv2.INTER_AREA) for t in tiles]
+        Path(picture).parent.mkdir(parents=True, exist_ok=True)
+        imageio.imwrite(picture, np.concatenate(tiles, axis=1), quality=85)
+    ext = found.clip.extrinsics
+    turn = rotation_angle_deg(ext[:, :3, :3] @ ext[0, :3, :3].T)
+    area = found.clip.masks.reshape(clip.num_frames, -1).mean(1)
+    return {"video": path, "frames": clip.num_frames, "size": [clip.frames.shape[2], clip.frames.shape[1]],
+            "subject_method": found.subject, "camera_mode": found.camera.mode,
+            "focal_px": round(float(found.clip.intrinsics[0, 0]), 1), "focal_source": found.camera.focal_source,
+            "max_turn_deg": round(float(turn.max()), 2), "reprojection_px": round(found.camera.reprojection_px, 3),
+            "mask_area_median": round(float(np.median(area)), 4), "cpu_s": round(cpu, 1)}
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m sync4d_tools.frontend_suite", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -339,7 +371,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--no-recon", action="store_true", help="skip the laptop reconstructions (the slow part)")
     parser.add_argument("--out", default="outputs/frontend_suite.json")
     parser.add_argument("--pictures", default="", help="folder for one picture per case (found mask red, truth green)")
+    parser.add_argument("--real", default="", help="instead: the front end on this real video (no truth)")
+    parser.add_argument("--stride", type=int, default=1, help="--real: keep every n-th frame")
+    parser.add_argument("--max-frames", type=int, default=0, help="--real: at most this many frames")
+    parser.add_argument("--picture", default="", help="--real: the masks over four frames, as an image file")
     args = parser.parse_args(argv)
+    if args.real:
+        out = real_clip(args.real, stride=args.stride, max_frames=args.max_frames, picture=args.picture)
+        print(json.dumps(out))
+        return out
     rows = [run_case(case, seed=args.seed, recon=not args.no_recon, pictures=args.pictures) for case in args.cases]
     result = {"seed": args.seed, "frames": FRAMES, "size": [WIDTH, HEIGHT], "summary": summary(rows), "cases": rows}
     print(table(rows))

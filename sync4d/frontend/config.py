@@ -24,8 +24,6 @@ class SubjectConfig:
         min_area: a subject smaller than this fraction of the frame counts as no subject.
         grabcut_iters: GrabCut iterations per frame (colour graph cut refining the propagated mask).
         person_threshold: person probability above which a pixel is the person.
-        edge_margin: a subject whose mask touches the image border on more than this fraction of the
-            frames has left the frame (refused).
     """
 
     method: Literal["auto", "motion", "person", "prompt"] = "auto"
@@ -35,7 +33,6 @@ class SubjectConfig:
     min_area: float = 0.004
     grabcut_iters: int = 3
     person_threshold: float = 0.5
-    edge_margin: float = 0.5
 
 
 @dataclass
@@ -71,8 +68,8 @@ class FrontEndConfig:
         s, c = self.subject, self.camera
         if s.work_size < 32:
             raise ConfigError(f"frontend.subject.work_size={s.work_size}: needs at least 32 px")
-        if not 0.0 < s.min_area < 1.0 or not 0.0 < s.person_threshold < 1.0 or not 0.0 < s.edge_margin <= 1.0:
-            raise ConfigError("frontend.subject: min_area and person_threshold in (0, 1), edge_margin in (0, 1]")
+        if not 0.0 < s.min_area < 1.0 or not 0.0 < s.person_threshold < 1.0:
+            raise ConfigError("frontend.subject: min_area and person_threshold must be in (0, 1)")
         if s.motion_sigma <= 0 or s.min_motion_px < 0 or s.grabcut_iters < 0:
             raise ConfigError("frontend.subject: motion_sigma > 0, min_motion_px >= 0, grabcut_iters >= 0 needed")
         if not 5.0 <= c.fov_deg <= 170.0:

@@ -165,8 +165,7 @@ def run_front_end(clip: VideoClip, cfg: FrontEndConfig, *, prompt: Prompt | None
         method = choose_method(cfg.subject, prompt, work)
         masks_work = subject_masks(work, grey, method, cfg.subject, static=static_camera(tracks, cfg.camera.static_px),
                                    prompt=prompt, factor=factor, source=clip.source)
-        check_subject(masks_work, min_area=cfg.subject.min_area, edge_margin=cfg.subject.edge_margin,
-                      source=clip.source)
+        check_subject(masks_work, min_area=cfg.subject.min_area, source=clip.source)
     if camera_given and clip.extrinsics is not None:
         fit = CameraFit(K_work, np.asarray(clip.extrinsics, np.float64), False, "given", "given", 0.0, np.zeros((0, 3)))
     else:
