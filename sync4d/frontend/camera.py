@@ -104,8 +104,8 @@ def rotation_between(uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray) -> tuple
     (a RANSAC homography rejects what moves on its own)."""
     import cv2
 
-    _, inl = cv2.findHomography(uv_a, uv_b, cv2.RANSAC, 1.5)
-    inl = np.ones(len(uv_a), bool) if inl is None else inl.ravel() > 0
+    _, found = cv2.findHomography(uv_a, uv_b, cv2.RANSAC, 1.5)
+    inl = np.ones(len(uv_a), bool) if found is None else np.asarray(found).ravel() > 0
     return kabsch_rotation(rays(uv_a[inl], K), rays(uv_b[inl], K)), inl
 
 
@@ -215,9 +215,9 @@ def add_frame(t: int, tracks: Tracks, K: np.ndarray, poses: np.ndarray, posed: n
         pair = fresh[tracks.valid[s, fresh]]
         if len(pair) == 0:
             continue
-        pts, ok = triangulate(poses[s], poses[t], tracks.uv[s, pair], tracks.uv[t, pair], K, min_angle_deg=1.0)
-        points[pair[ok]] = pts[ok]
-        fresh = fresh[~np.isin(fresh, pair[ok])]
+        pts, usable = triangulate(poses[s], poses[t], tracks.uv[s, pair], tracks.uv[t, pair], K, min_angle_deg=1.0)
+        points[pair[usable]] = pts[usable]
+        fresh = fresh[~np.isin(fresh, pair[usable])]
     return placed
 
 

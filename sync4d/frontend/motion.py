@@ -33,7 +33,7 @@ def dense_flow(grey_a: np.ndarray, grey_b: np.ndarray) -> np.ndarray:
     """(H, W, 2) optical flow [px] from ``grey_a`` to ``grey_b`` (OpenCV DIS, medium preset)."""
     import cv2
 
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]
     return dis.calc(grey_a, grey_b, None)
 
 

@@ -12,7 +12,12 @@ import logging
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
 from sync4d.errors import InputError
+
+if TYPE_CHECKING:
+    from sync4d.recon.pose.blazepose import Roi
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +41,7 @@ class PersonModels:
         self.anchors = ssd_anchors()
 
 
-def person_roi(models: PersonModels, frame: np.ndarray, previous: object | None) -> tuple[object | None, float]:
+def person_roi(models: PersonModels, frame: np.ndarray, previous: Roi | None) -> tuple[Roi | None, float]:
     """The person's region in ``frame`` (tracked from ``previous`` or detected) and the pose presence."""
     from sync4d.recon.pose.blazepose import detect, landmarks_in_roi, roi_from_points
 
@@ -51,17 +56,17 @@ def person_roi(models: PersonModels, frame: np.ndarray, previous: object | None)
     return None, 0.0
 
 
-def segment_in_roi(models: PersonModels, frame: np.ndarray, roi: object) -> np.ndarray:
+def segment_in_roi(models: PersonModels, frame: np.ndarray, roi: Roi) -> np.ndarray:
     """(H, W) person probability in [0, 1]: the segmenter on the region's crop, mapped back to the image."""
     import cv2
 
     from sync4d.recon.pose.blazepose import crop, roi_affine
 
-    img = crop(frame, roi, SEGMENTER_SIZE)  # type: ignore[arg-type]
+    img = crop(frame, roi, SEGMENTER_SIZE)
     out = models.segmenter.run(img[None].astype(np.float32) / 255.0)
     prob = next(iter(out.values())).reshape(SEGMENTER_SIZE, SEGMENTER_SIZE).astype(np.float32)
     h, w = frame.shape[:2]
-    return cv2.warpAffine(prob, roi_affine(roi, SEGMENTER_SIZE), (w, h), flags=cv2.INTER_LINEAR,  # type: ignore[arg-type]
+    return cv2.warpAffine(prob, roi_affine(roi, SEGMENTER_SIZE), (w, h), flags=cv2.INTER_LINEAR,
                           borderValue=0.0)
 
 
@@ -80,7 +85,7 @@ def person_masks(models: PersonModels, frames: np.ndarray, threshold: float, *, 
         InputError: nobody in any frame.
     """
     masks = np.zeros(frames.shape[:3], bool)
-    roi = None
+    roi: Roi | None = None
     for t, frame in enumerate(frames):
         roi, _ = person_roi(models, frame, roi)
         if roi is not None:

@@ -97,7 +97,7 @@ def grabcut(image: np.ndarray, prior: np.ndarray, *, sure: np.ndarray | None, it
         labels[:, [0, -1]] = BGD
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     try:
-        cv2.grabCut(np.ascontiguousarray(image[..., ::-1]), labels, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+        cv2.grabCut(np.ascontiguousarray(image[..., ::-1]), labels, (0, 0, 0, 0), bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
     except cv2.error:  # one colour class empty (e.g. a uniform frame): keep the prior
         return prior.copy()
     # colour decides the outline near the prior, never far from it: on a busy background GrabCut's colour
@@ -113,7 +113,7 @@ def box_grabcut(image: np.ndarray, box: np.ndarray, iterations: int) -> np.ndarr
     labels = np.where(box, PR_FGD, BGD).astype(np.uint8)
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     try:
-        cv2.grabCut(np.ascontiguousarray(image[..., ::-1]), labels, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
+        cv2.grabCut(np.ascontiguousarray(image[..., ::-1]), labels, (0, 0, 0, 0), bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
     except cv2.error:
         return box.copy()
     return morph((labels == FGD) | (labels == PR_FGD), "open", 1)

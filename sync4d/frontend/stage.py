@@ -194,6 +194,7 @@ def complete_video(clip: VideoClip, camera: Camera | None, cfg: FrontEndConfig, 
         given = replace(clip, intrinsics=camera.K, extrinsics=np.tile(camera.world_to_cam, (clip.num_frames, 1, 1)))
     found = run_front_end(given, cfg, prompt=prompt, masks_given=masks_given, camera_given=camera is not None)
     out = found.clip
+    assert out.extrinsics is not None  # run_front_end always fills the camera
     first = camera if camera is not None else Camera(K=np.asarray(out.intrinsics), world_to_cam=out.extrinsics[0],
                                                      width=out.frames.shape[2], height=out.frames.shape[1]).validate()
     return out, first

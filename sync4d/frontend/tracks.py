@@ -52,12 +52,13 @@ def lk_step(grey_a: np.ndarray, grey_b: np.ndarray, points: np.ndarray) -> tuple
 
     if len(points) == 0:
         return points.copy(), np.zeros(0, bool)
-    params = {"winSize": LK_WINDOW, "maxLevel": LK_LEVELS,
-              "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
     p0 = points.reshape(-1, 1, 2).astype(np.float32)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(grey_a, grey_b, p0, None, **params)
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(grey_b, grey_a, p1, None, **params)
-    p1, back = p1.reshape(-1, 2), back.reshape(-1, 2)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(grey_a, grey_b, p0, None, winSize=LK_WINDOW, maxLevel=LK_LEVELS,
+                                          criteria=criteria)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(grey_b, grey_a, p1, None, winSize=LK_WINDOW, maxLevel=LK_LEVELS,
+                                            criteria=criteria)
+    p1, back = np.asarray(p1).reshape(-1, 2), np.asarray(back).reshape(-1, 2)
     h, w = grey_a.shape
     inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & inside & (np.linalg.norm(back - points, axis=1) < FB_TOLERANCE_PX)
