@@ -13,7 +13,8 @@ export WARP_CACHE_PATH := $(CURDIR)/.warp_cache
 venv: $(STAMP)
 
 # MediaPipe's legacy BlazePose models (Apache-2.0), taken from the mediapipe 0.10.14 wheel (later releases
-# download their models instead); recon=body_video runs them under ai-edge-litert. No network at run time.
+# download their models instead); recon=body_video and the video front end (person segmentation) run them under
+# ai-edge-litert. No network at run time.
 MODEL_DIR := models/mediapipe
 POSE_MODELS := $(MODEL_DIR)/pose_landmark_full.tflite  # the detector and the licence come with it
 models: $(POSE_MODELS)
@@ -26,6 +27,7 @@ $(POSE_MODELS):
 	[open('$(MODEL_DIR)/' + dst, 'wb').write(z.read(src)) for src, dst in [ \
 	('mediapipe/modules/pose_detection/pose_detection.tflite', 'pose_detection.tflite'), \
 	('mediapipe/modules/pose_landmark/pose_landmark_full.tflite', 'pose_landmark_full.tflite'), \
+	('mediapipe/modules/selfie_segmentation/selfie_segmentation.tflite', 'selfie_segmentation.tflite'), \
 	('mediapipe-0.10.14.dist-info/LICENSE', 'LICENSE.mediapipe')]]"
 	rm -rf $(MODEL_DIR)/wheel
 

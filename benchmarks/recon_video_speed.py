@@ -17,7 +17,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 def main() -> list[dict]:
-    from sync4d.recon.sources import VideoSource
+    from sync4d.sources.references import VideoSource
     from sync4d.recon.video import VideoReconstructor
     from sync4d.scenes.laptop import filmed_laptop_case
 

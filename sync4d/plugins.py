@@ -20,6 +20,7 @@ log = logging.getLogger(__name__)
 
 BUILTIN_PACKAGES: tuple[str, ...] = (
     "sync4d.scenes",
+    "sync4d.sources",
     "sync4d.recon",
     "sync4d.features",
     "sync4d.sim",

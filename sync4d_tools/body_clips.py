@@ -246,7 +246,7 @@ def render_clip(tracks: dict[str, np.ndarray], camera, *, seed: int = 0) -> tupl
 
 def clip_camera(tracks: dict[str, np.ndarray], view: str, width: int, height: int, fov_deg: float):
     """A static look-at camera framing the whole clip; returns (Camera, K, position, forward, up)."""
-    from sync4d.recon.sources import camera_from_look
+    from sync4d.sources.references import camera_from_look
 
     allp = np.concatenate([v for v in tracks.values()])
     centre = 0.5 * (allp.min(0) + allp.max(0))

@@ -130,7 +130,7 @@ def _fit_to_truth(prob, params: dict, truth_cam: np.ndarray, ids: list[int], cfg
 def split_clip(folder: Path) -> dict:
     """The A1 / A2 / B split of one quadruped clip (see the module docstring); mpjpe in % of the height."""
     from sync4d.recon.pose import quadruped_fit as qf
-    from sync4d.recon.sources import VideoSource
+    from sync4d.sources.references import VideoSource
     from sync4d_tools.evaluate.recon_joints import joint_errors, quadruped_map
 
     src = VideoSource(

@@ -188,7 +188,7 @@ def export_cameras(export) -> tuple[list, np.ndarray, dict]:
     """The export's cameras as one static camera (frame 0's) and the per-frame object motion ``inv(W_0) W_t``.
 
     Returns (cameras (T,), motion (T, 4, 4) object -> frame-0 object frame, camera.npz fields)."""
-    from sync4d.recon.sources import camera_from_look
+    from sync4d.sources.references import camera_from_look
 
     w2c = export.object_to_camera.copy()
     w2c[:, :3, 3] *= METRES_PER_UNIT

@@ -241,7 +241,7 @@ def _template_clip(frames: int = 4):
     import torch
 
     from sync4d.recon.pose import quadruped_fit as qf
-    from sync4d.recon.sources import camera_from_look
+    from sync4d.sources.references import camera_from_look
 
     from scipy.spatial.transform import Rotation
 
@@ -357,14 +357,16 @@ def test_quadruped_fit_on_template_silhouettes(shared_data: Path) -> None:
 
 
 def test_reference_video_auto_companions(tmp_path: Path, shared_data: Path) -> None:
-    """reference=video with masks/camera 'auto': taken from beside the video when there, else none."""
+    """reference=video with masks/camera 'auto': taken from beside the video when there, else found by the
+    video front end (which refuses this 2-frame clip: nothing beside it was taken)."""
+    from sync4d.errors import InputError
     from sync4d.io.video import write_video
     from sync4d.registry import build
 
     frames = np.full((2, 16, 24, 3), 100, np.uint8)
     write_video(tmp_path / "clip.mp4", frames, 10.0)
-    alone = build("reference", {"type": "video", "video": str(tmp_path / "clip.mp4")}).load()
-    assert alone.camera is None and not alone.video.masks.any()
+    with pytest.raises(InputError, match="at least 3 frames"):
+        build("reference", {"type": "video", "video": str(tmp_path / "clip.mp4")}).load()
     laptop = build("reference", {"type": "video"}).load()  # the default video has masks/ and gt.npz beside it
     assert laptop.camera is not None and laptop.video.masks.any()
 

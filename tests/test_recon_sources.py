@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 from sync4d.errors import DataMissingError, InputError
 from sync4d.io.lab4d import write_obj
-from sync4d.recon.sources import camera_from_look
+from sync4d.sources.references import camera_from_look
 from sync4d.registry import build, make_config
 from sync4d.types import Reference, ReferenceInput
 

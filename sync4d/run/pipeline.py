@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 
 from sync4d import cache
 from sync4d.errors import ConfigError, Sync4DError
+from sync4d.frontend.outputs import write_video_inputs
 from sync4d.geometry import part_centroids
 from sync4d.interfaces import Logger, Reconstructor, ReferenceSource, TargetSource
 from sync4d.io.atomic import atomic_write_json
@@ -251,6 +252,8 @@ def run_stages(plan: RunPlan, logger: Logger, started: float) -> dict[str, Any]:
     target, source = stage_target(plan)  # before the reconstruction: a bad target file fails in seconds
     reference, recon_key, loaded = stage_reference(plan)
     write_gaussians_ply(plan.run_dir / "frames" / f"{0:06d}.ply", target)
+    if loaded.video is not None:  # what the reconstruction was given: recon/masks.mp4, recon/camera.json
+        optional("recon/masks.mp4", write_video_inputs, plan.run_dir / "recon", loaded.video, loaded.camera)
     optional("reference_parts.png", figures.save_reference_parts, reference, plan.run_dir / "reference_parts.png",
              logger=logger)
     surface = target_surface(target, source)

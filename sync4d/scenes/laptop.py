@@ -7,10 +7,13 @@ the base; the angle grows as the lid opens (90 deg = upright). Bone 0 is the bas
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
+
 import numpy as np
 import trimesh
 
+from sync4d.frontend.config import FrontEndConfig
 from sync4d.registry import register
 from sync4d.scenes.reference_video import FilmSettings, film_reference
 from sync4d.types import Camera, Reference, ReferenceInput, VideoClip
@@ -178,6 +181,10 @@ class LaptopReference:
         video_height: int = 120        # [px]
         video_gaussians: int = 6000    # surface Gaussians rendered
         video_texture_cell: float = 0.02  # checker texture cell [m] (optical flow needs texture; 0 = none)
+        # what the film hands recon=video besides its frames; the rest is found by the video front end:
+        # masks = the renderer's exact masks (the camera found), none = the video alone, masks_camera = both exact
+        video_exact: Literal["none", "masks", "masks_camera"] = "masks"
+        frontend: FrontEndConfig = field(default_factory=FrontEndConfig)  # the front end's options
 
         def validate(self) -> None:
             from sync4d.errors import ConfigError
@@ -226,6 +233,15 @@ class LaptopReference:
         sequence = np.stack([reference.posed_vertices(t) for t in range(reference.num_frames)])
         clip, camera = self.film(reference) if c.video else (None, None)
         up = np.asarray(self.film_settings().up, dtype=np.float64)
+        if clip is not None and c.video_exact != "masks_camera":  # the camera (and the masks) from the film alone
+            from dataclasses import replace
+
+            from sync4d.frontend import complete_video
+
+            masks = c.video_exact == "masks"
+            clip, camera = complete_video(replace(clip, intrinsics=None, masks=clip.masks if masks else
+                                                  np.zeros_like(clip.masks)), None, c.frontend, masks_given=masks)
+            up = np.array([0.0, 1.0, 0.0])  # the front end's world: the first camera turned to Y up (an upright phone)
         return ReferenceInput(
             name="laptop",
             fps=c.fps,

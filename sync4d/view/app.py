@@ -1,6 +1,7 @@
 """The viewer: a viser server showing runs side by side, one row a run, frame-synchronised.
 
 Each row holds, left to right, the input video frame (when the run's reference came from a video), the
+subject's masks over it (``recon/masks.mp4``, written by the video front end), the
 reconstructed reference's Gaussians and the target's. Every object is placed upright (the run's up axis
 is the viewer's +y) and turned so the principal plane of its own motion faces the default camera
 (:func:`sync4d.view.data.place`), at a common size. Only the current frame of each object is sent to the
@@ -86,7 +87,8 @@ class RunRow:
     def __init__(self, server: Any, run: RunData, row: int, cfg: ViewerConfig) -> None:
         self.server, self.run, self.cfg = server, run, cfg
         y = -ROW_GAP * row
-        columns = (["video"] if run.video is not None else []) + (["reference"] if run.reference else []) + ["target"]
+        columns = (["video"] if run.video is not None else []) + (["masks"] if run.masks is not None else []) \
+            + (["reference"] if run.reference else []) + ["target"]
         offsets = {name: np.array([PANEL_GAP * k, y, 0.0]) for k, name in enumerate(columns)}
         self.panels: dict[str, ObjectPanel] = {}
         rng = np.random.default_rng(cfg.seed)
@@ -106,16 +108,20 @@ class RunRow:
             server.scene.add_label(f"{prefix}/{name}_label", name, position=tuple(offset + [0.0, 0.6, 0.0]))
         middle = 0.5 * (offsets[columns[0]] + offsets[columns[-1]])
         server.scene.add_label(f"{prefix}/run_label", run.name, position=tuple(middle + [0.0, 0.72, 0.0]))
-        self.video = None
-        if run.video is not None:
-            h, w = run.video(0).shape[:2]
-            self.video = server.scene.add_image(f"{prefix}/video", run.video(0), render_width=w / max(h, w),
-                                                render_height=h / max(h, w), position=tuple(offsets["video"]),
-                                                # viser lays image rows downwards (+y down, as a camera's image);
-                                                # a half turn about x puts the frame's top up in this y-up scene.
-                                                wxyz=(0.0, 1.0, 0.0, 0.0))
+        self.video = self._add_image(f"{prefix}/video", run.video, offsets.get("video"))
+        self.masks = self._add_image(f"{prefix}/masks", run.masks, offsets.get("masks"))
         self.particles = None
         self.prefix = prefix
+
+    def _add_image(self, name: str, frames: Any, offset: np.ndarray | None) -> Any:
+        """An image panel showing frame 0 of ``frames`` (a :class:`VideoFrames`), or None without frames."""
+        if frames is None or offset is None:
+            return None
+        h, w = frames(0).shape[:2]
+        # viser lays image rows downwards (+y down, as a camera's image); a half turn about x puts the
+        # frame's top up in this y-up scene.
+        return self.server.scene.add_image(name, frames(0), render_width=w / max(h, w), render_height=h / max(h, w),
+                                           position=tuple(offset), wxyz=(0.0, 1.0, 0.0, 0.0))
 
     def show(self, t: int, *, part_colours: bool, boxes: bool, particles: bool) -> None:
         """Send frame ``t`` (modulo each object's length) with the chosen overlays."""
@@ -127,6 +133,8 @@ class RunRow:
             self._show_boxes(name, panel, frame, boxes)
         if self.video is not None and self.run.video is not None:
             self.video.image = self.run.video(t)
+        if self.masks is not None and self.run.masks is not None:
+            self.masks.image = self.run.masks(t)
         self._show_particles(t, particles)
 
     def _show_splats(self, name: str, panel: ObjectPanel, frame: SplatFrame, part_colours: bool) -> None:
@@ -200,7 +208,8 @@ class Viewer:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._build_gui()
-        width = PANEL_GAP * (max(len(row.panels) + (row.video is not None) for row in self.rows) - 1)
+        width = PANEL_GAP * (max(len(row.panels) + (row.video is not None) + (row.masks is not None)
+                                 for row in self.rows) - 1)
         height = ROW_GAP * (len(runs) - 1)
         centre = np.array([0.5 * width, -0.5 * height, 0.0])
         # viser's wide default field of view: about 2.4 units across the canvas per unit of distance.
@@ -223,7 +232,7 @@ class Viewer:
         self.part_colours = gui.add_checkbox("Part colours", initial_value=False)
         self.boxes = gui.add_checkbox("Matched part boxes", initial_value=False)
         self.particles = gui.add_checkbox("Simulation particles", initial_value=False)
-        gui.add_markdown("Rows: runs. Columns: input video | reconstructed reference | target. "
+        gui.add_markdown("Rows: runs. Columns: input video | subject masks | reconstructed reference | target. "
                          "A target part and the reference part it was matched to share a colour.")
         self.slider.on_update(lambda _: self.show(int(self.slider.value)))
         for toggle in (self.part_colours, self.boxes, self.particles):

@@ -209,6 +209,7 @@ class RunData:
         folder: the run folder; name: its label.
         target: the target's Gaussian frames; reference: the reconstructed reference's, or None.
         video: the input video, or None.
+        masks: the subject's masks over the input video (``recon/masks.mp4``), or None.
         particles: (T, P, 3) simulated points after the global transform [m], or None.
         particle_parts: (P,) their part labels, or None.
         up: (3,) the scene's up axis.
@@ -222,6 +223,7 @@ class RunData:
     particles: np.ndarray | None
     particle_parts: np.ndarray | None
     up: np.ndarray
+    masks: VideoFrames | None = None
 
     @property
     def num_frames(self) -> int:
@@ -281,6 +283,7 @@ def load_run(folder: str | Path) -> RunData:
         raise InputError(f"{folder}: neither sequence.s4d nor frames/*.ply; pass the folder of a train.py run")
     reference = Seq4DSource(folder / "reference.s4d") if (folder / "reference.s4d").is_file() else None
     video = VideoFrames(folder / "input.mp4") if (folder / "input.mp4").is_file() else None
+    masks = VideoFrames(folder / "recon" / "masks.mp4") if (folder / "recon" / "masks.mp4").is_file() else None
     name = f"{folder.parent.name}/{folder.name}" if folder.parent.name else folder.name
     return RunData(folder=folder, name=name, target=target, reference=reference, video=video,
-                   particles=particles, particle_parts=particle_parts, up=scene_up(folder))
+                   particles=particles, particle_parts=particle_parts, up=scene_up(folder), masks=masks)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sync4d.recon.sources import VideoSource
+from sync4d.sources.references import VideoSource
 from sync4d.recon.video import joints as jt
 from sync4d.recon.video.images import backproject
 from sync4d.recon.video.reconstructor import VideoReconstructor

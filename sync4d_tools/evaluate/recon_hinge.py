@@ -2,6 +2,7 @@
 
     python -m sync4d.evaluate recon_hinge --data ../shared/data/rendered/metaworld_laptop_hinge
     python -m sync4d.evaluate recon_hinge --scene laptop     # the default scene, filmed (no shared data)
+    python -m sync4d.evaluate recon_hinge --scene laptop --inputs masks   # camera found by the video front end
 
 Prints one JSON object on the last line:
     * ``hinge_angle_error_deg``: mean over frames of | recovered lid angle - gt angle |, where the
@@ -32,7 +33,7 @@ import torch
 
 from sync4d.recon.video import VideoFit, VideoReconstructor, rotation_angle_deg
 from sync4d.recon.video.softsplat import composite_weights, front_weights, project_points, splat_alpha
-from sync4d.recon.sources import VideoSource, resolve_path
+from sync4d.sources.references import VideoSource, resolve_path
 from sync4d.types import Reference
 
 
@@ -128,6 +129,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="how rendered part labels blend: front-to-back alpha compositing (as the renderer) "
                              "or the fit's soft z-buffer vote (earlier sessions' figures)")
     parser.add_argument("--set", nargs="*", default=[], help="recon=video overrides key=value (YAML values)")
+    parser.add_argument("--inputs", default="exact", choices=("exact", "masks", "none"),
+                        help="what the fit is given besides the frames: exact masks and camera, the exact masks "
+                             "only (the camera found by the video front end), or nothing (both found)")
     args = parser.parse_args(argv)
 
     start = time.perf_counter()
@@ -140,6 +144,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         source = VideoSource(VideoSource.Config(video=str(root / "rgb.mp4"), masks=str(root / "masks"),
                                                 camera=str(root / "gt.npz"), max_frames=args.max_frames)).load()
         gt = dict(np.load(root / "gt.npz"))
+    if args.inputs != "exact":
+        from dataclasses import replace
+
+        from sync4d.frontend import FrontEndConfig, complete_video
+
+        clip = source.video
+        keep = args.inputs == "masks"
+        clip, camera = complete_video(replace(clip, intrinsics=None, masks=clip.masks if keep else
+                                              np.zeros_like(clip.masks)), None, FrontEndConfig(), masks_given=keep)
+        source = replace(source, video=clip, camera=camera)
     from omegaconf import OmegaConf
 
     from sync4d.registry import make_config

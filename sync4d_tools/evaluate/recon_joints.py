@@ -29,7 +29,7 @@ import numpy as np
 from sync4d.match.align import umeyama
 from sync4d.errors import InputError
 from sync4d.recon.body_video import BodyVideoReconstructor
-from sync4d.recon.sources import VideoSource
+from sync4d.sources.references import VideoSource
 
 #: the issue's human vocabulary (gt.npz ``names``); the fitted skeleton uses the same names
 HUMAN_VOCABULARY = (

@@ -19,7 +19,7 @@ from typing import Any
 
 from sync4d.io.lab4d import find_mesh_files, read_mesh_sequence
 from sync4d.recon.skinning_fit import SkinningFit
-from sync4d.recon.sources import resolve_path
+from sync4d.sources.references import resolve_path
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:

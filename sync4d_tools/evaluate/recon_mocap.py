@@ -20,7 +20,7 @@ import time
 from typing import Any
 
 from sync4d.recon.mocap import MocapReconstructor
-from sync4d.recon.sources import resolve_path
+from sync4d.sources.references import resolve_path
 from sync4d.types import ReferenceInput
 
 

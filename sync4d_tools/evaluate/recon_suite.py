@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from sync4d.recon.sources import VideoSource, resolve_path
+from sync4d.sources.references import VideoSource, resolve_path
 from sync4d.recon.video import VideoFit, rotation_angle_deg
 from sync4d_tools.evaluate.recon_hinge import render_bone_labels
 

@@ -186,7 +186,7 @@ def load_pair(name: str, num_frames: int, gaussians: int) -> GTPair:
     """Build one of :data:`PAIRS` with ``num_frames`` frames (30 fps for the mocap pairs)."""
     from sync4d.io.deepmimic import read_deepmimic
     from sync4d.io.mocap import CMU_UNIT_SCALE, read_bvh, read_joint_position_motion
-    from sync4d.recon.sources import resolve_path
+    from sync4d.sources.references import resolve_path
 
     def data(rel: str) -> Path:
         return resolve_path(f"{DATA}/{rel}", what="transfer_gt motion file")

@@ -1,5 +1,5 @@
 """Reference sources for files on disk (group ``reference``): mesh sequences, Lab4D exports, BVH,
-joint-position mocap and videos with masks.
+joint-position mocap and videos (masks and camera given, or found by the video front end).
 
 Relative paths are tried against the working directory first, then against the project root (so
 ``../shared/data/...`` works from the project folder and from tests). A missing file stops with
@@ -16,12 +16,13 @@ Shared data these default to (attribution, see ``../shared/data/README.md``):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from sync4d.errors import DataMissingError, InputError
+from sync4d.frontend import FrontEndConfig, Prompt, complete_video
 from sync4d.io.lab4d import find_mesh_files, read_mesh_sequence
 from sync4d.io.video import read_video_clip
 from sync4d.registry import register
@@ -204,31 +205,41 @@ class DeepMimicSource:
 
 @register("reference", "video")
 class VideoSource:
-    """A reference video with foreground masks and, optionally, a known camera (``gt.npz``)."""
+    """A reference video; the subject's masks and the camera are read when given, else found by the video
+    front end (:mod:`sync4d.frontend`)."""
 
     @dataclass
     class Config:
         """Attributes:
         video: video file or folder of frames.
-        masks: folder of mask PNGs or a mask video; empty = no masks (``recon=video`` then uses a
-            static-camera background model); ``auto`` = the ``masks`` folder beside the video if there
-            is one, else none (so ``reference.video=<another video>`` does not pick up the default's masks).
+        masks: folder of mask PNGs or a mask video; empty = found by the front end; ``auto`` = the ``masks``
+            folder beside the video if there is one, else found (so ``reference.video=<another video>``
+            does not pick up the default's masks).
         camera: ``.npz`` with ``K`` and ``cam_pos``/``cam_forward``/``cam_up`` (laptop renders' layout),
-            or with ``K`` and ``world_to_cam`` (4x4); empty = unknown camera; ``auto`` = ``gt.npz`` beside
-            the video if there is one, else unknown.
+            or with ``K`` and ``world_to_cam`` (4x4): a known static camera; empty = found by the front end
+            (intrinsics from a field-of-view guess refined when the camera moves, per-frame extrinsics,
+            world = the first frame's camera); ``auto`` = ``gt.npz`` beside the video if there is one.
+        prompt: where the subject is when the clip is ambiguous: a point ``[x, y]`` or a box
+            ``[x0, y0, x1, y1]`` [px] on frame ``prompt_frame``; empty = found automatically.
+        prompt_frame: the frame (after ``stride`` / ``max_frames``) the prompt is on.
         fps: frame rate [1/s]; 0 = from the video file.
         max_frames: keep at most this many frames (0 = all).
         stride: keep every ``stride``-th frame.
+        frontend: the front end's options (:class:`~sync4d.frontend.FrontEndConfig`).
         """
 
         video: str = "../shared/data/rendered/metaworld_laptop_hinge/rgb.mp4"
         masks: str = "auto"
         camera: str = "auto"
+        prompt: list[float] = field(default_factory=list)
+        prompt_frame: int = 0
         fps: float = 0.0
         max_frames: int = 0
         stride: int = 1
+        frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
 
     def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        cfg.frontend.validate()
         self.cfg = cfg
 
     def load(self) -> ReferenceInput:
@@ -242,8 +253,14 @@ class VideoSource:
         if camera_file is not None:
             camera = load_camera(camera_file, clip.frames.shape[2], clip.frames.shape[1])
             clip = type(clip)(clip.frames, clip.masks, clip.fps, camera.K, None, clip.source).validate()
+        prompt = Prompt(tuple(float(v) for v in self.cfg.prompt), int(self.cfg.prompt_frame)) if self.cfg.prompt else None
+        # the front end's world is Y up when the phone is held upright (its first camera turned to Y up)
+        up = None if camera is not None else np.array([0.0, 1.0, 0.0])
+        if masks is None or camera is None or prompt is not None:
+            clip, camera = complete_video(clip, camera, self.cfg.frontend, masks_given=masks is not None and prompt is None,
+                                          prompt=prompt)
         return ReferenceInput(name=video.parent.name if video.is_file() else video.name, fps=clip.fps, video=clip,
-                              camera=camera, path=str(video))
+                              camera=camera, path=str(video), world_up=up)
 
 
 def beside(video: Path, value: str, name: str, *, what: str) -> Path | None:

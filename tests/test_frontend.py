@@ -1,0 +1,209 @@
+"""The video front end (sync4d.frontend): masks and camera found in synthetic clips, and the refusals of
+input it cannot use (one line, before the reconstruction)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sync4d.errors import InputError
+from sync4d.frontend import FrontEndConfig, Prompt, complete_video, run_front_end
+from sync4d.frontend.bundle import bundle_adjust
+from sync4d.frontend.camera import static_camera
+from sync4d.frontend.geometry import intrinsics_from_fov, pose_matrix, project, rodrigues, rotation_angle_deg
+from sync4d.frontend.outputs import write_video_inputs
+from sync4d.frontend.stage import CAMERA_TO_YUP
+from sync4d.frontend.tracks import Tracks
+from sync4d.types import VideoClip
+
+W, H = 128, 96
+
+
+def texture(width: int, height: int, seed: int) -> np.ndarray:
+    """(height, width, 3) uint8 a blotchy colour texture with corners to track."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    small = rng.uniform(0, 255, (height // 3 + 1, width // 3 + 1, 3)).astype(np.uint8)
+    return cv2.resize(small, (width, height), interpolation=cv2.INTER_NEAREST)
+
+
+def square_clip(n_frames: int = 8, *, pan_px: float = 0.0, speed: float = 3.0, start: float = 40.0,
+                with_subject: bool = True) -> tuple[VideoClip, np.ndarray]:
+    """A textured square moving right over a textured background that pans ``pan_px`` per frame; the clip
+    (no masks) and the true masks."""
+    big = texture(W + int(abs(pan_px) * n_frames) + 8, H, seed=1)
+    big[..., 0] //= 2  # a blue-green room ...
+    # ... and a red subject: their colours differ, as a real subject's and background's mostly do
+    patch = np.clip(0.6 * texture(28, 28, seed=2) + [100, 0, 0], 0, 255).astype(np.uint8)
+    patch[..., 1:] //= 2
+    frames, masks = [], []
+    for t in range(n_frames):
+        x0 = int(round(pan_px * t))
+        frame = big[:, x0: x0 + W].copy()
+        mask = np.zeros((H, W), bool)
+        if with_subject:
+            u = int(round(start + speed * t))
+            lo, hi = max(u, 0), min(u + 28, W)
+            if hi > lo:
+                frame[34:62, lo:hi] = patch[:, lo - u: hi - u]
+                mask[34:62, lo:hi] = True
+        frames.append(frame)
+        masks.append(mask)
+    clip = VideoClip(np.stack(frames), np.zeros((n_frames, H, W), bool), 10.0, source="synthetic").validate()
+    return clip, np.stack(masks)
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def test_a_moving_square_is_found_and_a_still_camera_is_static():
+    clip, truth = square_clip()
+    found = run_front_end(clip, FrontEndConfig())
+    assert found.subject == "motion"
+    assert found.camera.static and np.allclose(found.clip.extrinsics, CAMERA_TO_YUP)  # world: camera 0, Y up
+    assert np.median([iou(a, b) for a, b in zip(found.clip.masks, truth)]) > 0.8
+    assert found.clip.intrinsics is not None and found.camera.focal_source == "fov_guess"
+
+
+def test_a_panning_camera_is_found_turning_and_the_square_still_found():
+    clip, truth = square_clip(pan_px=2.0)
+    found = run_front_end(clip, FrontEndConfig())
+    assert not found.camera.static
+    ext = found.clip.extrinsics
+    turn = rotation_angle_deg(ext[-1, :3, :3] @ ext[0, :3, :3].T)
+    expected = np.degrees(np.arctan(2.0 * (len(truth) - 1) / found.clip.intrinsics[0, 0]))
+    assert abs(turn - expected) < 1.0  # a pure image shift is nearly a pan by atan(shift / f)
+    assert np.median([iou(a, b) for a, b in zip(found.clip.masks, truth)]) > 0.7
+
+
+def test_a_prompt_box_picks_the_subject():
+    clip, truth = square_clip()
+    found = run_front_end(clip, FrontEndConfig(), prompt=Prompt((36.0, 30.0, 74.0, 66.0), 0))
+    assert found.subject == "prompt"
+    assert np.median([iou(a, b) for a, b in zip(found.clip.masks, truth)]) > 0.7
+
+
+def test_bundle_adjustment_recovers_poses_from_noisy_starts():
+    rng = np.random.default_rng(0)
+    K = intrinsics_from_fov(W, H, 60.0)
+    points = rng.uniform([-1, -1, 4], [1, 1, 6], (80, 3))
+    poses = np.stack([pose_matrix(rodrigues(np.array([0.0, 0.03 * t, 0.0])), np.array([-0.1 * t, 0, 0]))
+                      for t in range(5)])
+    uv = np.stack([project(points, K, p)[0] for p in poses])
+    tracks = Tracks(uv=uv, valid=np.ones(uv.shape[:2], bool))
+    noisy = poses.copy()
+    noisy[1:, :3, :3] = rodrigues(rng.normal(0, 0.01, (4, 3))) @ noisy[1:, :3, :3]
+    result = bundle_adjust(tracks, K, noisy, points + rng.normal(0, 0.05, points.shape), iterations=100,
+                           refine_focal=False, scale_frame=4)
+    err = rotation_angle_deg(result.poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2))
+    assert err.max() < 0.05 and result.median_error_px < 0.05
+    assert static_camera(tracks, 0.35) is False
+
+
+def test_too_short_clip_is_refused():
+    clip, _ = square_clip(2)
+    with pytest.raises(InputError, match="at least 3"):
+        run_front_end(clip, FrontEndConfig())
+
+
+def test_a_still_image_is_refused():
+    clip, _ = square_clip(6, speed=0.0)
+    with pytest.raises(InputError, match="still image"):
+        run_front_end(clip, FrontEndConfig())
+
+
+def test_a_clip_with_no_subject_is_refused():
+    clip, _ = square_clip(8, pan_px=2.0, with_subject=False)
+    with pytest.raises(InputError, match="no subject"):
+        run_front_end(clip, FrontEndConfig())
+
+
+def test_a_subject_leaving_the_frame_is_refused():
+    clip, _ = square_clip(14, speed=6.0, start=60.0)  # out of view from frame 12 on
+    with pytest.raises(InputError, match="leaves the frame"):
+        run_front_end(clip, FrontEndConfig())
+
+
+@pytest.mark.parametrize("prompt", [(500.0, 20.0), (10.0, 10.0, 40.0, 300.0), (-1.0, 5.0), (30.0, 30.0, 20.0, 40.0)])
+def test_a_prompt_outside_the_image_is_refused(prompt: tuple[float, ...]):
+    clip, _ = square_clip()
+    with pytest.raises(InputError, match="reference.prompt"):
+        run_front_end(clip, FrontEndConfig(), prompt=Prompt(prompt, 0))
+
+
+def test_given_masks_keep_and_the_camera_is_filled_then_written(tmp_path: Path):
+    clip, truth = square_clip()
+    given = VideoClip(clip.frames, truth, clip.fps, source="synthetic").validate()
+    out, camera = complete_video(given, None, FrontEndConfig(), masks_given=True)
+    assert np.array_equal(out.masks, truth)
+    assert out.extrinsics.shape == (len(truth), 4, 4) and np.allclose(camera.world_to_cam, CAMERA_TO_YUP)
+    write_video_inputs(tmp_path, out, camera)
+    record = json.loads((tmp_path / "camera.json").read_text())
+    assert record["static"] and len(record["world_to_camera"]) == len(truth)
+    assert (tmp_path / "masks.mp4").stat().st_size > 0
+
+
+def test_video_source_runs_the_front_end_when_nothing_is_given(tmp_path: Path):
+    from sync4d.io.video import write_video
+    from sync4d.sources.references import VideoSource
+
+    clip, truth = square_clip()
+    write_video(tmp_path / "clip.mp4", clip.frames, clip.fps)
+    source = VideoSource(VideoSource.Config(video=str(tmp_path / "clip.mp4"))).load()
+    assert source.camera is not None and source.video.extrinsics is not None
+    assert np.median([iou(a, b) for a, b in zip(source.video.masks, truth)]) > 0.6  # after video compression
+    cfg = VideoSource.Config(video=str(tmp_path / "clip.mp4"), prompt=[1000.0, 5.0])
+    with pytest.raises(InputError, match="outside"):
+        VideoSource(cfg).load()
+
+
+def bad_clip(kind: str, folder: Path) -> tuple[str, ...]:
+    """Write one bad reference video into ``folder``; returns the ``train.py`` overrides that feed it."""
+    import imageio.v2 as imageio
+
+    from sync4d.io.video import write_video
+
+    clips = {"short": square_clip(2)[0], "still_video": square_clip(6, speed=0.0)[0],
+             "no_subject": square_clip(8, pan_px=2.0, with_subject=False)[0],
+             "leaves": square_clip(14, speed=6.0, start=60.0)[0], "prompt": square_clip()[0]}
+    if kind == "image":
+        imageio.imwrite(folder / "photo.png", square_clip()[0].frames[0])
+        return ("reference.video=" + str(folder / "photo.png"), "reference.fps=10")
+    write_video(folder / f"{kind}.mp4", clips[kind].frames, 10.0)
+    extra = ("reference.prompt=[500,20]",) if kind == "prompt" else ()
+    return ("reference.video=" + str(folder / f"{kind}.mp4"), *extra)
+
+
+@pytest.mark.parametrize("kind, expect", [
+    ("short", ("short.mp4", "at least 3")), ("image", ("photo.png", "at least 3")),
+    ("still_video", ("still_video.mp4", "still image")), ("no_subject", ("no_subject.mp4", "no subject")),
+    ("leaves", ("leaves.mp4", "leaves the frame")), ("prompt", ("reference.prompt", "outside")),
+])
+def test_bad_videos_stop_train_py_with_one_line(kind: str, expect: tuple[str, ...], tmp_path: Path):
+    """Through the pipeline: exit 2, one ``sync4d:`` line naming the input, before the reconstruction."""
+    from _runs import train_in_process
+
+    overrides = bad_clip(kind, tmp_path)
+    code, stderr = train_in_process(tmp_path / "run", "reference=video", "recon=video", *overrides)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("sync4d: "), stderr[-2000:]
+    for word in expect:
+        assert word.lower() in lines[0].lower(), lines[0]
+    assert not (tmp_path / "run" / "recon" / "masks.mp4").exists()  # refused before anything was written
+
+
+def test_the_viewer_shows_the_masks_beside_the_video(tmp_path: Path):
+    from _viewrun import make_run
+
+    from sync4d.view.data import load_run
+
+    run = make_run(tmp_path / "a", frames=3, n=200)
+    clip, truth = square_clip(3)
+    write_video_inputs(run / "recon", VideoClip(clip.frames, truth, 10.0).validate(), None)
+    data = load_run(run)
+    assert data.masks is not None and data.masks(0).shape == clip.frames.shape[1:]
