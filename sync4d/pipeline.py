@@ -115,13 +115,16 @@ def group_cfg(cfg: DictConfig, group: str) -> dict[str, Any]:
 def stage_reference(ctx: RunContext) -> tuple[Reference, str]:
     """Load the reference input and reconstruct it (cached). Returns the reference and its cache key."""
     cfg = ctx.cfg
-    reference_cfg, recon_cfg = group_cfg(cfg, "reference"), group_cfg(cfg, "recon")
+    reference_cfg = bound_reference_frames(group_cfg(cfg, "reference"), int(cfg.frames))
+    recon_cfg = group_cfg(cfg, "recon")
     source = build("reference", reference_cfg, device=cfg.device, seed=cfg.seed)
     code = cache.code_hash(type(source), lookup("recon", str(recon_cfg["type"])))
     key = cache.stage_key("recon", reference_cfg, recon_cfg, cfg.seed, code)
+    built: list[Any] = []
 
     def compute() -> Reference:
         reconstructor = build("recon", recon_cfg, device=cfg.device)
+        built.append(reconstructor)
         started = time.perf_counter()
         reference = reconstructor.reconstruct(source.load()).validate()
         log.info("recon=%s: %d bones, %d frames, %d vertices in %.1f s", cfg.recon.type, reference.num_bones,
@@ -129,7 +132,32 @@ def stage_reference(ctx: RunContext) -> tuple[Reference, str]:
         return reference
 
     reference = cache.cached(ctx.cache_root, "recon", key, Reference, compute, enabled=cfg.cache)
+    for reconstructor in built:  # pictures after the cache write: a failed picture never costs the fit
+        if hasattr(reconstructor, "write_figures"):
+            optional_step("recon pictures", reconstructor.write_figures, ctx.run_dir / "recon")
     return reference.validate(), key
+
+
+def bound_reference_frames(reference_cfg: dict[str, Any], frames: int) -> dict[str, Any]:
+    """A video reference reads (and so reconstructs) only the ``frames`` frames the run uses unless its
+    ``max_frames`` is set; the log says which key bounds it."""
+    if reference_cfg.get("type") != "video" or int(reference_cfg.get("max_frames", 0) or 0) > 0:
+        return reference_cfg
+    log.info("reference=video: reconstructing the first %d frames, the ones the run uses (frames=%d); "
+             "set reference.max_frames to reconstruct more", frames, frames)
+    return {**reference_cfg, "max_frames": frames}
+
+
+def optional_step(what: str, step: Any, *args: Any, **kwargs: Any) -> Any:
+    """Run a step after the main work (a picture, an export); a failure is one warning and the run goes on
+    (``HYDRA_FULL_ERROR=1`` raises it instead, for debugging)."""
+    try:
+        return step(*args, **kwargs)
+    except Exception as err:  # noqa: BLE001 -- an optional output must never end a run that has its results
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        log.warning("%s failed and was skipped: %s", what, one_line(f"{type(err).__name__}: {err}"))
+        return None
 
 
 def stage_target(ctx: RunContext) -> tuple[TargetGaussians, Any]:
@@ -368,13 +396,15 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
     target, source = stage_target(ctx)  # before the reconstruction: a bad target file fails in seconds
     reference, recon_key = stage_reference(ctx)
     write_frame(ctx.run_dir, 0, target)
-    report_figures.save_reference_parts(reference, ctx.run_dir / "reference_parts.png", logger=ctx.logger)
+    optional_step("reference_parts.png", report_figures.save_reference_parts, reference,
+                  ctx.run_dir / "reference_parts.png", logger=ctx.logger)
 
     if not available("features"):
         log.warning("no feature extractor is registered yet: the run ends after loading the target")
         return {}
     part_map = stage_match(ctx, reference, recon_key, target, source)
-    report_figures.save_match_figure(reference, target, part_map, ctx.run_dir / "match.png", logger=ctx.logger)
+    optional_step("match.png", report_figures.save_match_figure, reference, target, part_map,
+                  ctx.run_dir / "match.png", logger=ctx.logger)
 
     points, faces = target_surface(target, source)
     from sync4d.metrics import part_centroids
@@ -412,8 +442,8 @@ def _run_stages(ctx: RunContext, started: float) -> dict[str, Any]:
     if cfg.render_video:
         from sync4d.render_outputs import render_run_outputs
 
-        render_run_outputs(ctx.run_dir, cfg, target, trajectory, motion, reference, part_map=part_map,
-                           logger=ctx.logger)
+        optional_step("renders and exports", render_run_outputs, ctx.run_dir, cfg, target, trajectory, motion,
+                      reference, part_map=part_map, logger=ctx.logger)
     return result
 
 

@@ -397,3 +397,115 @@ def test_shiba_truth_rule_and_static_export_camera(shared_data: Path) -> None:
         b = verts[t] @ w2c[t, :3, :3].T + w2c[t, :3, 3]
         # to 1e-6 of the focal length (< 0.001 px): the export stores its rotations to float32 precision
         assert np.allclose(a[:, :2] / a[:, 2:], b[:, :2] / b[:, 2:], atol=1e-6)
+
+
+# --- issue 35: a picture never ends a run; the run's frames bound the reference -------------------------
+
+
+def _chain(points: list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
+    return np.array(points, dtype=np.float64), np.arange(-1, len(points) - 1)
+
+
+def test_draw_fit_survives_a_body_partly_behind_the_camera() -> None:
+    from sync4d.recon.pose.overlay import clip_segment, draw_fit
+
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    frame = np.zeros((120, 160, 3), np.uint8)
+    # a chain from in front of the camera, through its plane, to behind it; one point almost on the plane
+    joints, parents = _chain([[0.0, 0.0, 2.0], [0.1, 0.0, 0.5], [0.1, 0.0, -1.0], [0.3, 0.2, 1e-9], [5e6, 0, 1.0]])
+    points = np.array([[0.0, 0.0, -3.0], [0.0, 0.0, 1e-12], [0.05, 0.05, 2.0], [1e9, 1e9, 1.0]])
+    out = draw_fit(frame, K=K, joints=joints, parents=parents, part_points=points, part_labels=np.arange(4),
+                   landmarks=np.array([[1e12, 5.0], [40.0, 30.0]]))
+    assert out.shape == frame.shape and out.dtype == np.uint8 and out.any()
+    seg = clip_segment(joints[1], joints[2], K, 160, 120)  # cut at the camera plane: still drawn, in pixel ints
+    assert seg is not None and all(isinstance(c, int) for c in seg[0] + seg[1])
+    assert clip_segment(np.array([0, 0, -1.0]), np.array([0, 0, -2.0]), K, 160, 120) is None
+
+
+def test_draw_fit_skips_nan_joints() -> None:
+    from sync4d.recon.pose.overlay import draw_fit
+
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    frame = np.full((120, 160, 3), 50, np.uint8)
+    joints, parents = _chain([[0.0, 0.0, 2.0], [np.nan, 0.0, 2.0], [0.1, np.inf, 2.0], [0.1, 0.1, 2.0]])
+    out = draw_fit(frame, K=K, joints=joints, parents=parents, mask=np.ones((120, 160), bool),
+                   part_points=np.full((3, 3), np.nan), part_labels=np.zeros(3, int),
+                   landmarks=np.full((2, 2), np.nan))
+    assert out.shape == frame.shape
+    nan_all, _ = _chain([[np.nan] * 3] * 3)
+    assert draw_fit(frame, K=K, joints=nan_all, parents=np.array([-1, 0, 1])).shape == frame.shape
+
+
+def test_run_frames_bound_the_reference_video(shared_data: Path) -> None:
+    from sync4d.pipeline import bound_reference_frames
+    from sync4d.registry import build
+
+    video = {"type": "video", "video": str(shared_data / "video/lab4d/cat-pikachu-0.mp4"), "masks": "",
+             "camera": "", "max_frames": 0}
+    bounded = bound_reference_frames(video, 12)
+    assert bounded["max_frames"] == 12 and video["max_frames"] == 0  # the input is not changed
+    assert bound_reference_frames({**video, "max_frames": 30}, 12)["max_frames"] == 30  # an explicit bound wins
+    assert bound_reference_frames({"type": "bvh", "path": "x"}, 12) == {"type": "bvh", "path": "x"}
+    assert build("reference", bounded).load().video.num_frames == 12  # of the clip's 366
+
+
+def test_optional_step_turns_a_failure_into_one_warning(caplog: pytest.LogCaptureFixture) -> None:
+    from sync4d.pipeline import optional_step
+
+    def broken() -> None:
+        raise ValueError("Can't parse 'center'\nsecond line")
+
+    with caplog.at_level("WARNING", logger="sync4d"):
+        assert optional_step("recon pictures", broken) is None
+    warnings = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "recon pictures failed" in warnings[0].getMessage()
+    assert "\n" not in warnings[0].getMessage()
+    assert optional_step("sum", sum, [1, 2]) == 3
+
+
+def test_body_fit_pictures_on_a_real_clip(tmp_path: Path, shared_data: Path) -> None:
+    """The body fit and its pictures on the first frames of a real handheld clip (``human-cap-3.mp4``),
+    a picture with a joint set behind the camera and one NaN included."""
+    from sync4d.recon.body_video import BodyVideoReconstructor
+    from sync4d.registry import build
+
+    source = build("reference", {"type": "video", "video": str(shared_data / "video/lab4d/human-cap-3.mp4"),
+                                 "masks": "", "camera": "", "max_frames": 4, "stride": 3}).load()
+    recon = BodyVideoReconstructor(BodyVideoReconstructor.Config(subject="human"))
+    reference = recon.reconstruct(source).validate()
+    assert reference.num_frames == 4 and recon.pictures is not None
+    paths = recon.write_figures(tmp_path / "recon")
+    assert [p.name for p in paths] == ["body_fit.png", "body_fit.mp4"] and all(p.stat().st_size > 0 for p in paths)
+    joints = recon.pictures.fit.joints.copy()
+    joints[0, 3] = [0.0, 0.0, -1.0]
+    joints[1, 5] = np.nan
+    from dataclasses import replace
+
+    recon.pictures = replace(recon.pictures, fit=replace(recon.pictures.fit, joints=joints))
+    assert len(recon.write_figures(tmp_path / "broken")) == 2
+
+
+def test_reconstruction_is_cached_before_its_pictures(tmp_path: Path, shared_data: Path, monkeypatch,
+                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """A picture that fails after the fit is one warning; the fit is already in the stage cache, and the
+    run's ``frames`` bounded how much of the video was fitted."""
+    from hydra import compose, initialize_config_dir
+
+    from sync4d import pipeline
+    from sync4d.recon.body_video import BodyVideoReconstructor
+
+    def broken(self, folder: Path) -> list[Path]:
+        raise ValueError("Can't parse 'center'")
+
+    monkeypatch.setattr(BodyVideoReconstructor, "write_figures", broken)
+    video = shared_data / "video/lab4d/human-cap-3.mp4"
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[
+            "reference=video", f"reference.video={video}", "reference.masks=", "reference.camera=",
+            "reference.stride=3", "recon=body_video", "frames=3", f"cache_dir={tmp_path / 'cache'}"])
+    ctx = pipeline.RunContext(cfg=cfg, run_dir=tmp_path / "run", cache_root=tmp_path / "cache", logger=None)
+    with caplog.at_level("WARNING", logger="sync4d"):
+        reference, key = pipeline.stage_reference(ctx)
+    assert reference.num_frames == 3
+    assert (tmp_path / "cache" / "recon" / key / "arrays.npz").is_file()
+    assert any("recon pictures failed" in r.getMessage() for r in caplog.records)

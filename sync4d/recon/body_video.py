@@ -16,7 +16,8 @@ segments merged to ``bones`` bones, a capsule body, distance skinning, rigid per
 The camera: the video's own intrinsics if known, else a pinhole with ``fov_deg`` across the longer image
 side; the world frame is the camera's turned to y-up (x right, y up, z towards the camera) unless the
 reference gives a camera pose. Pictures of the fit over the frames (``recon/body_fit.png`` and ``.mp4``)
-go into the Hydra run folder when the stage runs (not when its cache is reused).
+go into the run folder when the stage runs (not when its cache is reused), drawn by :meth:`write_figures`
+after the pipeline has cached the reconstruction.
 """
 
 from __future__ import annotations
@@ -124,6 +125,7 @@ class BodyVideoReconstructor:
         cfg.validate()
         self.cfg = cfg
         self.device = device
+        self.pictures: FitPictures | None = None
 
     def fit(self, source: ReferenceInput) -> BodyVideoFit:
         """Detect and fit the subject in ``source.video`` (camera frame)."""
@@ -200,21 +202,28 @@ class BodyVideoReconstructor:
             reference.num_frames,
             fit.seconds,
         )
-        if self.cfg.figures:
-            self._write_figures(source.video, fit, reference, np.linalg.inv(cam_to_world))
+        self.pictures = FitPictures(source.video, fit, reference, np.linalg.inv(cam_to_world))
         return reference
 
-    def _write_figures(
-        self, clip: VideoClip, fit: BodyVideoFit, reference: Reference, world_to_cam: np.ndarray
-    ) -> None:
-        """Fit pictures into ``<run folder>/recon/`` when running under Hydra."""
-        from hydra.core.hydra_config import HydraConfig
-
-        if not HydraConfig.initialized():
-            return
-        folder = Path(HydraConfig.get().runtime.output_dir) / "recon"
-        paths = write_fit_pictures(folder, clip, fit, reference, world_to_cam)
+    def write_figures(self, folder: Path) -> list[Path]:
+        """Pictures of the last fit over its frames into ``folder`` (``body_fit.png``, ``.mp4``); the pipeline
+        calls this after the reconstruction is cached, so a failed picture never costs the fit."""
+        if not self.cfg.figures or self.pictures is None:
+            return []
+        pic = self.pictures
+        paths = write_fit_pictures(folder, pic.clip, pic.fit, pic.reference, pic.world_to_cam)
         log.info("body_video: pictures of the fit in %s", ", ".join(str(p) for p in paths))
+        return paths
+
+
+@dataclass(frozen=True)
+class FitPictures:
+    """What the pictures of a fit are drawn from: the clip, the fit, its reference and the camera pose."""
+
+    clip: VideoClip
+    fit: BodyVideoFit
+    reference: Reference
+    world_to_cam: np.ndarray
 
 
 def write_fit_pictures(
