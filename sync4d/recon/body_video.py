@@ -5,10 +5,10 @@ person (``subject: human``) or a four-legged animal (``subject: quadruped``).
   landmarks, metric 3D world landmarks and a person mask per frame; a 17-joint skeleton is fitted to
   them over the clip (:mod:`sync4d.recon.pose.human_fit`: reprojection, world pose, shared bone lengths,
   joint limits, smoothness).
-* quadruped: a template skeleton (the AI4Animation dog mocap's average pose, 13 bones by default) fitted
-  to the masks (input, or a static-camera background model) with a silhouette and limb-length prior,
-  several heading and leg-swap hypotheses chosen by the video's optical flow
-  (:mod:`sync4d.recon.pose.quadruped_fit`).
+* quadruped: a skinned body template (the glTF fox by default, :mod:`sync4d.recon.pose.templates`) fitted to
+  the masks (input, or a static-camera background model) by its soft mesh silhouette with bone length and
+  girth priors, seen by the clip's per-frame camera when it moves (``VideoClip.extrinsics``); several
+  heading and leg-swap hypotheses chosen by the video's optical flow (:mod:`sync4d.recon.pose.quadruped_fit`).
 
 The fitted joints then go through ``recon=mocap``'s builder (:meth:`MocapReconstructor.from_motion`):
 segments merged to ``bones`` bones, a capsule body, distance skinning, rigid per-bone motion.
@@ -51,7 +51,7 @@ class BodyVideoFit:
     """A skeleton fitted to a video.
 
     Attributes:
-        joints: (T, J, 3) joint positions in the camera frame (OpenCV axes) [m].
+        joints: (T, J, 3) joint positions in the (first frame's) camera frame (OpenCV axes) [m].
         names: (J,) joint names.
         parents: (J,) parent per joint, -1 for the root.
         camera: the camera used (given, or from the assumed field of view; world_to_cam = identity when
@@ -59,7 +59,8 @@ class BodyVideoFit:
         masks: (T, H, W) bool subject masks used or produced by the fit.
         landmarks_2d: (T, L, 2) detected image landmarks [px] (humans), or None.
         seconds: wall time of detection and fit [s].
-        radii: (J,) fitted capsule radius per segment end [m] (quadrupeds), or None.
+        silhouettes: (T, H, W) bool the fitted body seen by each frame's camera (quadrupeds), or None.
+        extrinsics: (T, 4, 4) world-to-camera per frame when the camera moves, else None.
     """
 
     joints: np.ndarray
@@ -69,7 +70,8 @@ class BodyVideoFit:
     masks: np.ndarray
     landmarks_2d: np.ndarray | None
     seconds: float
-    radii: np.ndarray | None = None
+    silhouettes: np.ndarray | None = None
+    extrinsics: np.ndarray | None = None
 
 
 def assumed_camera(width: int, height: int, fov_deg: float) -> Camera:
@@ -166,16 +168,16 @@ class BodyVideoReconstructor:
             world_up=source.world_up,
             frames=clip.frames,
             fps=float(source.fps or clip.fps),
+            extrinsics=clip.extrinsics,
         )
-        return BodyVideoFit(
-            qfit.joints, qfit.names, qfit.parents, camera, masks, None, time.perf_counter() - started, qfit.radii
-        )
+        return BodyVideoFit(qfit.joints, qfit.names, qfit.parents, camera, masks, None,
+                            time.perf_counter() - started, qfit.silhouettes, clip.extrinsics)
 
     def reconstruct(self, source: ReferenceInput) -> Reference:
         """The validated :class:`Reference` of the subject in ``source.video``."""
         fit = self.fit(source)
-        cam_to_world = np.linalg.inv(fit.camera.world_to_cam)
-        if source.camera is None:
+        cam_to_world = np.linalg.inv(fit.camera.world_to_cam if fit.extrinsics is None else fit.extrinsics[0])
+        if source.camera is None and fit.extrinsics is None:
             cam_to_world = CAM_TO_YUP
         homo = np.concatenate([fit.joints, np.ones(fit.joints.shape[:2] + (1,))], axis=-1)
         world = (homo @ cam_to_world.T)[..., :3]
@@ -243,13 +245,15 @@ def write_fit_pictures(
     labels = reference.part_labels()[pick]
     pictures = []
     for t in range(min(clip.num_frames, reference.num_frames)):
+        w2c = world_to_cam if fit.extrinsics is None else fit.extrinsics[t]  # a moving camera: frame t's
         posed = reference.posed_vertices(t, apply_global=True)[pick]
-        cam = posed @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+        cam = posed @ w2c[:3, :3].T + w2c[:3, 3]
+        first_to_t = w2c @ np.linalg.inv(world_to_cam)  # the fit's joints are in the first frame's camera frame
         pictures.append(
             draw_fit(
                 clip.frames[t],
                 K=fit.camera.K,
-                joints=fit.joints[t],
+                joints=fit.joints[t] @ first_to_t[:3, :3].T + first_to_t[:3, 3],
                 parents=fit.parents,
                 mask=fit.masks[t],
                 part_points=cam,
