@@ -115,3 +115,17 @@ def test_truncated_buffer_is_refused(tmp_path: Path, shared_data: Path) -> None:
     path.write_text(json.dumps(doc))
     with pytest.raises(InputError, match="short.gltf"):
         gltf.read_gltf(path)
+
+
+def test_gltf_reference_has_exact_bones(fox: gltf.SkinnedMesh) -> None:
+    """``reference=gltf``: the posed meshes are the file's own skinning, the Reference reproduces them exactly,
+    and ``recon=ground_truth`` hands that Reference on."""
+    from sync4d.registry import build
+
+    source = build("reference", {"type": "gltf", "animation": "Run", "fps": 10.0}).load()
+    truth = source.ground_truth
+    assert truth is not None and truth.num_frames == 11 and truth.num_bones == 22  # two empty root joints dropped
+    expected = gltf.skin_vertices(fox, gltf.joint_matrices(fox, fox.animation("Run"), 0.5)) * 0.01
+    assert np.allclose(source.mesh_sequence[5], expected, atol=1e-5)
+    assert np.allclose(truth.posed_vertices(5, apply_global=True), expected, atol=1e-5)
+    assert build("recon", {"type": "ground_truth"}).reconstruct(source).num_bones == 22

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from sync4d.errors import DataMissingError, InputError
+from sync4d.types import Reference
 
 COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
@@ -393,3 +394,39 @@ def vertex_colours(mesh: SkinnedMesh) -> np.ndarray | None:
     u = np.clip((mesh.uv[:, 0] % 1.0) * w, 0, w - 1).astype(int)
     v = np.clip((mesh.uv[:, 1] % 1.0) * h, 0, h - 1).astype(int)
     return mesh.texture[v, u].astype(np.float64) / 255.0
+
+
+def skinned_reference(mesh: SkinnedMesh, animation: GltfAnimation, fps: float, *, unit_scale: float = 1.0,
+                      frames: int = 0, name: str = "gltf") -> Reference:
+    """The exact articulated :class:`~sync4d.types.Reference` of a skinned mesh playing ``animation``: one bone
+    per skin joint that carries weight, the file's skinning weights, its joint matrices per frame as the bone
+    transforms (identity global transforms), bone Gaussians from each bone's weighted vertices.
+
+    Args:
+        mesh: the skinned mesh.
+        animation: the clip to play, sampled at ``fps`` from t = 0 over one loop (or ``frames`` frames).
+        fps: sampling rate [1/s].
+        unit_scale: metres per file unit.
+        frames: frames to sample; 0 = one loop (``floor(duration * fps)``, at least 1).
+        name: a label.
+    """
+    count = frames or max(1, int(np.floor(animation.duration * fps)))
+    weights = dense_weights(mesh)
+    used = np.flatnonzero(weights.sum(0) > 1e-6)
+    skin = weights[:, used] / weights[:, used].sum(1, keepdims=True)
+    rest = mesh.positions * unit_scale
+    mass = skin.sum(0)
+    centers = skin.T @ rest / mass[:, None]
+    diff = rest[None] - centers[:, None]  # (B, V, 3)
+    covs = np.einsum("vb,bvi,bvj->bij", skin, diff, diff) / mass[:, None, None] + 1e-8 * np.eye(3)
+    mats = np.stack([joint_matrices(mesh, animation, t / fps)[used] for t in range(count)])
+    mats[..., :3, 3] *= unit_scale
+    index = {int(j): b for b, j in enumerate(used)}
+    skin_parents = mesh.joint_parents[used]
+    parents = np.array([index.get(int(p), -1) for p in skin_parents], dtype=np.int64)
+    return Reference(
+        rest_vertices=rest, rest_faces=mesh.faces.copy(), bone_centers=centers, bone_covariances=covs, skinning=skin,
+        bone_transforms=mats, global_transforms=np.tile(np.eye(4), (count, 1, 1)), fps=float(fps),
+        vertex_colors=vertex_colours(mesh), bone_names=tuple(mesh.joint_names[j] for j in used), name=name,
+        bone_parents=parents,
+    ).validate()
