@@ -137,7 +137,7 @@ def floor_joints(source: ReferenceInput, names: list[str]) -> np.ndarray:
     rest = tmpl.joints[ids] * cfg.template_length @ Rotation.from_rotvec(rot).as_matrix().T
     out = []
     for t, mask in enumerate(source.video.masks):
-        root = qf.initial_root(mask, source.camera, cfg.template_length)
+        root = qf.initial_root(mask, source.camera, cfg.template_length, cfg.template_length * float(np.ptp(tmpl.vertices[:, 1])))
         ext = source.video.extrinsics
         to_first = np.eye(4) if ext is None else ext[0] @ np.linalg.inv(ext[t])  # frame t camera -> first
         out.append((rest + root) @ to_first[:3, :3].T + to_first[:3, 3])

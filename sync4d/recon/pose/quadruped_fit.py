@@ -67,8 +67,8 @@ class QuadrupedFitConfig:
     template: str = "fox"
     template_length: float = 0.9
     starts: int = 8
-    tracks: int = 3
-    grid: int = 48
+    tracks: int = 2
+    grid: int = 40
     start_iterations: int = 120
     frame_iterations: int = 40
     iterations: int = 100
@@ -448,12 +448,13 @@ RIGID = ("root_rot", "root_pos", "log_scale", "log_thick")
 CLIP = ("log_len", "log_girth", "log_scale", "log_thick")
 
 
-def initial_root(mask: np.ndarray, camera: Camera, length: float) -> np.ndarray:
-    """(3,) camera-frame root guess: the mask centroid back-projected at the depth its extent implies."""
+def initial_root(mask: np.ndarray, camera: Camera, length: float, height: float) -> np.ndarray:
+    """(3,) camera-frame root guess: the mask centroid back-projected at the depth where a body ``height`` [m]
+    tall spans the mask's vertical extent (the height, unlike the length, does not depend on the heading)."""
     ys, xs = np.nonzero(mask)
-    extent_px = max(xs.max() - xs.min(), ys.max() - ys.min(), 4)
+    height_px = max(ys.max() - ys.min() + 1, 4)
     K = camera.K
-    z = K[0, 0] * length / extent_px
+    z = K[1, 1] * height / height_px
     return np.array([(xs.mean() - K[0, 2]) / K[0, 0] * z, (ys.mean() - K[1, 2]) / K[1, 1] * z, z])
 
 
@@ -491,7 +492,8 @@ def frame_params(params: Params, t: int) -> Params:
 def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, cfg: QuadrupedFitConfig
                        ) -> list[tuple[float, int, Params]]:
     """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints)."""
-    root0 = initial_root(mask, prob.camera, cfg.template_length)
+    tmpl = prob.tt.template
+    root0 = initial_root(mask, prob.camera, cfg.template_length, cfg.template_length * float(np.ptp(tmpl.vertices[:, 1])))
     starts = []
     for k in range(cfg.starts):
         params = start_params(prob, heading_rotation(up_cam, 2 * math.pi * k / cfg.starts), root0,
