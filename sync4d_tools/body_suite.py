@@ -1,18 +1,21 @@
 """The ``recon_joints`` suite: render every clip/view with truth, fit it with one configuration, tabulate.
 
-    python -m sync4d_tools.body_suite --out outputs/body_suite [--only cmu,deepmimic,dog]
+    python -m sync4d_tools.body_suite --out outputs/body_suite [--only cmu,deepmimic,dog,shiba,fox_walk,fox_walk_orbit]
 
 Humans are scored twice: with the renders' camera (``--camera``) and with the camera unknown (the fit's
-assumed field of view); quadrupeds with the camera known (their fit needs a static camera): the dog trot (the template's own
-capsules) and the Lab4D shiba-haru-1002 export (a real dog's shape and motion, :mod:`sync4d_tools.shiba_clip`;
-the ``export`` view is its own handheld camera, written as a static camera and a moving dog). Prints a
-Markdown table and writes ``suite.json``; every clip is reported, failures included.
+assumed field of view), through ``recon_joints``. Quadrupeds are fitted with their true masks and true camera
+(per frame when it moves: :func:`load_quadruped_clip` hands ``VideoClip.extrinsics`` to the fit) and scored
+here (:func:`score_quadruped`), the floor beside (:func:`floor_joints`: the template's rest pose at each
+mask's centroid): the dog trot (capsules around the AI4Animation trot), the Lab4D shiba-haru-1002 export
+(:mod:`sync4d_tools.shiba_clip`; ``export`` is its handheld camera turned into object motion) and the glTF
+fox's own clips (:mod:`sync4d_tools.fox_clip`; ``orbit`` is a moving camera). Prints a Markdown table and
+writes ``suite.json``; every clip is reported, failures included.
 
 ``--split`` (quadruped clips already in ``--out``) splits each clip's error instead of fitting from scratch:
 ``A1`` the template's joints fitted to the truth joints directly (forward kinematics, per-frame pose, lengths
 and scale free, no priors: the floor of the joint definitions), ``A2`` the same under the fit's priors (limb
-lengths, joint limits: the floor of the template's proportions), ``B`` the silhouette clip fit started at A2
-(thickness first, then the clip schedule: where the objective's minimum lies). The defaults' own row (the
+lengths, girths, joint limits: the ceiling of the template), ``B`` the silhouette clip fit started at A2
+(girth first, then the clip schedule: where the objective's minimum lies). The defaults' own row (the
 search from scratch) minus B is the search's share, B minus A2 the objective's and body shape's.
 """
 

@@ -528,3 +528,44 @@ def test_reconstruction_is_cached_before_its_pictures(tmp_path: Path, shared_dat
     assert reference.num_frames == 3
     assert (tmp_path / "cache" / "recon" / key / "arrays.npz").is_file()
     assert any("recon pictures failed" in r.getMessage() for r in caplog.records)
+
+
+def test_body_video_quadruped_takes_masks_and_a_moving_camera(tmp_path: Path, shared_data: Path) -> None:
+    """``recon=body_video_dog`` on a clip with masks and per-frame extrinsics (``VideoClip.extrinsics``): the
+    fit sees each frame through its own camera, the Reference lives in the extrinsics' world, and the pictures
+    draw the joints where the mask is."""
+    from sync4d.recon.body_video import BodyVideoReconstructor
+    from sync4d.recon.pose.quadruped_fit import QuadrupedFitConfig
+    from sync4d.types import Camera, ReferenceInput, VideoClip
+
+    _, joints, camera, masks, extrinsics = _template_clip(frames=3, moving=True)
+    world_to_cam = extrinsics @ np.linalg.inv(extrinsics[0])  # the first camera's frame is the world here
+    frames = np.where(masks[..., None], 200, 60).astype(np.uint8).repeat(3, -1)
+    clip = VideoClip(frames, masks, 10.0, camera.K, world_to_cam, "moving").validate()
+    cam0 = Camera(K=camera.K, world_to_cam=world_to_cam[0], width=240, height=160)
+    source = ReferenceInput(name="moving", fps=10.0, video=clip, camera=cam0, world_up=np.array([0.0, -1.0, 0.0]))
+    quick = QuadrupedFitConfig(starts=2, tracks=1, grid=16, start_iterations=10, frame_iterations=5, iterations=5,
+                               swap_iterations=5)
+    recon = BodyVideoReconstructor(BodyVideoReconstructor.Config(subject="quadruped", quadruped=quick))
+    reference = recon.reconstruct(source).validate()
+    assert reference.num_bones == 13 and reference.num_frames == 3
+    fit = recon.pictures.fit
+    assert fit.extrinsics is not None and fit.silhouettes.shape == masks.shape and np.isfinite(fit.joints).all()
+    assert len(recon.write_figures(tmp_path)) == 2
+
+
+def test_quadruped_fit_refuses_bad_masks_and_extrinsics() -> None:
+    from sync4d.recon.pose.quadruped_fit import check_masks
+
+    masks = np.zeros((3, 8, 8), bool)
+    masks[:, 2:5, 2:5] = True
+    check_masks(masks, "clip.mp4", None)
+    with pytest.raises(InputError, match=r"clip\.mp4: the camera extrinsics must be finite \(T, 4, 4\)"):
+        check_masks(masks, "clip.mp4", np.eye(4)[None].repeat(2, 0))
+    bad = np.eye(4)[None].repeat(3, 0)
+    bad[1, 0, 0] = np.nan
+    with pytest.raises(InputError, match="extrinsics"):
+        check_masks(masks, "clip.mp4", bad)
+    masks[1] = False
+    with pytest.raises(InputError, match=r"empty in 1 frame\(s\) \(first: 1\)"):
+        check_masks(masks, "clip.mp4", None)
