@@ -175,7 +175,7 @@ DOG_TRUTH = (
 def load_dog(frames: int, stride: int) -> tuple[dict[str, np.ndarray], float]:
     """Named joint tracks of the AI4Animation dog trot (CC BY-NC 4.0; 60 fps), template joint names."""
     from sync4d.io.mocap import read_joint_positions
-    from sync4d.recon.pose.quadruped_fit import DOG_NAMES
+    from sync4d.recon.pose.dog import DOG_NAMES
 
     pos = read_joint_positions(DATA / "dog_mocap" / "dog_trot_joint_pos.txt")[::stride][:frames]
     return {n: pos[:, j] for j, n in enumerate(DOG_NAMES)}, 60.0 / stride
@@ -183,7 +183,7 @@ def load_dog(frames: int, stride: int) -> tuple[dict[str, np.ndarray], float]:
 
 def dog_capsules(tracks: dict[str, np.ndarray]) -> tuple[Capsule, ...]:
     """The template's own capsules (radii as in the quadruped fit), one brown body with darker paws."""
-    from sync4d.recon.pose.quadruped_fit import DOG_NAMES, DOG_PARENTS, DOG_RADII
+    from sync4d.recon.pose.dog import DOG_NAMES, DOG_PARENTS, DOG_RADII
 
     length = float(np.linalg.norm(tracks["head"][0] - tracks["tail_base"][0]))
     fur, paw = (0.62, 0.42, 0.24), (0.25, 0.17, 0.1)

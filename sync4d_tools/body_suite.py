@@ -1,18 +1,21 @@
 """The ``recon_joints`` suite: render every clip/view with truth, fit it with one configuration, tabulate.
 
-    python -m sync4d_tools.body_suite --out outputs/body_suite [--only cmu,deepmimic,dog]
+    python -m sync4d_tools.body_suite --out outputs/body_suite [--only cmu,deepmimic,dog,shiba,fox_walk,fox_walk_orbit]
 
 Humans are scored twice: with the renders' camera (``--camera``) and with the camera unknown (the fit's
-assumed field of view); quadrupeds with the camera known (their fit needs a static camera): the dog trot (the template's own
-capsules) and the Lab4D shiba-haru-1002 export (a real dog's shape and motion, :mod:`sync4d_tools.shiba_clip`;
-the ``export`` view is its own handheld camera, written as a static camera and a moving dog). Prints a
-Markdown table and writes ``suite.json``; every clip is reported, failures included.
+assumed field of view), through ``recon_joints``. Quadrupeds are fitted with their true masks and true camera
+(per frame when it moves: :func:`load_quadruped_clip` hands ``VideoClip.extrinsics`` to the fit) and scored
+here (:func:`score_quadruped`), the floor beside (:func:`floor_joints`: the template's rest pose at each
+mask's centroid): the dog trot (capsules around the AI4Animation trot), the Lab4D shiba-haru-1002 export
+(:mod:`sync4d_tools.shiba_clip`; ``export`` is its handheld camera turned into object motion) and the glTF
+fox's own clips (:mod:`sync4d_tools.fox_clip`; ``orbit`` is a moving camera). Prints a Markdown table and
+writes ``suite.json``; every clip is reported, failures included.
 
 ``--split`` (quadruped clips already in ``--out``) splits each clip's error instead of fitting from scratch:
 ``A1`` the template's joints fitted to the truth joints directly (forward kinematics, per-frame pose, lengths
 and scale free, no priors: the floor of the joint definitions), ``A2`` the same under the fit's priors (limb
-lengths, joint limits: the floor of the template's proportions), ``B`` the silhouette clip fit started at A2
-(thickness first, then the clip schedule: where the objective's minimum lies). The defaults' own row (the
+lengths, girths, joint limits: the ceiling of the template), ``B`` the silhouette clip fit started at A2
+(girth first, then the clip schedule: where the objective's minimum lies). The defaults' own row (the
 search from scratch) minus B is the search's share, B minus A2 the objective's and body shape's.
 """
 
@@ -22,12 +25,16 @@ import argparse
 import contextlib
 import io
 import json
+import time
 from pathlib import Path
 
 import numpy as np
 
+from sync4d.types import Camera, ReferenceInput, VideoClip
 from sync4d_tools.body_clips import write_clip
+from sync4d_tools.evaluate.recon_joints import joint_errors, mask_iou
 from sync4d_tools.evaluate.recon_joints import main as recon_joints
+from sync4d_tools.fox_clip import write_clip as write_fox
 from sync4d_tools.shiba_clip import write_clip as write_shiba
 
 CLIPS = (
@@ -44,31 +51,40 @@ CLIPS = (
     ("shiba", "oblique", 21, 1),
     ("shiba", "front", 21, 1),
     ("shiba", "export", 21, 1),
+    ("fox_walk", "side", 0, 1),
+    ("fox_walk", "front", 0, 1),
+    ("fox_walk", "orbit", 0, 1),
+    ("fox_run", "oblique", 0, 1),
+    ("fox_run", "orbit", 0, 1),
+    ("fox_survey", "oblique", 0, 1),
 )
-QUADRUPEDS = ("dog", "shiba")
+QUADRUPEDS = ("dog", "shiba", "fox_walk", "fox_run", "fox_survey")
+
+
+def render_clip(folder: Path, clip: str, view: str, frames: int, stride: int) -> None:
+    """Render a clip into ``folder`` unless it is there already."""
+    if (folder / "gt.npz").is_file():
+        return
+    if clip == "shiba":
+        write_shiba(folder, view)
+    elif clip.startswith("fox_"):
+        write_fox(folder, clip[4:].capitalize(), view)
+    else:
+        human = clip not in QUADRUPEDS
+        width, height = (320, 480) if human else (480, 320)
+        write_clip(folder, clip, view, frames=frames, stride=stride, width=width, height=height, fov_deg=50.0)
 
 
 def run_clip(out: Path, clip: str, view: str, frames: int, stride: int) -> list[dict]:
-    """Render (if absent) and score one clip; one row per camera setting."""
+    """Render (if absent) and score one clip; one row per camera setting (humans: known and assumed)."""
     folder = out / f"{clip}_{view}"
-    human = clip not in QUADRUPEDS
-    size = (320, 480) if human else (480, 320)
-    if not (folder / "gt.npz").is_file() and clip == "shiba":
-        write_shiba(folder, view)
-    elif not (folder / "gt.npz").is_file():
-        write_clip(folder, clip, view, frames=frames, stride=stride, width=size[0], height=size[1], fov_deg=50.0)
+    render_clip(folder, clip, view, frames, stride)
+    if clip in QUADRUPEDS:
+        return [{"clip": clip, "view": view, "camera": "known", **score_quadruped(folder)}]
     rows = []
-    for camera in [True, False] if human else [True]:
-        args = [
-            "--video",
-            str(folder / "rgb.mp4"),
-            "--masks",
-            str(folder / "masks"),
-            "--gt",
-            str(folder / "gt.npz"),
-            "--subject",
-            "human" if human else "quadruped",
-        ]
+    for camera in [True, False]:
+        args = ["--video", str(folder / "rgb.mp4"), "--masks", str(folder / "masks"), "--gt", str(folder / "gt.npz"),
+                "--subject", "human"]
         if camera:
             args += ["--camera", str(folder / "camera.npz")]
         with contextlib.redirect_stdout(io.StringIO()):
@@ -77,11 +93,122 @@ def run_clip(out: Path, clip: str, view: str, frames: int, stride: int) -> list[
     return rows
 
 
-def _truth_start(prob, truth_cam: np.ndarray, names: list[str], up_cam: np.ndarray) -> dict:
-    """Fit parameters whose root follows the truth (pelvis position, heading from pelvis to neck, up)."""
-    import math
+def load_quadruped_clip(folder: Path) -> tuple[ReferenceInput, np.ndarray, list[str], np.ndarray]:
+    """A rendered quadruped clip with its true masks and camera (per frame when it moves): the fit's input, the
+    truth joints (T, J, 3) [m, world], their names and the (T, 4, 4) world-to-camera matrices."""
+    from sync4d.io.video import read_video_clip
+    from sync4d.sources.references import load_camera
 
+    clip = read_video_clip(folder / "rgb.mp4", folder / "masks")
+    h, w = clip.frames.shape[1:3]
+    cam = np.load(folder / "camera.npz")
+    moving = "world_to_cam" in cam and cam["world_to_cam"].ndim == 3
+    if moving:
+        w2c = cam["world_to_cam"].astype(np.float64)
+        camera = Camera(K=cam["K"].astype(np.float64), world_to_cam=w2c[0], width=w, height=h).validate()
+    else:
+        camera = load_camera(folder / "camera.npz", w, h)
+        w2c = np.repeat(camera.world_to_cam[None], clip.num_frames, 0)
+    clip = VideoClip(clip.frames, clip.masks, clip.fps, camera.K, w2c if moving else None, str(folder)).validate()
+    gt = np.load(folder / "gt.npz")
+    source = ReferenceInput(name=folder.name, fps=clip.fps, video=clip, camera=camera,
+                            world_up=np.array([0.0, 1.0, 0.0]))
+    return source, np.asarray(gt["joints"], dtype=np.float64), [str(n) for n in gt["names"]], w2c
+
+
+def joint_score(pred_world: np.ndarray, truth: np.ndarray) -> dict:
+    """mpjpe in % of the height and pck10 after one similarity for the clip (``recon_joints``' metric)."""
+    height = float((truth[..., 1].max(1) - truth[..., 1].min(1)).max())
+    err = joint_errors(pred_world, truth)
+    return {"mpjpe_pct_height": round(100.0 * float(err.mean()) / height, 3),
+            "pck10": round(float((err < 0.1 * height).mean()), 4), "height_m": round(height, 4)}
+
+
+def floor_joints(source: ReferenceInput, names: list[str]) -> np.ndarray:
+    """The do-nothing baseline (T, J, 3) [m, world]: the template's rest pose, heading 0, placed in every frame at
+    its mask's centroid at the depth the mask's extent implies (first camera frame), then to the world."""
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d.recon.pose.templates import body_template
+
+    cfg = qf.QuadrupedFitConfig()
+    tmpl = body_template(cfg.template)
+    ids = [tmpl.names.index(dict(tmpl.vocabulary)[n]) for n in names]
+    w2c0 = source.camera.world_to_cam
+    rot = qf.heading_rotation(w2c0[:3, :3] @ source.world_up, 0.0)
+    from scipy.spatial.transform import Rotation
+
+    rest = tmpl.joints[ids] * cfg.template_length @ Rotation.from_rotvec(rot).as_matrix().T
+    out = []
+    for t, mask in enumerate(source.video.masks):
+        root = qf.initial_root(mask, source.camera, cfg.template_length, cfg.template_length * float(np.ptp(tmpl.vertices[:, 1])))
+        ext = source.video.extrinsics
+        to_first = np.eye(4) if ext is None else ext[0] @ np.linalg.inv(ext[t])  # frame t camera -> first
+        out.append((rest + root) @ to_first[:3, :3].T + to_first[:3, 3])
+    return first_camera_to_world(np.stack(out), w2c0)
+
+
+def first_camera_to_world(points: np.ndarray, w2c0: np.ndarray) -> np.ndarray:
+    c2w = np.linalg.inv(w2c0)
+    return points @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def score_quadruped(folder: Path) -> dict:
+    """Fit one rendered quadruped clip with the defaults (true masks and camera) and score it, the floor beside."""
+    from sync4d.recon.body_video import BodyVideoReconstructor
+
+    source, truth, names, _ = load_quadruped_clip(folder)
+    start, cpu = time.perf_counter(), time.process_time()
+    recon = BodyVideoReconstructor(BodyVideoReconstructor.Config(subject="quadruped", figures=False))
+    fit = recon.fit(source)
+    cpu_s = time.process_time() - cpu
+    mapping = dict(recon_template_vocabulary())
+    pred = first_camera_to_world(fit.joints[:, [fit.names.index(mapping[n]) for n in names]],
+                                 source.camera.world_to_cam)
+    row = joint_score(pred, truth[: len(pred)])
+    floor = joint_score(floor_joints(source, names), truth)
+    return {**row, "floor_mpjpe_pct_height": floor["mpjpe_pct_height"], "floor_pck10": floor["pck10"],
+            "mask_iou": round(mask_iou(fit.silhouettes, source.video.masks), 4), "frames": len(pred),
+            "moving_camera": source.video.extrinsics is not None, "seconds": round(time.perf_counter() - start, 2),
+            "cpu_seconds": round(cpu_s, 2), "cpu_seconds_per_frame": round(cpu_s / len(pred), 2)}
+
+
+def recon_template_vocabulary() -> tuple[tuple[str, str], ...]:
+    from sync4d.recon.pose.quadruped_fit import QuadrupedFitConfig
+    from sync4d.recon.pose.templates import body_template
+
+    return body_template(QuadrupedFitConfig().template).vocabulary
+
+
+def split_clip(folder: Path) -> dict:
+    """The A1 / A2 / B split of one quadruped clip (see the module docstring); mpjpe in % of the height."""
     import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    source, truth, names, w2c = load_quadruped_clip(folder)
+    truth_cam = np.einsum("ij,tkj->tki", w2c[0][:3, :3], truth) + w2c[0][:3, 3]  # the first camera's frame
+    cfg = qf.QuadrupedFitConfig()
+    prob = qf.QuadrupedProblem(source.video.masks, source.camera, cfg, frames=source.video.frames,
+                               extrinsics=source.video.extrinsics, fps=source.fps)
+    tmpl = prob.tt.template
+    ids = [tmpl.names.index(dict(tmpl.vocabulary)[n]) for n in names]
+    frames, up_cam = np.arange(len(truth)), w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
+    row: dict = {"clip": folder.name}
+    for key, priors in (("A1", False), ("A2", True)):
+        params = truth_start(prob, truth_cam, names, up_cam)
+        fit_to_truth(prob, params, torch.tensor(truth_cam, dtype=qf.DTYPE), ids, cfg, priors)
+        joints = qf.pose_body(prob.tt, params)[0].detach().numpy().astype(np.float64)
+        row[key] = joint_score(first_camera_to_world(joints[:, ids], w2c[0]), truth)["mpjpe_pct_height"]
+    qf.run_steps(prob, frames, params, cfg, 60, free=("log_thick", "log_girth"))
+    row["A2_loss"] = round(qf.run_steps(prob, frames, params, cfg, 0)[0], 4)
+    loss, joints, iou = qf.run_steps(prob, frames, params, cfg, cfg.iterations + cfg.swap_iterations)
+    row["B"] = joint_score(first_camera_to_world(joints[:, ids], w2c[0]), truth)["mpjpe_pct_height"]
+    row["B_loss"], row["B_iou"] = round(loss, 4), round(float(iou.mean()), 3)
+    return row
+
+
+def truth_start(prob, truth_cam: np.ndarray, names: list[str], up_cam: np.ndarray) -> dict:
+    """Fit parameters whose root follows the truth (pelvis position, heading from pelvis to neck, up)."""
     from scipy.spatial.transform import Rotation
 
     from sync4d.recon.pose import quadruped_fit as qf
@@ -93,32 +220,29 @@ def _truth_start(prob, truth_cam: np.ndarray, names: list[str], up_cam: np.ndarr
         fwd, up = fwd / np.linalg.norm(fwd), up / np.linalg.norm(up)
         rots.append(Rotation.from_matrix(np.stack([-fwd, up, np.cross(-fwd, up)], 1)).as_rotvec())
     length = float(np.linalg.norm(g["head"] - g["tail_base"], axis=-1).mean())
-    n, nj = len(truth_cam), len(qf.DOG_PARENTS)
-
-    def leaf(x):
-        return torch.tensor(np.asarray(x), dtype=qf.DTYPE).requires_grad_(True)
-
-    return {
-        "root_rot": leaf(np.array(rots)),
-        "root_pos": leaf(g["pelvis"]),
-        "local": leaf(np.zeros((n, nj, 3))),
-        "log_len": leaf(np.zeros(nj)),
-        "log_scale": leaf(math.log(length)),
-        "log_thick": leaf(0.0),
-    }
+    params = qf.start_params(prob, rots[0], g["pelvis"][0], length, frames=len(truth_cam))
+    with torch_no_grad():
+        params["root_rot"].copy_(qf.torch.tensor(np.array(rots), dtype=qf.DTYPE))
+        params["root_pos"].copy_(qf.torch.tensor(g["pelvis"], dtype=qf.DTYPE))
+    return params
 
 
-def _fit_to_truth(prob, params: dict, truth_cam: np.ndarray, ids: list[int], cfg, priors: bool, steps: int = 1500):
-    """Adam on the template's joints ``ids`` against the truth (camera frame), with or without the fit's priors."""
+def torch_no_grad():
+    import torch
+
+    return torch.no_grad()
+
+
+def fit_to_truth(prob, params: dict, target, ids: list[int], cfg, priors: bool, steps: int = 1500) -> None:
+    """Adam on the template's joints ``ids`` against the truth (first camera frame), with or without the priors."""
     import torch
 
     from sync4d.recon.pose import quadruped_fit as qf
 
-    target = torch.tensor(truth_cam, dtype=qf.DTYPE)
-    opt = torch.optim.Adam([v for k, v in params.items() if k != "log_thick"], lr=0.02)
+    opt = torch.optim.Adam([v for k, v in params.items() if k not in ("log_thick", "log_girth")], lr=0.02)
     for _ in range(steps):
         opt.zero_grad()
-        joints = qf._joints(prob, params)
+        joints, _ = qf.pose_body(prob.tt, params)
         loss = 100 * ((joints[:, ids] - target) / params["log_scale"].exp()).pow(2).sum(-1).mean()
         if priors:
             lengths, limit = qf.shape_priors(prob, params, cfg)
@@ -127,63 +251,32 @@ def _fit_to_truth(prob, params: dict, truth_cam: np.ndarray, ids: list[int], cfg
         opt.step()
 
 
-def split_clip(folder: Path) -> dict:
-    """The A1 / A2 / B split of one quadruped clip (see the module docstring); mpjpe in % of the height."""
-    from sync4d.recon.pose import quadruped_fit as qf
-    from sync4d.sources.references import VideoSource
-    from sync4d_tools.evaluate.recon_joints import joint_errors, quadruped_map
-
-    src = VideoSource(
-        VideoSource.Config(video=str(folder / "rgb.mp4"), masks=str(folder / "masks"), camera=str(folder / "camera.npz"))
-    ).load()
-    gt = np.load(folder / "gt.npz")
-    names, truth = [str(n) for n in gt["names"]], np.asarray(gt["joints"], dtype=np.float64)
-    w2c = src.camera.world_to_cam
-    truth_cam = truth @ w2c[:3, :3].T + w2c[:3, 3]
-    ids = [qf.DOG_NAMES.index(quadruped_map()[n]) for n in names]
-    height = float((truth[..., 1].max(1) - truth[..., 1].min(1)).max())
-    cfg = qf.QuadrupedFitConfig()
-    prob = qf._Problem(src.video.masks, src.camera, cfg, src.video.frames)
-    prob.rate = src.fps / qf.SMOOTH_FPS
-    frames, up_cam = np.arange(len(truth)), w2c[:3, :3] @ np.array([0.0, 1.0, 0.0])
-    row = {"clip": folder.name}
-    for key, priors in (("A1", False), ("A2", True)):
-        params = _truth_start(prob, truth_cam, names, up_cam)
-        _fit_to_truth(prob, params, truth_cam, ids, cfg, priors)
-        _, joints, _ = qf._run(prob, frames, params, cfg, 0)
-        row[key] = round(100 * float(joint_errors(joints[:, ids], truth).mean()) / height, 2)
-    qf._run(prob, frames, params, cfg, 60, free=("log_thick",))
-    row["A2_loss"] = round(qf._run(prob, frames, params, cfg, 0)[0], 4)
-    loss, joints, iou = qf._run(prob, frames, params, cfg, cfg.iterations + cfg.swap_iterations)
-    row["B"] = round(100 * float(joint_errors(joints[:, ids], truth).mean()) / height, 2)
-    row["B_loss"], row["B_iou"] = round(loss, 4), round(float(iou.mean()), 3)
-    return row
-
-
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="outputs/body_suite")
-    parser.add_argument("--only", default="", help="comma-separated clip names (cmu, deepmimic, dog, shiba)")
+    parser.add_argument("--only", default="", help="comma-separated clip names (cmu, deepmimic, dog, shiba, fox_walk, "
+                        "fox_run, fox_survey) or clip_view names (fox_walk_orbit)")
     parser.add_argument("--split", action="store_true", help="split the quadruped clips' error (module docstring)")
     args = parser.parse_args(argv)
     out = Path(args.out)
     keep = set(args.only.split(",")) if args.only else None
     if args.split:
-        rows = [
-            split_clip(out / f"{c}_{v}") for c, v, _, _ in CLIPS if c in QUADRUPEDS and (keep is None or c in keep)
-        ]
+        rows = [split_clip(out / f"{c}_{v}") for c, v, _, _ in CLIPS
+                if c in QUADRUPEDS and (keep is None or c in keep or f"{c}_{v}" in keep)]
         print(json.dumps(rows, indent=1))
         (out / "split.json").write_text(json.dumps(rows, indent=1))
         return {"rows": rows}
     rows = []
     for clip, view, frames, stride in CLIPS:
-        if keep is None or clip in keep:
+        if keep is None or clip in keep or f"{clip}_{view}" in keep:
             rows += run_clip(out, clip, view, frames, stride)
-    print("| clip | view | camera | mpjpe % height | pck10 | mask IoU | frames | CPU s |")
-    print("|---|---|---|---|---|---|---|---|")
+            print(json.dumps(rows[-1]), flush=True)
+    print("| clip | view | camera | mpjpe % height | pck10 | floor mpjpe % (pck10) | mask IoU | frames | CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        floor = f"{r['floor_mpjpe_pct_height']:.2f} ({r['floor_pck10']:.3f})" if "floor_pck10" in r else "-"
         print(
-            f"| {r['clip']} | {r['view']} | {r['camera']} | {r['mpjpe_pct_height']:.2f} | {r['pck10']:.3f} | "
+            f"| {r['clip']} | {r['view']} | {r['camera']} | {r['mpjpe_pct_height']:.2f} | {r['pck10']:.3f} | {floor} | "
             f"{r['mask_iou']:.3f} | {r['frames']} | {r['cpu_seconds']:.0f} |"
         )
     out.mkdir(parents=True, exist_ok=True)

@@ -67,7 +67,7 @@ class Subject:
 
 def laptop_subject() -> Subject:
     """The default scene's laptop (one open-close cycle in ``FRAMES`` frames), textured as the default film."""
-    from sync4d.render_outputs import reference_gaussians
+    from sync4d.render.reference import reference_gaussians
     from sync4d.scenes.laptop import hinge_angles_rad, laptop_reference
     from sync4d.scenes.reference_video import FilmSettings, textured
 

@@ -5,10 +5,10 @@ person (``subject: human``) or a four-legged animal (``subject: quadruped``).
   landmarks, metric 3D world landmarks and a person mask per frame; a 17-joint skeleton is fitted to
   them over the clip (:mod:`sync4d.recon.pose.human_fit`: reprojection, world pose, shared bone lengths,
   joint limits, smoothness).
-* quadruped: a template skeleton (the AI4Animation dog mocap's average pose, 13 bones by default) fitted
-  to the masks (input, or a static-camera background model) with a silhouette and limb-length prior,
-  several heading and leg-swap hypotheses chosen by the video's optical flow
-  (:mod:`sync4d.recon.pose.quadruped_fit`).
+* quadruped: a skinned body template (the glTF fox by default, :mod:`sync4d.recon.pose.templates`) fitted to
+  the masks (input, or a static-camera background model) by its soft mesh silhouette with bone length and
+  girth priors, seen by the clip's per-frame camera when it moves (``VideoClip.extrinsics``); several
+  heading and leg-swap hypotheses chosen by the video's optical flow (:mod:`sync4d.recon.pose.quadruped_fit`).
 
 The fitted joints then go through ``recon=mocap``'s builder (:meth:`MocapReconstructor.from_motion`):
 segments merged to ``bones`` bones, a capsule body, distance skinning, rigid per-bone motion.
@@ -16,7 +16,8 @@ segments merged to ``bones`` bones, a capsule body, distance skinning, rigid per
 The camera: the video's own intrinsics if known, else a pinhole with ``fov_deg`` across the longer image
 side; the world frame is the camera's turned to y-up (x right, y up, z towards the camera) unless the
 reference gives a camera pose. Pictures of the fit over the frames (``recon/body_fit.png`` and ``.mp4``)
-go into the Hydra run folder when the stage runs (not when its cache is reused).
+go into the run folder when the stage runs (not when its cache is reused), drawn by :meth:`write_figures`
+after the pipeline has cached the reconstruction.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ class BodyVideoFit:
     """A skeleton fitted to a video.
 
     Attributes:
-        joints: (T, J, 3) joint positions in the camera frame (OpenCV axes) [m].
+        joints: (T, J, 3) joint positions in the (first frame's) camera frame (OpenCV axes) [m].
         names: (J,) joint names.
         parents: (J,) parent per joint, -1 for the root.
         camera: the camera used (given, or from the assumed field of view; world_to_cam = identity when
@@ -58,7 +59,8 @@ class BodyVideoFit:
         masks: (T, H, W) bool subject masks used or produced by the fit.
         landmarks_2d: (T, L, 2) detected image landmarks [px] (humans), or None.
         seconds: wall time of detection and fit [s].
-        radii: (J,) fitted capsule radius per segment end [m] (quadrupeds), or None.
+        silhouettes: (T, H, W) bool the fitted body seen by each frame's camera (quadrupeds), or None.
+        extrinsics: (T, 4, 4) world-to-camera per frame when the camera moves, else None.
     """
 
     joints: np.ndarray
@@ -68,7 +70,8 @@ class BodyVideoFit:
     masks: np.ndarray
     landmarks_2d: np.ndarray | None
     seconds: float
-    radii: np.ndarray | None = None
+    silhouettes: np.ndarray | None = None
+    extrinsics: np.ndarray | None = None
 
 
 def assumed_camera(width: int, height: int, fov_deg: float) -> Camera:
@@ -124,6 +127,7 @@ class BodyVideoReconstructor:
         cfg.validate()
         self.cfg = cfg
         self.device = device
+        self.pictures: FitPictures | None = None
 
     def fit(self, source: ReferenceInput) -> BodyVideoFit:
         """Detect and fit the subject in ``source.video`` (camera frame)."""
@@ -164,16 +168,16 @@ class BodyVideoReconstructor:
             world_up=source.world_up,
             frames=clip.frames,
             fps=float(source.fps or clip.fps),
+            extrinsics=clip.extrinsics,
         )
-        return BodyVideoFit(
-            qfit.joints, qfit.names, qfit.parents, camera, masks, None, time.perf_counter() - started, qfit.radii
-        )
+        return BodyVideoFit(qfit.joints, qfit.names, qfit.parents, camera, masks, None,
+                            time.perf_counter() - started, qfit.silhouettes, clip.extrinsics)
 
     def reconstruct(self, source: ReferenceInput) -> Reference:
         """The validated :class:`Reference` of the subject in ``source.video``."""
         fit = self.fit(source)
-        cam_to_world = np.linalg.inv(fit.camera.world_to_cam)
-        if source.camera is None:
+        cam_to_world = np.linalg.inv(fit.camera.world_to_cam if fit.extrinsics is None else fit.extrinsics[0])
+        if source.camera is None and fit.extrinsics is None:
             cam_to_world = CAM_TO_YUP
         homo = np.concatenate([fit.joints, np.ones(fit.joints.shape[:2] + (1,))], axis=-1)
         world = (homo @ cam_to_world.T)[..., :3]
@@ -200,21 +204,28 @@ class BodyVideoReconstructor:
             reference.num_frames,
             fit.seconds,
         )
-        if self.cfg.figures:
-            self._write_figures(source.video, fit, reference, np.linalg.inv(cam_to_world))
+        self.pictures = FitPictures(source.video, fit, reference, np.linalg.inv(cam_to_world))
         return reference
 
-    def _write_figures(
-        self, clip: VideoClip, fit: BodyVideoFit, reference: Reference, world_to_cam: np.ndarray
-    ) -> None:
-        """Fit pictures into ``<run folder>/recon/`` when running under Hydra."""
-        from hydra.core.hydra_config import HydraConfig
-
-        if not HydraConfig.initialized():
-            return
-        folder = Path(HydraConfig.get().runtime.output_dir) / "recon"
-        paths = write_fit_pictures(folder, clip, fit, reference, world_to_cam)
+    def write_figures(self, folder: Path) -> list[Path]:
+        """Pictures of the last fit over its frames into ``folder`` (``body_fit.png``, ``.mp4``); the pipeline
+        calls this after the reconstruction is cached, so a failed picture never costs the fit."""
+        if not self.cfg.figures or self.pictures is None:
+            return []
+        pic = self.pictures
+        paths = write_fit_pictures(folder, pic.clip, pic.fit, pic.reference, pic.world_to_cam)
         log.info("body_video: pictures of the fit in %s", ", ".join(str(p) for p in paths))
+        return paths
+
+
+@dataclass(frozen=True)
+class FitPictures:
+    """What the pictures of a fit are drawn from: the clip, the fit, its reference and the camera pose."""
+
+    clip: VideoClip
+    fit: BodyVideoFit
+    reference: Reference
+    world_to_cam: np.ndarray
 
 
 def write_fit_pictures(
@@ -234,13 +245,15 @@ def write_fit_pictures(
     labels = reference.part_labels()[pick]
     pictures = []
     for t in range(min(clip.num_frames, reference.num_frames)):
+        w2c = world_to_cam if fit.extrinsics is None else fit.extrinsics[t]  # a moving camera: frame t's
         posed = reference.posed_vertices(t, apply_global=True)[pick]
-        cam = posed @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+        cam = posed @ w2c[:3, :3].T + w2c[:3, 3]
+        first_to_t = w2c @ np.linalg.inv(world_to_cam)  # the fit's joints are in the first frame's camera frame
         pictures.append(
             draw_fit(
                 clip.frames[t],
                 K=fit.camera.K,
-                joints=fit.joints[t],
+                joints=fit.joints[t] @ first_to_t[:3, :3].T + first_to_t[:3, 3],
                 parents=fit.parents,
                 mask=fit.masks[t],
                 part_points=cam,

@@ -349,24 +349,9 @@ class MocapReconstructor:
         owner_bone = groups[owner_seg]
 
         seg_centers, seg_covs = segment_gaussians(rest_joints, parents, segments, radii, along_factor=cfg.along_factor)
-        centers = np.zeros((n_bones, 3))
-        covs = np.zeros((n_bones, 3, 3))
-        bone_world = np.tile(np.eye(4), (pos.shape[0], n_bones, 1, 1))
-        names = []
-        for b in range(n_bones):
-            members = np.flatnonzero(groups == b)
-            top = members[0]  # segments are in joint order, so the first member is nearest the root
-            names.append(motion.names[int(segments[top])])
-            if len(members) == 1:
-                centers[b], covs[b] = seg_centers[top], seg_covs[top]
-                bone_world[:, b] = seg_world[:, top]
-            else:
-                pts = verts[owner_bone == b]
-                centers[b] = pts.mean(0)
-                covs[b] = np.cov(pts.T) + 1e-8 * np.eye(3)
-                # A merged bone moves rigidly with the best fit of its member joints.
-                js = np.unique(np.concatenate([segments[members], parents[segments[members]]]))
-                bone_world[:, b] = sk.kabsch(np.broadcast_to(pos[r, js], pos[:, js].shape), pos[:, js])
+        centers, covs, bone_world, names = merged_bones(
+            motion, segments, groups, seg_centers, seg_covs, seg_world, verts, owner_bone, r
+        )
         bone_parents = segment_group_parents(parents, segments, groups)
         weights = segment_skinning(
             verts, rest_joints, parents, segments, radii, groups, temperature=cfg.skin_temperature
@@ -426,3 +411,32 @@ class MocapReconstructor:
         carried = np.einsum("tsij,sj->tsi", per_seg[..., :3, :3], pos[rest_frame, segments])
         carried += per_seg[..., :3, 3]
         return float(np.linalg.norm(carried - pos[:, segments], axis=-1).max())
+
+
+def merged_bones(
+    motion: SkeletonMotion, segments: np.ndarray, groups: np.ndarray, seg_centers: np.ndarray, seg_covs: np.ndarray,
+    seg_world: np.ndarray, verts: np.ndarray, owner_bone: np.ndarray, rest_frame: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Bone centres (B, 3), covariances (B, 3, 3), world motion (T, B, 4, 4) and names of the segment groups: a
+    one-segment bone keeps its segment's Gaussian and motion; a merged bone takes the Gaussian of its body
+    vertices and moves rigidly with the best fit of its member joints."""
+    pos, parents = motion.positions, motion.parents
+    n_bones = int(groups.max()) + 1
+    centers = np.zeros((n_bones, 3))
+    covs = np.zeros((n_bones, 3, 3))
+    bone_world = np.tile(np.eye(4), (pos.shape[0], n_bones, 1, 1))
+    names = []
+    for b in range(n_bones):
+        members = np.flatnonzero(groups == b)
+        top = members[0]  # segments are in joint order, so the first member is nearest the root
+        names.append(motion.names[int(segments[top])])
+        if len(members) == 1:
+            centers[b], covs[b] = seg_centers[top], seg_covs[top]
+            bone_world[:, b] = seg_world[:, top]
+        else:
+            pts = verts[owner_bone == b]
+            centers[b] = pts.mean(0)
+            covs[b] = np.cov(pts.T) + 1e-8 * np.eye(3)
+            js = np.unique(np.concatenate([segments[members], parents[segments[members]]]))
+            bone_world[:, b] = sk.kabsch(np.broadcast_to(pos[rest_frame, js], pos[:, js].shape), pos[:, js])
+    return centers, covs, bone_world, names

@@ -136,15 +136,22 @@ def stage_reference(plan: RunPlan) -> tuple[Reference, str, ReferenceInput]:
     key = cache.stage_key("recon", reference_c.values(), recon_c.values(), plan.seed,
                           cache.code_hash(type(source), recon_c.cls))
 
+    built: list[Reconstructor] = []
+
     def compute() -> Reference:
         started = time.perf_counter()
         reconstructor: Reconstructor = recon_c.build(device=plan.device)
+        built.append(reconstructor)
         reference = reconstructor.reconstruct(loaded).validate()
         log.info("recon=%s: %d bones, %d frames, %d vertices in %.1f s", recon_c.name, reference.num_bones,
                  reference.num_frames, len(reference.rest_vertices), time.perf_counter() - started)
         return reference
 
     reference = cache.cached(plan.cache_root, "recon", key, Reference, compute, enabled=plan.cache)
+    for reconstructor in built:  # pictures after the cache write: a failed picture never costs the fit
+        write_figures = getattr(reconstructor, "write_figures", None)
+        if write_figures is not None:
+            optional_step("recon pictures", write_figures, plan.run_dir / "recon")
     return reference.validate(), key, loaded
 
 
@@ -253,12 +260,12 @@ def run_stages(plan: RunPlan, logger: Logger, started: float) -> dict[str, Any]:
     reference, recon_key, loaded = stage_reference(plan)
     write_gaussians_ply(plan.run_dir / "frames" / f"{0:06d}.ply", target)
     if loaded.video is not None:  # what the reconstruction was given: recon/masks.mp4, recon/camera.json
-        optional("recon/masks.mp4", write_video_inputs, plan.run_dir / "recon", loaded.video, loaded.camera)
-    optional("reference_parts.png", figures.save_reference_parts, reference, plan.run_dir / "reference_parts.png",
+        optional_step("recon/masks.mp4", write_video_inputs, plan.run_dir / "recon", loaded.video, loaded.camera)
+    optional_step("reference_parts.png", figures.save_reference_parts, reference, plan.run_dir / "reference_parts.png",
              logger=logger)
     surface = target_surface(target, source)
     part_map = stage_match(plan, reference, recon_key, target, surface)
-    optional("match.png", figures.save_match_figure, reference, target, part_map, plan.run_dir / "match.png",
+    optional_step("match.png", figures.save_match_figure, reference, target, part_map, plan.run_dir / "match.png",
              logger=logger)
     motion = stage_motion(plan, reference, target, part_map, surface)
     plan = sized_plan(plan, target, motion)
@@ -274,19 +281,20 @@ def run_stages(plan: RunPlan, logger: Logger, started: float) -> dict[str, Any]:
     if plan.render_video:
         from sync4d.run.exports import render_run_outputs
 
-        optional("renders and exports", render_run_outputs, plan.run_dir, plan["render"], plan.device, target,
+        optional_step("renders and exports", render_run_outputs, plan.run_dir, plan["render"], plan.device, target,
                  trajectory, motion, reference, clip=loaded.video, part_map=part_map, logger=logger)
     return result
 
 
-def optional(what: str, make: Any, *args: Any, **kwargs: Any) -> Any:
-    """``make(*args, **kwargs)``; a failure of something optional (a picture, an export) is logged as one
-    warning and the run goes on, its main results already written."""
+def optional_step(what: str, step: Any, *args: Any, **kwargs: Any) -> Any:
+    """``step(*args, **kwargs)`` after the main work (a picture, an export): a failure is one warning and the run
+    goes on, its results already written (``HYDRA_FULL_ERROR=1`` raises it instead, for debugging)."""
     try:
-        return make(*args, **kwargs)
-    except Exception as err:  # noqa: BLE001 - any failure of an optional output must not end the run
-        log.warning("could not write %s (%s: %s); the run goes on", what, type(err).__name__,
-                    one_line(str(err))[:300])
+        return step(*args, **kwargs)
+    except Exception as err:  # noqa: BLE001 - an optional output must never end a run that has its results
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        log.warning("%s failed and was skipped: %s", what, one_line(f"{type(err).__name__}: {err}")[:300])
         return None
 
 

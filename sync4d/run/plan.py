@@ -9,6 +9,7 @@ raw config; the raw config is read here only.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import re
 import time
 import typing
@@ -24,6 +25,7 @@ from sync4d.match import MatchConfig
 from sync4d.registry import GROUPS, Component, available, component, lookup, plain_dict, typed_config
 from sync4d.transfer.config import TransferConfig
 
+log = logging.getLogger("sync4d")
 ROOT = Path(__file__).resolve().parents[2]
 #: Top-level keys that do not change a run's results (excluded from the resume fingerprint).
 NOT_RESULTS = ("resume", "name", "cache", "cache_dir", "render", "logger", "hydra", "run_dir")
@@ -99,6 +101,8 @@ def build_plan(cfg: DictConfig, *, explicit: set[str] | None = None) -> RunPlan:
     check_shrink(shrink)
     components = {group: component(group, shrunk(group, plain_dict(cfg[group]), shrink.get(group), explicit))
                   for group in GROUPS if group in cfg}
+    if "reference.max_frames" not in explicit:  # reference.max_frames=0 typed by the user means every frame
+        components["reference"] = bound_reference_frames(components["reference"], int(cfg.frames))
     blocks = {block: typed_config(schema, shrunk(block, plain_dict(cfg[block]), shrink.get(block), explicit),
                                   where=block, label=block).validate() for block, schema in BLOCKS.items()}
     return RunPlan(
@@ -143,6 +147,16 @@ def check_device(device: str) -> None:
     if not torch.cuda.is_available() or index >= torch.cuda.device_count():
         found = torch.cuda.device_count() if torch.cuda.is_available() else 0
         raise ConfigError(f"device={device}: this machine has {found} CUDA device(s); use device=cpu")
+
+
+def bound_reference_frames(reference: Component, frames: int) -> Component:
+    """A reference that reads frames from a file (``max_frames`` 0 = all) reads, and so reconstructs, only the
+    ``frames`` the run uses; a ``max_frames`` the user set wins. The log says which key bounds it."""
+    if getattr(reference.config, "max_frames", None) != 0:
+        return reference
+    log.info("reference=%s: reconstructing the first %d frames, the ones the run uses (frames=%d); set "
+             "reference.max_frames to reconstruct more", reference.name, frames, frames)
+    return reference.with_values(max_frames=frames)
 
 
 # ---------------------------------------------------------------------------------------------- shrink

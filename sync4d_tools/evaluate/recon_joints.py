@@ -138,10 +138,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 def fit_silhouettes(fit) -> np.ndarray:
-    """(T, H, W) bool silhouettes of the fitted quadruped body (capsules projected by the fit's camera)."""
-    from sync4d.recon.pose.quadruped_fit import render_silhouettes
-
-    return render_silhouettes(fit.joints, fit.parents, fit.camera, fit.radii)
+    """(T, H, W) bool silhouettes of the fitted quadruped body (its mesh seen by each frame's camera)."""
+    return fit.silhouettes
 
 
 if __name__ == "__main__":

@@ -12,10 +12,63 @@ PART_COLOURS = np.array(
      [255, 250, 200], [128, 0, 0], [170, 255, 195]], dtype=np.float64)
 
 
+NEAR = 1e-3  # points nearer the camera plane than this [m] are not drawn (behind it: no image)
+MARGIN = 2.0  # pixel coordinates further than this many image sizes outside the frame are not drawn
+
+
 def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(..., 3) camera-frame points [m] -> (..., 2) pixels."""
-    z = np.maximum(points[..., 2:3], 1e-6)
-    return points[..., :2] / z * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    """(..., 3) camera-frame points [m] -> (..., 2) pixels; NaN where a point is not in front of the camera
+    (z < NEAR) or not finite."""
+    points = np.asarray(points, dtype=np.float64)
+    z = points[..., 2:3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        uv = points[..., :2] / z * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    bad = ~(np.isfinite(points).all(-1) & (points[..., 2] >= NEAR))
+    uv[bad] = np.nan
+    return uv
+
+
+def drawable(uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(N,) True where pixel positions ``uv`` (N, 2) are finite and within MARGIN image sizes of the frame
+    (so that they convert to the integers OpenCV draws with)."""
+    lim = MARGIN * max(width, height)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(uv).all(-1) & (uv[:, 0] > -lim) & (uv[:, 0] < width + lim) & (uv[:, 1] > -lim) & (
+            uv[:, 1] < height + lim)
+
+
+def clip_segment(a: np.ndarray, b: np.ndarray, K: np.ndarray, width: int, height: int
+                 ) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """The image segment [px] of the camera-frame segment a-b (3,) [m]: cut at the near plane (z = NEAR),
+    then to the frame (Liang-Barsky on a rectangle MARGIN image sizes wider); None when nothing is left
+    or an end is not finite."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if not (np.isfinite(a).all() and np.isfinite(b).all()) or (a[2] < NEAR and b[2] < NEAR):
+        return None
+    if a[2] < NEAR or b[2] < NEAR:  # keep the part in front of the camera
+        s = (NEAR - a[2]) / (b[2] - a[2])
+        cut = a + s * (b - a)
+        a, b = (cut, b) if a[2] < NEAR else (a, cut)
+    ends = np.stack([a, b])
+    p, q = ends[:, :2] / np.maximum(ends[:, 2:], NEAR) * np.array([K[0, 0], K[1, 1]]) + K[:2, 2]
+    lim = MARGIN * max(width, height)
+    lo, hi = np.array([-lim, -lim]), np.array([width + lim, height + lim])
+    d, t0, t1 = q - p, 0.0, 1.0
+    for k in range(2):
+        for num, den in ((p[k] - lo[k], -d[k]), (hi[k] - p[k], d[k])):
+            if abs(den) < 1e-12:
+                if num < 0:
+                    return None
+                continue
+            t = num / den
+            if den < 0:
+                t0 = max(t0, t)
+            else:
+                t1 = min(t1, t)
+    if t0 > t1:
+        return None
+    u, v = p + t0 * d, p + t1 * d
+    return (int(round(u[0])), int(round(u[1]))), (int(round(v[0])), int(round(v[1])))
 
 
 def draw_fit(
@@ -30,6 +83,9 @@ def draw_fit(
     landmarks: np.ndarray | None = None,
 ) -> np.ndarray:
     """One frame with the fit drawn over it.
+
+    Points behind the camera, not finite or far outside the frame are skipped and segments are cut at the
+    camera plane and the frame, so any fit (a body partly behind the camera, NaN joints) can be drawn.
 
     Args:
         frame: (H, W, 3) uint8.
@@ -46,25 +102,29 @@ def draw_fit(
     """
     import cv2
 
+    h, w = frame.shape[:2]
     img = frame.astype(np.float64).copy()
     if mask is not None:
         img[mask] = 0.6 * img[mask] + 0.4 * np.array([80.0, 120.0, 255.0])
-    img = img.astype(np.uint8)
+    img = np.ascontiguousarray(img.astype(np.uint8))
     scale = max(1, int(round(max(frame.shape[:2]) / 400)))
     if part_points is not None and part_labels is not None:
         uv = project(part_points, K)
-        for (u, v), lab in zip(uv, part_labels):
-            colour = tuple(int(c) for c in PART_COLOURS[lab % len(PART_COLOURS)])
-            cv2.circle(img, (int(u), int(v)), scale, colour, -1)
-    uvj = project(joints, K)
+        for (u, v), lab in zip(uv[drawable(uv, w, h)], np.asarray(part_labels)[drawable(uv, w, h)]):
+            colour = tuple(int(c) for c in PART_COLOURS[int(lab) % len(PART_COLOURS)])
+            cv2.circle(img, (int(round(u)), int(round(v))), scale, colour, -1)
+    joints = np.asarray(joints, dtype=np.float64)
     for j, p in enumerate(parents):
-        if p >= 0:
-            cv2.line(img, tuple(int(a) for a in uvj[p]), tuple(int(a) for a in uvj[j]), (255, 255, 255), 2 * scale)
-    for u, v in uvj:
-        cv2.circle(img, (int(u), int(v)), 2 * scale + 1, (255, 0, 0), -1)
+        seg = clip_segment(joints[p], joints[j], K, w, h) if p >= 0 else None
+        if seg is not None:
+            cv2.line(img, seg[0], seg[1], (255, 255, 255), 2 * scale)
+    uvj = project(joints, K)
+    for u, v in uvj[drawable(uvj, w, h)]:
+        cv2.circle(img, (int(round(u)), int(round(v))), 2 * scale + 1, (255, 0, 0), -1)
     if landmarks is not None:
-        for u, v in landmarks:
-            cv2.drawMarker(img, (int(u), int(v)), (0, 255, 0), cv2.MARKER_CROSS, 4 * scale + 2, scale)
+        lm = np.asarray(landmarks, dtype=np.float64)
+        for u, v in lm[drawable(lm, w, h)]:
+            cv2.drawMarker(img, (int(round(u)), int(round(v))), (0, 255, 0), cv2.MARKER_CROSS, 4 * scale + 2, scale)
     return img
 
 
