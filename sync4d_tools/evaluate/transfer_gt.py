@@ -41,7 +41,7 @@ from sync4d.motion import driving_motion
 from sync4d.outputs import compute_metrics
 from sync4d.registry import build, make_config
 from sync4d.transfer import PAPER, TransferConfig
-from sync4d.types import DrivingMotion, Trajectory
+from sync4d.types import DrivingMotion, PartMap, TargetGaussians, Trajectory
 from sync4d_tools.truth.pairs import PAIRS, TRUTHS, GTPair, load_pair
 
 log = logging.getLogger(__name__)
@@ -124,8 +124,9 @@ def pair_motion(pair: GTPair, num_frames: int) -> DrivingMotion:
     )
 
 
-def run_method(pair: GTPair, method: Method, motion: DrivingMotion, num_frames: int) -> tuple[Trajectory, list[float]]:
-    """One method's trajectory on one pair and its CPU seconds per frame (the whole process's)."""
+def run_method(target: TargetGaussians, part_map: PartMap, method: Method, motion: DrivingMotion, num_frames: int
+               ) -> tuple[Trajectory, list[float]]:
+    """One method's trajectory of a target and its CPU seconds per frame (the whole process's)."""
     sim = build("sim", dict(method.sim), device="cpu")
     seconds: list[float] = []
     last = [time.process_time()]
@@ -135,7 +136,7 @@ def run_method(pair: GTPair, method: Method, motion: DrivingMotion, num_frames: 
         seconds.append(now - last[0])
         last[0] = now
 
-    traj = sim.run(pair.target, pair.part_map, motion, velocity_cfg=dict(method.velocity), num_frames=num_frames,
+    traj = sim.run(target, part_map, motion, velocity_cfg=dict(method.velocity), num_frames=num_frames,
                    transfer=TransferConfig(**method.transfer), seed=0, on_frame=on_frame)
     return traj, seconds
 
@@ -188,7 +189,7 @@ def score_pair(pair: GTPair, methods: dict[str, Method], bounds: list[str], num_
                 rows[truth][name] = {**rows[truth][ran[key]], "same_as": ran[key]}
             continue
         started = time.process_time()
-        traj, seconds = run_method(pair, method, motion, num_frames)
+        traj, seconds = run_method(pair.target, pair.part_map, method, motion, num_frames)
         ran[key] = name
         for truth in TRUTHS:
             rows[truth][name] = score(pair, traj, motion, seconds, truth)
@@ -265,17 +266,23 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def merged(paths: list[str]) -> dict[str, Any]:
-    """Several saved results as one (pairs and criteria joined; the first file's settings)."""
+def merged(paths: list[str], candidate: str) -> dict[str, Any]:
+    """Several saved results as one: rows joined per pair, truth and method (a later file's row wins), the
+    criteria computed again on the joined rows; the first file's settings."""
     out: dict[str, Any] = {}
     for path in paths:
         part = json.loads(Path(path).read_text())
         if not out:
             out = part
             continue
-        out["pairs"].update(part["pairs"])
-        out["criteria"].update(part.get("criteria", {}))
+        for pair, per_truth in part["pairs"].items():
+            for truth, rows in per_truth.items():
+                out["pairs"].setdefault(pair, {}).setdefault(truth, {}).update(rows)
+        out["methods"].update(part["methods"])
         out["cpu_seconds"] = round(out["cpu_seconds"] + part["cpu_seconds"], 1)
+    out["candidate"] = candidate
+    out["criteria"] = {p: {t: criteria(rows, t, candidate) for t, rows in r.items()}
+                       for p, r in out["pairs"].items() if all({candidate, "lbs_hard"} <= set(rows) for rows in r.values())}
     return out
 
 
@@ -296,7 +303,7 @@ def write_outputs(out: dict[str, Any], args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
     if args.from_json:
-        out = merged([p for p in args.from_json.split(",") if p])
+        out = merged([p for p in args.from_json.split(",") if p], args.candidate)
         write_outputs(out, args)
         return out
     names = [m for m in args.methods.split(",") if m]
