@@ -176,8 +176,6 @@ def scene_list(scenes: list[str], clips: list[str]) -> list[tuple[str, str]]:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    from sync4d_tools.truth.report import criteria_table, results_table
-
     parser = argparse.ArgumentParser(prog="python -m sync4d.evaluate transfer_paper", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", default=",".join(SCENES))
@@ -187,7 +185,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--frames", type=int, default=10)
     parser.add_argument("--json", default="")
     parser.add_argument("--table", default="")
+    parser.add_argument("--from-json", default="", help="comma-separated result files to merge instead of running")
     args = parser.parse_args(argv)
+    if args.from_json:
+        out = merged([p for p in args.from_json.split(",") if p], args.candidate)
+        write_outputs(out, args)
+        return out
     names = [m for m in args.methods.split(",") if m]
     methods = resolve_methods([m for m in names if m not in BOUNDS])
     todo = scene_list([s for s in args.scenes.split(",") if s], [c for c in args.clips.split(",") if c])
@@ -201,11 +204,37 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
            "criteria": {s: {"none": paper_criteria(r, args.candidate)} for s, r in results.items()} if judged else {},
            "methods": {k: dataclasses.asdict(v) for k, v in methods.items()},
            "cpu_seconds": round(time.process_time() - started, 1)}
+    write_outputs(out, args)
+    print(json.dumps(out, default=str))
+    return out
+
+
+def merged(paths: list[str], candidate: str) -> dict[str, Any]:
+    """Several saved results as one: rows joined per scene and method (a later file's row wins), the criteria
+    computed again; the first file's settings."""
+    out: dict[str, Any] = {}
+    for path in paths:
+        part = json.loads(Path(path).read_text())
+        if not out:
+            out = part
+            continue
+        for scene, rows in part["scenes"].items():
+            out["scenes"].setdefault(scene, {}).update(rows)
+        out["methods"].update(part["methods"])
+        out["cpu_seconds"] = round(out["cpu_seconds"] + part["cpu_seconds"], 1)
+    out["candidate"] = candidate
+    out["criteria"] = {s: {"none": paper_criteria(r, candidate)} for s, r in out["scenes"].items()
+                       if {candidate, "lbs_hard"} <= set(r)}
+    return out
+
+
+def write_outputs(out: dict[str, Any], args: argparse.Namespace) -> None:
+    """The tables and JSON a run was asked for."""
+    from sync4d_tools.truth.report import criteria_table, results_table
+
     if args.table:
         Path(args.table).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.table).write_text(results_table(results, "scene") + "\n" + criteria_table(out["criteria"]))
+        Path(args.table).write_text(results_table(out["scenes"], "scene") + "\n" + criteria_table(out["criteria"]))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=1, default=str))
-    print(json.dumps(out, default=str))
-    return out
