@@ -93,7 +93,7 @@ def torn_rows(pair):
     methods = G.resolve_methods(["lbs_hard", "lbs_smooth", "kinematic"])
     rows = G.score_pair(pair, methods, ["frozen", "rigid_oracle"], 5)
     motion = G.pair_motion(pair, 5)
-    traj, seconds = G.run_method(pair, methods["lbs_hard"], motion, 5)
+    traj, seconds = G.run_method(pair.target, pair.part_map, methods["lbs_hard"], motion, 5)
     x = traj.x.copy()
     lid = pair.part_map.tgt_part == 1
     away = x[0, lid].mean(axis=0) - x[0, ~lid].mean(axis=0)
