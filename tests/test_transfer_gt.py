@@ -139,6 +139,7 @@ def test_quick_command_writes_every_truth_method_and_bound(tmp_path):
         assert "passed" in res["criteria"]["laptop"][truth]
     assert "Truth: elastic" in (tmp_path / "t.md").read_text()
     assert (tmp_path / "charts" / "physics_tear_curves.png").is_file()
+    assert (tmp_path / "charts" / "physics_fidelity_integrity_elastic.png").is_file()
 
 
 def test_methods_are_configurations_and_identical_ones_run_once():

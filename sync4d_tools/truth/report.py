@@ -76,8 +76,21 @@ def markdown_tables(out: dict[str, Any]) -> str:
     return "\n".join(parts)
 
 
+def pair_axes(count: int, title: str) -> tuple[Any, list[Any]]:
+    """A figure with one small panel per pair, four to a row."""
+    import matplotlib.pyplot as plt
+
+    cols = min(4, count)
+    rows = (count + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.0 * rows), squeeze=False)
+    for ax in axes.ravel()[count:]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    return fig, list(axes.ravel()[:count])
+
+
 def write_charts(results: dict[str, dict[str, dict[str, dict[str, Any]]]], folder: Path, prefix: str = "") -> list[str]:
-    """Per pair and truth: pose error against worst-frame p99 strain; and the tear curves (skinning truth)."""
+    """Per truth, pose error against worst-frame p99 strain for every pair; the tear curves (skinning truth)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -85,35 +98,40 @@ def write_charts(results: dict[str, dict[str, dict[str, dict[str, Any]]]], folde
 
     folder.mkdir(parents=True, exist_ok=True)
     pairs = list(results)
-    truths = sorted({t for r in results.values() for t in r}, key=lambda t: t != "skinning")
-    fig, axes = plt.subplots(len(truths), len(pairs), figsize=(3.6 * len(pairs), 3.4 * len(truths)), squeeze=False)
-    for i, truth in enumerate(truths):
-        for ax, pair in zip(axes[i], pairs):
+    written = []
+    for truth in sorted({t for r in results.values() for t in r}, key=lambda t: t != "skinning"):
+        fig, axes = pair_axes(len(pairs), f"pose error against the {truth} truth vs worst-frame p99 strain")
+        for ax, pair in zip(axes, pairs):
             for j, (method, r) in enumerate(results[pair].get(truth, {}).items()):
-                ax.scatter(r["pose_error_pct"], r["strain_p99_max_pct"], s=40, color=f"C{j % 10}", alpha=0.8,
-                           edgecolors="k", label=method, marker="os^Dv<>ph*"[j // 10 % 10])
-            ax.set_title(f"{pair} ({truth})", fontsize=9)
+                if r.get("same_as"):
+                    continue  # drawn as the row it equals
+                ax.scatter(r["pose_error_pct"], r["strain_p99_max_pct"], s=36, color=f"C{j % 10}", alpha=0.8,
+                           edgecolors="k", label=method, marker="os^Dv<>ph*"[j % 10])
+            ax.set_title(pair, fontsize=9)
             ax.set_xlabel("pose error [% diag]", fontsize=8)
             ax.set_ylabel("p99 strain, worst frame [%]", fontsize=8)
             ax.set_yscale("symlog", linthresh=10)
             ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=6, loc="best")
-    fig.tight_layout()
-    written = [str(folder / f"{prefix}fidelity_integrity.png")]
-    fig.savefig(written[0], dpi=90)
-    plt.close(fig)
-    fig, axes = plt.subplots(1, len(pairs), figsize=(3.6 * len(pairs), 3.2), squeeze=False)
-    for ax, pair in zip(axes[0], pairs):
+        axes[0].legend(fontsize=6, loc="best")
+        fig.tight_layout()
+        written.append(str(folder / f"{prefix}fidelity_integrity_{truth}.png"))
+        fig.savefig(written[-1], dpi=80)
+        plt.close(fig)
+    fig, axes = pair_axes(len(pairs), "torn pairs [%] over the tear threshold (skinning truth)")
+    for ax, pair in zip(axes, pairs):
         for j, (method, r) in enumerate(results[pair].get("skinning", {}).items()):
+            if r.get("same_as"):
+                continue
             curve = r["tear_curve"]["torn_pairs_pct"]
-            ax.plot([int(k) for k in CURVE], [curve[k] for k in CURVE], "o-", color=f"C{j % 10}", label=method)
+            ax.plot([int(k) for k in CURVE], [curve[k] for k in CURVE], "os^Dv<>ph*"[j % 10] + "-",
+                    color=f"C{j % 10}", label=method, alpha=0.8)
         ax.set_title(pair, fontsize=9)
         ax.set_xlabel("tear threshold [%]", fontsize=8)
         ax.set_ylabel("torn pairs [%]", fontsize=8)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=6)
+    axes[0].legend(fontsize=6)
     fig.tight_layout()
     written.append(str(folder / f"{prefix}tear_curves.png"))
-    fig.savefig(written[-1], dpi=90)
+    fig.savefig(written[-1], dpi=80)
     plt.close(fig)
     return written
