@@ -32,11 +32,11 @@ $(POSE_MODELS):
 	rm -rf $(MODEL_DIR)/wheel
 
 # torch first, pinned to the CPU wheel this machine provides; a bare `torch` would pull a CUDA build.
-$(STAMP): requirements.txt $(POSE_MODELS)
+$(STAMP): requirements.txt constraints.txt $(POSE_MODELS)
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -r requirements.txt
+	$(PY) -m pip install --quiet -c constraints.txt -r requirements.txt
 	$(PY) -m pip install --quiet --no-deps -e .
 	touch $(STAMP)
 

@@ -112,3 +112,24 @@ def test_pairs_the_truth_separates_are_not_counted_as_torn(body):
     torn = moved.copy()
     torn[:500, 2] *= 1.5  # the method stretches the torso, which the truth keeps
     assert M.integrity_frame(model, torn).torn_pairs_pct > 5.0
+
+
+def test_tear_curve_moves_with_the_threshold(body):
+    """A seam band stretched by 15% tears at 5% and 10%, not at 20% or 30%; a detached arm is a fragment at
+    every threshold; pairs the truth itself stretches are left out at each threshold."""
+    rest, parts, _ = body
+    band = (rest[:, 0] > 0.09) & (rest[:, 0] < 0.11)
+    x = rest.copy()
+    x[band, 0] = 0.09 + 1.15 * (rest[band, 0] - 0.09)
+    x[rest[:, 0] >= 0.11, 0] += 0.15 * 0.02
+    curve = M.tear_curve(rest, np.stack([rest, x, x]), 0.02)
+    torn = curve["torn_pairs_pct"]
+    assert set(torn) == {"5", "10", "20", "30"}
+    assert torn["5"] >= torn["10"] > 0.5 and torn["20"] == 0 and torn["30"] == 0
+    assert all(v == 0 for v in curve["fragments"].values())
+    off = rest.copy()
+    off[parts == 1] += [0.1, 0.0, 0.0]
+    assert all(v == 1 for v in M.tear_curve(rest, np.stack([rest, off]), 0.02)["fragments"].values())
+    # the same stretch done by the truth: nothing left to count
+    truth = np.stack([rest, x, x])
+    assert all(v == 0 for v in M.tear_curve(rest, truth, 0.02, truth=truth)["torn_pairs_pct"].values())

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sync4d.geometry import part_centroids
+from sync4d.geometry import part_centroids, rigid_fit, rotation_angle_deg
 
 
 def displacement_error(
@@ -48,12 +48,8 @@ def procrustes_residual(source: np.ndarray, moved: np.ndarray) -> float:
     """RMS residual [m] of the best rigid fit (rotation + translation, Kabsch) of ``source`` onto ``moved``."""
     if len(source) < 3:
         return 0.0
-    a = source - source.mean(axis=0)
-    b = moved - moved.mean(axis=0)
-    u, _, vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(u @ vt))
-    rot = (u @ np.diag([1.0, 1.0, d]) @ vt).T
-    residual = b - a @ rot.T
+    fit = rigid_fit(source, moved)
+    residual = moved - (source @ fit[:3, :3].T + fit[:3, 3])
     return float(np.sqrt((residual**2).sum(axis=1).mean()))
 
 
@@ -339,4 +335,116 @@ def integrity_summary(frames: list[IntegrityFrame]) -> dict[str, float | int | l
         "volume_change_pct": float(np.mean([f.body_volume_change_pct for f in use])),
         "volume_change_per_part_pct": [float(v) for v in per_part],
         "fragments": int(max(f.fragments for f in use)),
+    }
+
+
+# ----------------------------------------------------------------------------------------------------
+# Tearing over thresholds: the verdict must not hang on one constant
+# ----------------------------------------------------------------------------------------------------
+
+#: tear thresholds of the integrity curves (relative pair length change)
+TEAR_THRESHOLDS = (0.05, 0.10, 0.20, 0.30)
+
+
+def threshold_key(threshold: float) -> str:
+    """``0.1`` -> ``"10"``: a tear threshold as the JSON key of its curve point (whole percent)."""
+    return f"{round(threshold * 100):d}"
+
+
+def tear_curve(
+    rest: np.ndarray, x: np.ndarray, gap: float, *, truth: np.ndarray | None = None,
+    thresholds: tuple[float, ...] = TEAR_THRESHOLDS, k: int = 8,
+) -> dict[str, dict[str, float]]:
+    """Torn pairs and fragments at each tear threshold, over frames 1..T (frame 0 is the rest shape).
+
+    At threshold tau a rest k-NN pair is torn when its length changes by more than tau; with a ``truth``
+    (T, N, 3) the pairs that the correct motion itself strains beyond tau in some frame are left out (as
+    :func:`integrity_model` does at 10%), so each point of the curve counts only what the method tore.
+
+    Args:
+        rest: (N, 3) rest positions [m]; x: (T, N, 3) the method's positions [m].
+        gap: fragment distance [m] (:func:`count_fragments`).
+
+    Returns:
+        ``{"torn_pairs_pct": {"5": ..., "10": ...}, "fragments": {"5": ..., ...}}``: torn pairs as the mean
+        over frames of the share of kept pairs [%], fragments as the most in any frame.
+    """
+    rest = np.asarray(rest, dtype=np.float64)
+    pairs = rest_neighbour_pairs(rest, k)
+    strain = np.stack([pair_strain(rest, xt, pairs) for xt in x])  # (T, M)
+    worst_true = None if truth is None else np.max([pair_strain(rest, xt, pairs) for xt in truth], axis=0)
+    frames = range(1, len(x)) if len(x) > 1 else range(len(x))
+    torn: dict[str, float] = {}
+    fragments: dict[str, float] = {}
+    for tau in thresholds:
+        keep = np.ones(len(pairs), dtype=bool) if worst_true is None else worst_true <= tau
+        key = threshold_key(tau)
+        torn[key] = float(np.mean([torn_pairs_pct(strain[t, keep], threshold=tau) for t in frames]))
+        fragments[key] = float(max(count_fragments(x[t], pairs[keep], strain[t, keep], gap, threshold=tau)
+                                   for t in frames))
+    return {"torn_pairs_pct": torn, "fragments": fragments}
+
+
+# ----------------------------------------------------------------------------------------------------
+# Follow error: does each part move the way its reference part does? (no truth needed)
+# ----------------------------------------------------------------------------------------------------
+
+
+def fit_is_determined(points: np.ndarray, *, min_points: int = 4) -> bool:
+    """A rigid fit of these (n, 3) rest points fixes the rotation: enough points, not all on one line."""
+    if len(points) < min_points:
+        return False
+    s = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return bool(s[1] > 1e-3 * s[0])
+
+
+def follow_error(
+    rest: np.ndarray, x: np.ndarray, parts: np.ndarray, part_transforms: np.ndarray, diagonal: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each part's best rigid motion (rest -> frame t) against the driving motion it was given.
+
+    The driving motion of part b at frame t is ``part_transforms[t, b] @ inv(part_transforms[0, b])``
+    (frame 0 is the rest pose, as every simulator uses it). The rotation error is the angle of
+    ``R_fit R_drive^T``; the translation error is the distance between where the fit and the drive take the
+    part's rest centroid (origin-free), in % of ``diagonal``. A frozen part scores the drive's own rotation
+    and displacement; a torn or detached part scores the gap.
+
+    Args:
+        rest: (N, 3) rest positions [m]; x: (T, N, 3) positions (before the global transform) [m].
+        parts: (N,) part of each point; part_transforms: (T, B, 4, 4) DrivingMotion.part_transforms.
+        diagonal: the target's bounding-box diagonal [m].
+
+    Returns:
+        ((T, B) rotation error [deg], (T, B) translation error [% of diagonal]); NaN for parts whose fit is
+        undetermined (fewer than 4 points or all on a line).
+    """
+    rest = np.asarray(rest, dtype=np.float64)
+    T, B = len(x), part_transforms.shape[1]
+    rot_err, trans_err = np.full((T, B), np.nan), np.full((T, B), np.nan)
+    drive = part_transforms[:T] @ np.linalg.inv(part_transforms[0])[None]
+    for b in range(B):
+        idx = np.flatnonzero(parts == b)
+        if not fit_is_determined(rest[idx]):
+            continue
+        centroid = rest[idx].mean(axis=0)
+        for t in range(T):
+            rot = rigid_fit(rest[idx], x[t][idx])[:3, :3]
+            r_drive, t_drive = drive[t, b, :3, :3], drive[t, b, :3, 3]
+            rot_err[t, b] = float(rotation_angle_deg(rot @ r_drive.T))
+            trans_err[t, b] = np.linalg.norm(x[t][idx].mean(axis=0) - (r_drive @ centroid + t_drive))
+    return rot_err, trans_err / diagonal * 100.0
+
+
+def follow_summary(rotation_deg: np.ndarray, translation_pct: np.ndarray) -> dict[str, float | None]:
+    """``follow_rotation_deg`` / ``follow_translation_pct`` (mean over frames 1..T and measured parts) and
+    their worst (``..._max_...``); None when no part could be measured."""
+    rot, trans = rotation_deg[1:], translation_pct[1:]
+    if rot.size == 0 or not np.isfinite(rot).any():
+        return {"follow_rotation_deg": None, "follow_rotation_max_deg": None,
+                "follow_translation_pct": None, "follow_translation_max_pct": None}
+    return {
+        "follow_rotation_deg": float(np.nanmean(rot)),
+        "follow_rotation_max_deg": float(np.nanmax(rot)),
+        "follow_translation_pct": float(np.nanmean(trans)),
+        "follow_translation_max_pct": float(np.nanmax(trans)),
     }

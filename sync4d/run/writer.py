@@ -384,10 +384,11 @@ def compute_metrics(
     integrity = M.integrity_model(x[0], parts, B, gap=fragment_gap(x[0], dx), truth=truth)
     true_volumes = [None] * T if truth is None else [M.part_volumes(truth[t], parts, B) for t in range(T)]
     frames = [M.integrity_frame(integrity, x[t], true_volume=true_volumes[t]) for t in range(T)]
+    follow_rot, follow_trans = M.follow_error(x[0], x, parts, motion.part_transforms, diagonal)
 
     per_frame = []
     for t in range(T):
-        row = {
+        per_frame.append({
             "displacement_error_pct": None if t == 0 else M.displacement_error(
                 x[t - 1], x[t], parts, motion.part_displacements[t - 1], diagonal),
             "drift_pct": M.drift(x[t], x[0], parts, accumulated[t], diagonal),
@@ -399,33 +400,46 @@ def compute_metrics(
             "strain_p99_pct": frames[t].strain_p99_pct,
             "volume_change_pct": frames[t].body_volume_change_pct,
             "fragments": float(frames[t].fragments),
+            "follow_rotation_deg": None if t == 0 else nan_mean(follow_rot[t]),
+            "follow_translation_pct": None if t == 0 else nan_mean(follow_trans[t]),
             "seconds": frame_seconds[t] if t < len(frame_seconds) else None,
-        }
-        per_frame.append(row)
+        })
 
-    def mean(key: str) -> float | None:
-        # frame 0 is the rest pose, exact by construction: it stays out of every mean
-        values = [r[key] for r in per_frame[1:] if r[key] is not None]
-        return float(np.mean(values)) if values else None
-
-    if truth is not None:
-        jitter = M.jitter_ratio(x, truth, 1.0)
-    else:
-        ref_seq = np.stack([reference.posed_vertices(t % reference.num_frames) for t in range(T)])
-        jitter = M.jitter_ratio(x, ref_seq, motion.coverage_ratio)
     return {
-        "pose_error_pct": mean("pose_error_pct"),
+        "pose_error_pct": mean_after_rest(per_frame, "pose_error_pct"),
         "pose_error_max_pct": None if truth is None else float(max(r["pose_error_pct"] for r in per_frame[1:] or per_frame)),
-        "displacement_error_pct": mean("displacement_error_pct"),
-        "drift_pct": mean("drift_pct"),
+        "displacement_error_pct": mean_after_rest(per_frame, "displacement_error_pct"),
+        "drift_pct": mean_after_rest(per_frame, "drift_pct"),
         "drift_final_pct": per_frame[-1]["drift_pct"],
-        "rigidity_residual_pct": mean("rigidity_residual_pct"),
-        "det_f_deviation": mean("det_f_deviation"),
+        "rigidity_residual_pct": mean_after_rest(per_frame, "rigidity_residual_pct"),
+        "det_f_deviation": mean_after_rest(per_frame, "det_f_deviation"),
         **M.integrity_summary(frames),
-        "jitter_ratio": jitter,
+        "tear_curve": M.tear_curve(x[0], x, integrity.gap, truth=truth),
+        **M.follow_summary(follow_rot, follow_trans),
+        "jitter_ratio": jitter_of(x, truth, reference, motion),
         "seconds_per_frame": float(np.mean(frame_seconds[1:])) if len(frame_seconds) > 1 else float(np.mean(frame_seconds or [0.0])),
         "peak_memory_mb": M.peak_memory_mb(),
         "frames": T,
         "coverage_ratio": motion.coverage_ratio,
         "per_frame": per_frame,
     }
+
+
+def mean_after_rest(per_frame: list[dict[str, Any]], key: str) -> float | None:
+    """Mean of ``key`` over frames 1..T (frame 0 is the rest pose, exact by construction), None if unknown."""
+    values = [r[key] for r in per_frame[1:] if r[key] is not None]
+    return float(np.mean(values)) if values else None
+
+
+def jitter_of(x: np.ndarray, truth: np.ndarray | None, reference: Reference, motion: DrivingMotion) -> float:
+    """Jitter ratio of (T, N, 3) positions against the truth's own, else the reference's (scaled)."""
+    if truth is not None:
+        return M.jitter_ratio(x, truth, 1.0)
+    ref_seq = np.stack([reference.posed_vertices(t % reference.num_frames) for t in range(len(x))])
+    return M.jitter_ratio(x, ref_seq, motion.coverage_ratio)
+
+
+def nan_mean(values: np.ndarray) -> float | None:
+    """Mean of the finite entries, None when there are none."""
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if len(finite) else None
