@@ -307,7 +307,7 @@ class PairResult:
         out["corrected"] = (self.accuracy - out["constant"]) / (1.0 - out["constant"])
         auto = self.result.diagnostics.auto_residual
         return {**{k: round(float(v), 4) for k, v in out.items()}, "method": self.result.diagnostics.method,
-                **({} if auto is None else {"auto_residual": round(auto, 4)})}
+                **({} if auto is None else {"auto_residual": round(auto, 4), "auto_scores": auto_scores(self.result)})}
 
 
 def run_pair(
@@ -491,8 +491,17 @@ def pair_summary(spec: Any, numbers: dict[str, Any], result: MatchResult, body: 
                                                          "random", "chance")},
             "constant_part": numbers["constant_part"], "passes": bool(passes), "kind": spec.kind,
             "method": diag.method, "auto_residual": None if diag.auto_residual is None else round(diag.auto_residual, 4),
+            "auto_scores": auto_scores(result),
             "per_label": {k: round(v, 3) for k, v in numbers["per_label"].items()},
             "left_over": [body.names[b] for b in result.leftover_parts], "seconds": round(seconds, 2)}
+
+
+def auto_scores(result: MatchResult) -> dict[str, list[float]] | None:
+    """With ``method=auto``: each method's [connected, contacts] (sync4d.match.consistency), else None."""
+    scores = result.diagnostics.auto_scores
+    if scores is None:
+        return None
+    return {m: [round(c.connected, 4), round(c.contacts, 4)] for m, c in scores.items()}
 
 
 def save_labelled_figure(figures: Path, spec: Any, options: MatchConfig, result: MatchResult, reference: Reference,
