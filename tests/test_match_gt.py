@@ -151,3 +151,18 @@ def test_score_puts_the_floors_beside_the_accuracy_and_can_fail() -> None:
     swapped = score(spec, labels, weights, np.array([3] * 30 + [1] * 20 + [0] * 50), names)
     assert swapped["limb_accuracy"] == 0.0 and swapped["corrected"] == pytest.approx(0.0)
     assert chance_corrected(0.3, 0.5) < 0 and np.isnan(chance_corrected(1.0, 1.0))
+
+
+@pytest.mark.parametrize("name", ["long_tail", "chibi", "flush_penguin", "stretch"])
+def test_new_procedural_targets_are_labelled_by_construction(name: str) -> None:
+    """The hard-case targets: a surface with every label of their label file covering some of it (the trunk
+    included)."""
+    from sync4d_tools.match_labels.labels import default_label_files, read_label_file, vertex_labels
+    from sync4d_tools.match_labels.procedural import SHAPES
+
+    v, f, names = SHAPES[name]()
+    assert len(f) > 1000 and np.isfinite(v).all() and f.max() < len(v)
+    spec = next(read_label_file(p) for p in default_label_files() if read_label_file(p).target == f"procedural:{name}")
+    labels = vertex_labels(spec, v, names)
+    assert set(np.unique(labels)) == set(range(len(spec.labels)))  # every label covers some vertices
+    assert any(lab.trunk for lab in spec.labels)
