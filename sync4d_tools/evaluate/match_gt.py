@@ -12,9 +12,14 @@ to the target's Gaussians through the part boxes, equals the true part):
 * ``accuracy_mocap_bodies``: two capsule bodies on the same CMU skeleton with different proportions:
   longer legs and neck, shorter arms, stockier torso, thinner limbs.
 
+With ``--cross-category DIR`` (or ``--labels FILE``) also the labelled pairs of
+:mod:`sync4d_tools.match_labels`: per pair the accuracy over every label (the trunk included), the limb
+accuracy, the floors (best constant assignment, uniformly random assignment) and the chance-corrected
+accuracy, printed as a table and a picture per pair written into DIR; the seed samples the target's
+Gaussians on its surface and turns and stretches it.
+
 The last line printed is one JSON object with the three accuracies (and details under ``details``).
-``--figures DIR`` writes a picture per pair; ``--cross-category`` writes the docs pictures of the
-human body -> stuffed toy and the dog mocap body -> Spot (cow) and cat.
+``--figures DIR`` writes a picture per within-category pair.
 
 Data: CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu; "The database was created with
 funding from NSF EIA-0196217"); dog mocap from AI4Animation (CC BY-NC 4.0) via motion_imitation;
