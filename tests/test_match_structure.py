@@ -290,9 +290,9 @@ def test_mirror_pairs_and_the_repair_give_a_leg_back_from_the_tail() -> None:
 
 
 def test_auto_uses_the_features_on_a_shape_of_the_same_kind_and_structure_across_kinds() -> None:
-    """``method=auto``: an animal of other proportions lies on the reference after the fit (residual
-    ~0.05 RMS radii) and keeps the features' accuracy; a chair does not (~0.27) and gets the structure
-    match: its legs take leg parts, its back the head or the tail."""
+    """``method=auto``: on an animal of other proportions the features' map keeps the reference's structure
+    as well as the structure match's (and its accuracy is kept); on a chair the features' map breaks it and
+    the structure match is kept: its legs take leg parts, its back the head or the tail."""
     from sync4d.errors import ConfigError
     from sync4d.registry import build
     from sync4d_tools.match_labels.procedural import chair
@@ -303,17 +303,19 @@ def test_auto_uses_the_features_on_a_shape_of_the_same_kind_and_structure_across
     tv, tf, tpart = animal(leg=0.5, head=0.2, body=0.7)
     tv = tv + 0.3
     same = match_parts(reference, gaussians_at(tv), extractor, MatchConfig(method="auto"), target_vertices=tv, target_faces=tf)
-    assert same.diagnostics.method == "features" and same.diagnostics.auto_residual < 0.155
+    scores = same.diagnostics.auto_scores
+    assert same.diagnostics.method == "features" and scores["features"].kept >= scores["structure"].kept
     assert (same.part_map.tgt_part == tpart).mean() > 0.95
     cv, cf, names = chair()
     other = match_parts(reference, gaussians_at(cv), extractor, MatchConfig(method="auto"), target_vertices=cv, target_faces=cf)
-    assert other.diagnostics.method == "structure" and other.diagnostics.auto_residual > 0.155
+    scores = other.diagnostics.auto_scores
+    assert other.diagnostics.method == "structure" and scores["structure"].kept > scores["features"].kept
     got = other.part_map.tgt_part
     legs = np.char.startswith(names.astype(str), "leg_")
     assert np.isin(got[legs], [PARTS.index(n) for n in PARTS if n.startswith("leg_")]).mean() > 0.9
     assert np.isin(got[names == "back"], [PARTS.index("head"), PARTS.index("tail")]).mean() > 0.6
-    with pytest.raises(ConfigError, match="auto_residual"):
-        MatchConfig(auto_residual=-1.0).validate()
+    with pytest.raises(TypeError):  # no residual threshold any more
+        MatchConfig(auto_residual=0.155)  # type: ignore[call-arg]
     with pytest.raises(ConfigError, match="features component"):
         match_parts(reference, gaussians_at(tv), None, MatchConfig(method="auto"))
 
@@ -344,3 +346,26 @@ def test_local_thickness_and_limb_growth_stop_where_the_limb_enters_the_trunk():
     grown = grow_limbs(neighbour_graph(pts, 10, 4.0), labels, [tip], thick, reach=20.0)
     assert (grown[(pts[:, 0] > 1.3) & rod[inside]] == 7).all()                # the whole rod outside the ball
     assert (grown[np.linalg.norm(pts, axis=1) < 0.8] == -1).all()        # not into the ball
+
+
+def test_consistency_scores_a_broken_map_lower_and_ignores_stray_points():
+    """Two touching boxes (parts 0, 1) and a third part far away: the right map keeps everything; a map
+    with a chunk of part 0 inside part 1 loses connectivity; a map that puts part 2 where 0 meets 1
+    makes contacts the reference lacks; three stray points change nothing."""
+    from sync4d.match.consistency import consistency
+
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform([0, 0, 0], [1, 1, 1], (1500, 3)), rng.uniform([1, 0, 0], [2, 1, 1], (1500, 3)),
+                          rng.uniform([4, 0, 0], [5, 1, 1], (1500, 3))])
+    parts = np.repeat([0, 1, 2], 1500)
+    ref = consistency(pts, parts, pts, parts, 3)
+    assert ref.connected == 1.0 and ref.contacts == 1.0 and ref.kept == 1.0
+    chunk = parts.copy()
+    chunk[(pts[:, 0] > 1.4) & (pts[:, 0] < 1.6)] = 0
+    assert consistency(pts, chunk, pts, parts, 3).connected < 0.95
+    seam = parts.copy()
+    seam[(pts[:, 0] > 0.9) & (pts[:, 0] < 1.1)] = 2
+    assert consistency(pts, seam, pts, parts, 3).contacts < 0.5
+    stray = parts.copy()
+    stray[[10, 500, 1000]] = 1
+    assert consistency(pts, stray, pts, parts, 3).kept == 1.0

@@ -1,4 +1,13 @@
-"""``match.method=auto``: the feature method or the structure match, chosen per pair."""
+"""``match.method=auto``: both methods run, and the map that agrees better with the reference's structure is kept.
+
+Each map is scored by :func:`sync4d.match.consistency.consistency` on the parts it gives the target's
+Gaussians: across categories the feature method's map breaks the reference's parts into pieces and puts
+parts in contact that never touch in the reference; the structure match keeps both by construction. The
+structure match is kept only when its map keeps strictly more of the reference's structure
+(``connected x contacts``); otherwise, when the feature method keeps as much (a shape of the same kind:
+its map is as clean), the paper's method is kept. No threshold: two measurements of the maps themselves
+are compared.
+"""
 
 from __future__ import annotations
 
@@ -8,15 +17,31 @@ from dataclasses import replace
 import numpy as np
 
 from sync4d.interfaces import FeatureExtractor
-from sync4d.match.align import AlignResult, align_shapes
 from sync4d.match.by_structure import match_by_structure
 from sync4d.match.config import MatchConfig
+from sync4d.match.consistency import Consistency, consistency
 from sync4d.match.features_match import match_by_features
 from sync4d.match.result import MatchResult
-from sync4d.match.surface_points import target_points
 from sync4d.types import Reference, TargetGaussians
 
 log = logging.getLogger(__name__)
+
+
+#: Gaussians the consistency is measured on at most (a random subset, the same for both maps)
+SCORE_POINTS = 6000
+
+
+def result_consistency(result: MatchResult, reference: Reference, target: TargetGaussians, index: np.ndarray
+                       ) -> Consistency:
+    """The agreements of a match's Gaussian parts (those at ``index``) with the reference's rest parts."""
+    return consistency(target.means[index], result.part_map.tgt_part[index], reference.rest_vertices,
+                       reference.part_labels(), reference.num_bones)
+
+
+def choose_method(features: Consistency, structure: Consistency) -> str:
+    """``structure`` if its map keeps strictly more of the reference's structure (connected x contacts),
+    else ``features``."""
+    return "structure" if structure.kept > features.kept else "features"
 
 
 def match_auto(
@@ -28,28 +53,17 @@ def match_auto(
     target_faces: np.ndarray | None,
     seed: int,
 ) -> MatchResult:
-    """Align once, choose the method by the alignment (:func:`choose_method`), run it (reusing the alignment)."""
-    tgt_vertices = target_points(target, cfg, target_vertices, target_faces, seed)[0]
-    alignment = align_shapes(
-        tgt_vertices, reference.rest_vertices, method=cfg.align, icp_iterations=cfg.icp_iterations, seed=seed
-    )
-    if choose_method(alignment, cfg.auto_residual) == "structure":
-        result = match_by_structure(reference, target, cfg, target_vertices, target_faces, seed)
-    else:
-        result = match_by_features(reference, target, extractor, cfg, target_vertices, target_faces, seed, alignment)
-    return replace(result, diagnostics=replace(result.diagnostics, auto_residual=alignment.residual))
-
-
-def choose_method(alignment: AlignResult, max_residual: float) -> str:
-    """``features`` if the aligned target lies on the reference (residual <= ``max_residual``), else ``structure``.
-
-    The features transfer parts by what lies where once the surfaces overlap (a copy, other proportions
-    of one kind: residual 0.03-0.05 RMS radii on the benchmark; the laptop on the clam shell 0.106, the
-    laptop reconstructed from its video on it 0.140); across categories no rigid fit puts one shape on
-    the other (0.17-0.23), and the skeletons' structure decides. The default 0.155 lies in the middle of
-    the gap between the two groups, a thin one (docs/matching.md, "One default: auto").
-    """
-    method = "features" if alignment.residual <= max_residual else "structure"
-    log.info("match: method=auto: alignment residual %.4f %s %.3g -> %s", alignment.residual,
-             "<=" if method == "features" else ">", max_residual, method)
-    return method
+    """Run both methods, keep the one :func:`choose_method` prefers (its diagnostics carry both scores)."""
+    by_features = match_by_features(reference, target, extractor, cfg, target_vertices, target_faces, seed)
+    by_structure = match_by_structure(reference, target, cfg, target_vertices, target_faces, seed)
+    rng = np.random.default_rng(seed)
+    index = np.sort(rng.choice(target.num, min(target.num, SCORE_POINTS), replace=False))
+    scores = {"features": result_consistency(by_features, reference, target, index),
+              "structure": result_consistency(by_structure, reference, target, index)}
+    method = choose_method(scores["features"], scores["structure"])
+    log.info("match: method=auto: %s -> %s", ", ".join(
+        f"{m}: connected {c.connected:.4f} contacts {c.contacts:.4f}" for m, c in scores.items()
+    ), method)
+    result = by_features if method == "features" else by_structure
+    return replace(result, diagnostics=replace(result.diagnostics, auto_scores=scores,
+                                               auto_residual=by_features.diagnostics.alignment.residual))

@@ -37,11 +37,8 @@ class MatchConfig:
     Attributes:
         method: ``structure`` (curve skeletons matched branch by branch, :mod:`sync4d.match.structure`;
             shapes given upright along ``up_axis``, facing any way), ``features`` (the paper's cosine
-            assignment of per-vertex features, then part boxes) or ``auto``: ``features`` when the
-            aligned target lies on the reference (alignment residual at most ``auto_residual``: the
-            same kind of shape), else ``structure`` (:func:`sync4d.match.auto.choose_method`).
-        auto_residual: with ``auto``, the largest alignment residual (symmetric chamfer distance after
-            ``align``, in RMS radii of the reference) at which the features are used.
+            assignment of per-vertex features, then part boxes) or ``auto``: both, keeping the map that
+            agrees better with the reference's structure (:mod:`sync4d.match.auto`).
         up_axis: the up axis shared by the reference and the (aligned) target.
         align: ``none`` | ``pca`` | ``pca_icp`` | ``upright_icp`` (:func:`sync4d.match.align.align_shapes`). With
             ``structure``, ``pca``/``pca_icp`` first bring an arbitrarily turned target into the
@@ -60,7 +57,6 @@ class MatchConfig:
     """
 
     method: Literal["auto", "features", "structure"] = "auto"
-    auto_residual: float = 0.155
     up_axis: Literal["x", "y", "z"] = "y"
     align: Literal["none", "pca", "pca_icp", "upright_icp"] = "upright_icp"
     icp_iterations: int = 100
@@ -87,8 +83,6 @@ class MatchConfig:
             if getattr(self, key) not in allowed:
                 raise ConfigError(f"match.{key}={getattr(self, key)!r}: use one of {', '.join(allowed)}")
         prototype_count(self.prototypes)
-        if not self.auto_residual >= 0.0:
-            raise ConfigError(f"match.auto_residual={self.auto_residual}: use a residual >= 0 (RMS radii)")
         if self.icp_iterations < 1 or self.max_target_vertices < 16 or self.structure.yaw_steps < 1:
             raise ConfigError(
                 "match.icp_iterations, match.structure.yaw_steps must be >= 1 and " "match.max_target_vertices >= 16"

@@ -9,8 +9,15 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only: matplotlib is imported when drawing
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+    from sync4d.match.result import MatchDiagnostics
 
 OUTLIER_COLOR = np.array([0.0, 0.0, 0.0])
 
@@ -48,7 +55,7 @@ def _view_basis(view: tuple[float, float]) -> np.ndarray:
     return np.stack([right, np.cross(toward, right), toward])
 
 
-def draw_points(ax, points: np.ndarray, colors: np.ndarray, *, view: tuple[float, float], size: float) -> None:
+def draw_points(ax: Axes, points: np.ndarray, colors: np.ndarray, *, view: tuple[float, float], size: float) -> None:
     """Orthographic scatter of ``points`` (N, 3) with ``colors`` (N, 3) on a matplotlib axis."""
     basis = _view_basis(view)
     proj = points @ basis.T
@@ -70,7 +77,7 @@ def match_figure(
     titles: tuple[str, str] = ("reference", "target"),
     point_size: float = 2.0,
     suptitle: str = "",
-):
+) -> Figure:
     """A matplotlib figure: one row per view, reference left, target right, coloured by part.
 
     Args:
@@ -105,7 +112,7 @@ def match_figure(
     return fig
 
 
-def figure_to_array(fig) -> np.ndarray:
+def figure_to_array(fig: Figure) -> np.ndarray:
     """(H, W, 3) uint8 RGB pixels of a matplotlib figure."""
     from PIL import Image
 
@@ -115,7 +122,7 @@ def figure_to_array(fig) -> np.ndarray:
     return np.asarray(Image.open(buf).convert("RGB"))
 
 
-def save_match_figure(path: str | Path, diagnostics, num_parts: int, **kwargs) -> np.ndarray:
+def save_match_figure(path: str | Path, diagnostics: MatchDiagnostics, num_parts: int, **kwargs: Any) -> np.ndarray:
     """Draw a :class:`sync4d.match.result.MatchDiagnostics` (common frame; outliers black) and write a PNG.
 
     Args:
@@ -147,6 +154,6 @@ def save_match_figure(path: str | Path, diagnostics, num_parts: int, **kwargs) -
     return image
 
 
-def log_match_figure(writer, tag: str, image: np.ndarray, step: int = 0) -> None:
+def log_match_figure(writer: Any, tag: str, image: np.ndarray, step: int = 0) -> None:
     """Log an (H, W, 3) uint8 picture to TensorBoard (``SummaryWriter.add_image``, HWC)."""
     writer.add_image(tag, image, global_step=step, dataformats="HWC")

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sync4d.match.align import AlignResult, Similarity, normalization
+from sync4d.match.consistency import Consistency
 from sync4d.match.structure import StructureMatch
 from sync4d.types import PartMap, Reference, TargetGaussians
 
@@ -43,7 +44,9 @@ class MatchDiagnostics:
         structure: the skeleton match with ``method=structure``, else None.
         reference_labels: (V,) part of each of ``reference_points``.
         method: the method that made the map (``features`` or ``structure``; ``auto`` picks one).
-        auto_residual: with ``method=auto``, the alignment residual the choice was made on, else None.
+        auto_residual: with ``method=auto``, the feature method's alignment residual (for the record), else None.
+        auto_scores: with ``method=auto``, each method's agreement with the reference
+            (:class:`~sync4d.match.consistency.Consistency`) the choice was made on, else None.
     """
 
     alignment: AlignResult
@@ -64,6 +67,7 @@ class MatchDiagnostics:
     reference_labels: np.ndarray | None = None
     method: str = "features"
     auto_residual: float | None = None
+    auto_scores: dict[str, Consistency] | None = None
 
     @property
     def vertex_part_final(self) -> np.ndarray:

@@ -12,9 +12,14 @@ to the target's Gaussians through the part boxes, equals the true part):
 * ``accuracy_mocap_bodies``: two capsule bodies on the same CMU skeleton with different proportions:
   longer legs and neck, shorter arms, stockier torso, thinner limbs.
 
+With ``--cross-category DIR`` (or ``--labels FILE``) also the labelled pairs of
+:mod:`sync4d_tools.match_labels`: per pair the accuracy over every label (the trunk included), the limb
+accuracy, the floors (best constant assignment, uniformly random assignment) and the chance-corrected
+accuracy, printed as a table and a picture per pair written into DIR; the seed samples the target's
+Gaussians on its surface and turns and stretches it.
+
 The last line printed is one JSON object with the three accuracies (and details under ``details``).
-``--figures DIR`` writes a picture per pair; ``--cross-category`` writes the docs pictures of the
-human body -> stuffed toy and the dog mocap body -> Spot (cow) and cat.
+``--figures DIR`` writes a picture per within-category pair.
 
 Data: CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu; "The database was created with
 funding from NSF EIA-0196217"); dog mocap from AI4Animation (CC BY-NC 4.0) via motion_imitation;
@@ -307,7 +312,7 @@ class PairResult:
         out["corrected"] = (self.accuracy - out["constant"]) / (1.0 - out["constant"])
         auto = self.result.diagnostics.auto_residual
         return {**{k: round(float(v), 4) for k, v in out.items()}, "method": self.result.diagnostics.method,
-                **({} if auto is None else {"auto_residual": round(auto, 4)})}
+                **({} if auto is None else {"auto_residual": round(auto, 4), "auto_scores": auto_scores(self.result)})}
 
 
 def run_pair(
@@ -491,8 +496,17 @@ def pair_summary(spec: Any, numbers: dict[str, Any], result: MatchResult, body: 
                                                          "random", "chance")},
             "constant_part": numbers["constant_part"], "passes": bool(passes), "kind": spec.kind,
             "method": diag.method, "auto_residual": None if diag.auto_residual is None else round(diag.auto_residual, 4),
+            "auto_scores": auto_scores(result),
             "per_label": {k: round(v, 3) for k, v in numbers["per_label"].items()},
             "left_over": [body.names[b] for b in result.leftover_parts], "seconds": round(seconds, 2)}
+
+
+def auto_scores(result: MatchResult) -> dict[str, list[float]] | None:
+    """With ``method=auto``: each method's [connected, contacts] (sync4d.match.consistency), else None."""
+    scores = result.diagnostics.auto_scores
+    if scores is None:
+        return None
+    return {m: [round(c.connected, 4), round(c.contacts, 4)] for m, c in scores.items()}
 
 
 def save_labelled_figure(figures: Path, spec: Any, options: MatchConfig, result: MatchResult, reference: Reference,
