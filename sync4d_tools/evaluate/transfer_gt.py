@@ -63,6 +63,8 @@ class Method:
 METHODS: dict[str, Method | None] = {
     "default": None,
     "mpm_none": Method({"type": "mpm_warp"}),
+    # the former default, untrained: each particle launched on its bone's relative step, E = 1e4 Pa, 32 nodes
+    "mpm_relative": Method({"type": "mpm_warp", "E": 1e4, "n_grid": 32}, transfer={"init": "rigid"}),
     "mpm_triplane": Method({"type": "mpm_warp"}, {"type": "triplane"}),
     "paper": Method({"type": "mpm_warp"}, {"type": "triplane"}, dataclasses.asdict(PAPER)),
     # point-wise deformation of every Gaussian (no control points), as the paper's baseline
