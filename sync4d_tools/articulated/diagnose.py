@@ -67,7 +67,7 @@ def losses(model: jt.Articulation, frames: int, cfg: jt.FitConfig) -> dict[str, 
     }
 
 
-def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
+def diagnose(folder: Path, run_fit: bool, seed: int = 0, *, labels_ceiling: bool = False) -> dict:
     gt = dict(np.load(folder / "gt.npz"))
     source = VideoSource(
         VideoSource.Config(video=str(folder / "rgb.mp4"), masks=str(folder / "masks"), camera=str(folder / "gt.npz"))
@@ -111,12 +111,14 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
     values = np.concatenate([np.zeros((len(masks), 1)), gt["joint_value"] - gt["joint_value"][:1]], 1)
     truth_model = model_from(scene, labels, 0, kinds, axes, pivots, values, depth)
     report["loss_truth"] = losses(truth_model, len(masks), cfg.fit)
-    report["oracle_labels_revealed"] = exact_label_score(truth, tracks, masks, clip, camera, scene.width)
+    if labels_ceiling:
+        report["oracle_labels_revealed"] = exact_label_score(truth, tracks, masks, clip, camera, scene.width)
     pairs = jt.neighbour_pairs(tracks.uv0, labels, tracks.stride)
     torch.set_num_threads(1)
     jt.optimise(truth_model, cfg.fit, cfg.fit.steps // 2, pairs, windows=1)
     report["loss_truth_refined"] = losses(truth_model, len(masks), cfg.fit)
     report["truth_refined_angle_err"] = _value_err(truth_model, gt, scene)
+    report["truth_refined_joints"] = refined_scores(truth_model, truth, camera)
     if run_fit:
         fit = jt.fit_joints(scene, tracks, init, cfg.fit)
         found = model_from(scene, fit.labels, fit.root, fit.kinds, fit.axes, fit.pivots, fit.values, fit.depth)
@@ -134,6 +136,21 @@ def exact_label_score(truth: CaseTruth, tracks: object, masks: np.ndarray, clip:
     exact = exact_splats(tracks, masks, truth, clip, camera, width)  # type: ignore[arg-type]
     rendered = rendered_labels(exact, truth.part_labels)
     return round(part_mapping(rendered, truth.part_labels, exact.reference.num_bones, len(truth.kinds) + 1)[2], 4)
+
+
+def refined_scores(model: jt.Articulation, truth: CaseTruth, camera: object) -> list[dict[str, float | None]]:
+    """Per gt joint, the suite's joint scores (axis [deg], pivot [% size], motion) of a model whose part b is
+    gt joint b - 1 (the truth refined: where the objective pulls the exact joints)."""
+    from sync4d_tools.articulated.score import joint_row
+
+    fit = jt.joint_fit_of(model, 0.0, [])
+    motions = fit.transforms()
+    means = model.scene.centre.numpy() + fit.depth[:, None] * model.scene.rays.numpy()
+    out = []
+    for j in range(len(truth.kinds)):
+        row = joint_row(motions[:, j + 1], fit.kinds[j + 1], j, truth, camera, means[fit.labels == j + 1])  # type: ignore[arg-type]
+        out.append({k: (None if row[k] is None else round(float(row[k]), 2)) for k in ("axis_deg", "pivot_pct", "motion")})
+    return out
 
 
 def _value_err(model: jt.Articulation, gt: dict[str, np.ndarray], scene: jt.Scene) -> list[float]:
@@ -159,9 +176,10 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("clips", nargs="+")
     parser.add_argument("--fit", action="store_true", help="also run the fit and score its solution")
+    parser.add_argument("--labels", action="store_true", help="also the labels' ceiling (the exact truth rendered)")
     args = parser.parse_args(argv)
     for c in args.clips:
-        print(json.dumps(diagnose(Path(c), args.fit)), flush=True)
+        print(json.dumps(diagnose(Path(c), args.fit, labels_ceiling=args.labels)), flush=True)
 
 
 if __name__ == "__main__":
