@@ -255,7 +255,8 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
              f"| hinge pivot error, median [% of size] | inf | {out['median_pivot_pct']} | 0 |",
              f"| hinge motion error, median [deg] | - | {out['median_hinge_motion_deg']} | 0 |",
              f"| slide motion error, median [% of travel] | - | {out['median_slide_motion_pct']} | 0 |",
-             f"| the filmed default laptop within the bar, per seed | no | {out['laptop_filmed_within_bar']} | yes |",
+             f"| the filmed default laptop within the bar, per seed | no | "
+             f"{', '.join('yes' if ok else 'no' for ok in out['laptop_filmed_within_bar']) or '-'} | yes |",
              f"| samples (distinct clips) / rows | | {out['samples']} / {out['rows']} | |"]
     return "\n".join(lines)
 
