@@ -196,15 +196,32 @@ def test_two_plate_hinge_is_found_and_followed() -> None:
     assert fit.means.shape == ref.rest_vertices.shape and len(fit.means) >= len(fit.tracks.uv0) and fit.seconds > 0
 
 
+def plate_depths(uv: np.ndarray) -> np.ndarray:
+    """(N,) true camera depth [m] of the plates' plane (through the hinge (0, 0, 1.2), spanned by x and the
+    tilt of :func:`plates_video`) under pixels uv (N, 2)."""
+    normal = np.cross([1.0, 0.0, 0.0], [0.0, 0.94, 0.34])
+    rays = np.concatenate([(uv - K[:2, 2]) / K[0, 0], np.ones((len(uv), 1))], 1)
+    return float(normal @ [0.0, 0.0, 1.2]) / (rays @ normal)
+
+
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured: read as a slide, but 35.5 deg off its direction and its travel "
+                   "50 % over (docs/results/articulated.md); strict: passing again fails until this marker goes")
 def test_two_plate_slide_is_found_as_a_slide() -> None:
+    """The sliding plate is read as a slide along its true direction (image x: within 5 deg) and its travel is
+    within 10 % of the truth's range once the one scale a single view cannot see is removed (the plate's true
+    mean depth against the fitted one); a correlation alone would pass any direction and any scale."""
     fit, labels, travel = _fit("slide", 0.1)
     moving = 1 - fit.joints.root
     assert fit.joints.kinds[moving] == "slide", fit.joints.kinds
     assert _label_agreement(fit, labels) > 0.9
-    # the camera sits at the origin, so the scale is the reference depth (1 m) against the true 1.2 m
-    found = np.abs(fit.joints.values[:, moving])
-    assert np.corrcoef(found, travel)[0, 1] > 0.99
+    axis = fit.joints.axes[moving]
+    direction_error = np.degrees(np.arccos(min(1.0, abs(axis[0]) / np.linalg.norm(axis))))
+    own = fit.joints.labels == moving
+    scale = plate_depths(fit.tracks.uv0[own]).mean() / fit.joints.depth[own].mean()
+    found = scale * fit.joints.values[:, moving] * np.sign(axis[0])
+    travel_error = np.abs(found - travel).mean() / np.ptp(travel)
+    assert direction_error <= 5.0 and travel_error <= 0.1, (direction_error, travel_error, found, travel)
 
 
 def test_tracks_on_a_plain_face_are_not_verified() -> None:

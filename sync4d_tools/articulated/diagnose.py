@@ -25,22 +25,8 @@ from sync4d.recon.video import joints as jt
 from sync4d.recon.video.images import backproject
 from sync4d.recon.video.reconstructor import VideoReconstructor
 from sync4d.recon.video.stages import init_parts, reference_depth, track_grid, video_masks
-
-
-def gt_motion(gt: dict[str, np.ndarray]) -> np.ndarray:
-    """(T, P, 4, 4) frame-0 -> frame-t world motion of every gt part (index 0 = base)."""
-    values = gt["joint_value"]
-    n_frames, n_joints = values.shape
-    out = np.tile(np.eye(4), (n_frames, n_joints + 1, 1, 1))
-    for j, kind in enumerate(gt["joint_type"]):
-        axis, delta = gt["joint_axis"][j] / np.linalg.norm(gt["joint_axis"][j]), values[:, j] - values[0, j]
-        if kind == "hinge":
-            rot = jt._rodrigues_np(axis, delta)
-            out[:, j + 1, :3, :3] = rot
-            out[:, j + 1, :3, 3] = gt["joint_pos"][j] - rot @ gt["joint_pos"][j]
-        else:
-            out[:, j + 1, :3, 3] = delta[:, None] * axis
-    return out
+from sync4d_tools.articulated.ceiling import exact_splats, rendered_labels
+from sync4d_tools.articulated.truth import CaseTruth, clip_truth
 
 
 def model_from(
@@ -81,7 +67,7 @@ def losses(model: jt.Articulation, frames: int, cfg: jt.FitConfig) -> dict[str, 
     }
 
 
-def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
+def diagnose(folder: Path, run_fit: bool, seed: int = 0, *, labels_ceiling: bool = False) -> dict:
     gt = dict(np.load(folder / "gt.npz"))
     source = VideoSource(
         VideoSource.Config(video=str(folder / "rgb.mp4"), masks=str(folder / "masks"), camera=str(folder / "gt.npz"))
@@ -95,7 +81,8 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
     labels = gt["part_labels"][0][pix[:, 1], pix[:, 0]].astype(int) - 1
     depth = gt["depth_m"][pix[:, 1], pix[:, 0]].astype(np.float64)
     x0 = backproject(tracks.uv0, depth, camera)
-    motion = gt_motion(gt)[:, labels]  # (T, N, 4, 4)
+    truth = clip_truth(gt)
+    motion = truth.motions()[:, labels]  # (T, N, 4, 4)
     xt = np.einsum("tnij,nj->tni", motion[..., :3, :3], x0) + motion[..., :3, 3]
     pc = xt @ camera.world_to_cam[:3, :3].T + camera.world_to_cam[:3, 3]
     uv_gt = (pc @ camera.K.T)[..., :2] / (pc @ camera.K.T)[..., 2:3]
@@ -122,15 +109,16 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
     axes = np.concatenate([np.zeros((1, 3)), gt["joint_axis"]])
     pivots = np.concatenate([np.zeros((1, 3)), gt["joint_pos"]])
     values = np.concatenate([np.zeros((len(masks), 1)), gt["joint_value"] - gt["joint_value"][:1]], 1)
-    truth = model_from(scene, labels, 0, kinds, axes, pivots, values, depth)
-    report["loss_truth"] = losses(truth, len(masks), cfg.fit)
-    report["oracle_labels"] = oracle_labels(truth, gt, clip, camera, scene, masks, tracks, add_revealed=False)
-    report["oracle_labels_revealed"] = oracle_labels(truth, gt, clip, camera, scene, masks, tracks)
+    truth_model = model_from(scene, labels, 0, kinds, axes, pivots, values, depth)
+    report["loss_truth"] = losses(truth_model, len(masks), cfg.fit)
+    if labels_ceiling:
+        report["oracle_labels_revealed"] = exact_label_score(truth, tracks, masks, clip, camera, scene.width)
     pairs = jt.neighbour_pairs(tracks.uv0, labels, tracks.stride)
     torch.set_num_threads(1)
-    jt.optimise(truth, cfg.fit, cfg.fit.steps // 2, pairs, windows=1)
-    report["loss_truth_refined"] = losses(truth, len(masks), cfg.fit)
-    report["truth_refined_angle_err"] = _value_err(truth, gt, scene)
+    jt.optimise(truth_model, cfg.fit, cfg.fit.steps // 2, pairs, windows=1)
+    report["loss_truth_refined"] = losses(truth_model, len(masks), cfg.fit)
+    report["truth_refined_angle_err"] = _value_err(truth_model, gt, scene)
+    report["truth_refined_joints"] = refined_scores(truth_model, truth, camera)
     if run_fit:
         fit = jt.fit_joints(scene, tracks, init, cfg.fit)
         found = model_from(scene, fit.labels, fit.root, fit.kinds, fit.axes, fit.pivots, fit.values, fit.depth)
@@ -139,43 +127,30 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0) -> dict:
     return report
 
 
-def oracle_labels(
-    model: jt.Articulation,
-    gt: dict[str, np.ndarray],
-    clip: object,
-    camera: object,
-    scene: jt.Scene,
-    masks: np.ndarray,
-    tracks: object,
-    *,
-    add_revealed: bool = True,
-) -> float:
-    """The suite's label score of the frame-0 surface with exact labels, depths and joints: the ceiling of
-    a method that reconstructs only what frame 0 sees."""
-    from types import SimpleNamespace
+def exact_label_score(truth: CaseTruth, tracks: object, masks: np.ndarray, clip: object, camera: object,
+                      width: float) -> float:
+    """The suite's label score of the exact truth in the method's representation (frame-0 points and the
+    surfaces later frames reveal): the labels' ceiling (:mod:`sync4d_tools.articulated.ceiling`)."""
+    from sync4d_tools.evaluate.recon_suite import part_mapping
 
-    from sync4d.recon.video.reconstructor import build_reference
-    from sync4d.recon.video.reveal import reveal
-    from sync4d_tools.evaluate.recon_suite import part_mapping, rendered_labels
+    exact = exact_splats(tracks, masks, truth, clip, camera, width)  # type: ignore[arg-type]
+    rendered = rendered_labels(exact, truth.part_labels)
+    return round(part_mapping(rendered, truth.part_labels, exact.reference.num_bones, len(truth.kinds) + 1)[2], 4)
 
-    fit = jt._result(model, 0.0, [])
-    means = scene.centre.numpy() + fit.depth[:, None] * scene.rays.numpy()
-    extra, extra_labels = reveal(means, fit.labels, fit.transforms(), masks, tracks, camera)
-    if not add_revealed:
-        extra, extra_labels = extra[:0], extra_labels[:0]
-    means, labels = np.concatenate([means, extra]), np.concatenate([fit.labels, extra_labels])
-    ref = build_reference(fit, means, labels, clip, camera, "oracle")
-    sigma = 0.5 * scene.stride * (means @ camera.world_to_cam[2, :3] + camera.world_to_cam[2, 3]) / camera.K[0, 0]
-    view = SimpleNamespace(
-        reference=ref,
-        means=means,
-        sigma=sigma,
-        opacity=np.full(len(means), 0.9),
-        camera=camera,
-        object_width=scene.width,
-    )
-    rendered = rendered_labels(view, gt["part_labels"])
-    return round(part_mapping(rendered, gt["part_labels"], ref.num_bones, len(model.kinds))[2], 4)
+
+def refined_scores(model: jt.Articulation, truth: CaseTruth, camera: object) -> list[dict[str, float | None]]:
+    """Per gt joint, the suite's joint scores (axis [deg], pivot [% size], motion) of a model whose part b is
+    gt joint b - 1 (the truth refined: where the objective pulls the exact joints)."""
+    from sync4d_tools.articulated.score import joint_row
+
+    fit = jt.joint_fit_of(model, 0.0, [])
+    motions = fit.transforms()
+    means = model.scene.centre.numpy() + fit.depth[:, None] * model.scene.rays.numpy()
+    out = []
+    for j in range(len(truth.kinds)):
+        row = joint_row(motions[:, j + 1], fit.kinds[j + 1], j, truth, camera, means[fit.labels == j + 1])  # type: ignore[arg-type]
+        out.append({k: (None if row[k] is None else round(float(row[k]), 2)) for k in ("axis_deg", "pivot_pct", "motion")})
+    return out
 
 
 def _value_err(model: jt.Articulation, gt: dict[str, np.ndarray], scene: jt.Scene) -> list[float]:
@@ -201,9 +176,10 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("clips", nargs="+")
     parser.add_argument("--fit", action="store_true", help="also run the fit and score its solution")
+    parser.add_argument("--labels", action="store_true", help="also the labels' ceiling (the exact truth rendered)")
     args = parser.parse_args(argv)
     for c in args.clips:
-        print(json.dumps(diagnose(Path(c), args.fit)), flush=True)
+        print(json.dumps(diagnose(Path(c), args.fit, labels_ceiling=args.labels)), flush=True)
 
 
 if __name__ == "__main__":

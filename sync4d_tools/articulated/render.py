@@ -1,12 +1,19 @@
 """Render the articulated suite with MuJoCo (kinematic playback, EGL): clips in the laptop renders' layout.
 
-    python -m sync4d_tools.articulated.render [--out outputs/cache/articulated] [--frames 24] [--size 240 180]
+    python -m sync4d_tools.articulated.render [--out outputs/cache/articulated] [--seeds 0 1 2] [--frames 24] [--size 240 180]
+
+Seed 0 renders every object as it is defined, from the two views; another seed samples what a new clip of
+the same object would change (:func:`variant`): the camera's azimuth (+-15 deg) and elevation (+-8 deg), the
+start state (up to 15 % of the motion in) and far end (up to 10 % short), the checker colours and scale of
+the textured objects, the plain objects' colours, the floor's colour and the light. A clip's folder is
+``clips/<object>-<view>`` at seed 0 and ``clips/<object>-<view>-s<seed>`` otherwise.
 
 Each clip folder holds ``rgb.mp4``, ``masks/%05d.png`` (255 = object, from the exact labels) and ``gt.npz``:
 ``part_labels`` (T, H, W) uint8 (0 background, 1 the static base, j + 2 the part moved by joint j),
 ``part_names``, ``joint_type`` (J,) ``hinge``/``slide``, ``joint_value`` (T, J) [rad or m], ``joint_axis``
 (J, 3) world, ``joint_pos`` (J, 3) a world point on each joint's axis in frame 0 [m], ``depth_m`` (H, W)
-frame-0 camera depth of the object's pixels [m] (0 elsewhere; for diagnostics only), ``part_depth_m`` (P,) mean camera depth of each part's visible pixels in frame 0 [m]
+frame-0 camera depth of the object's pixels [m] (0 elsewhere), ``depth_t`` (T, H, W) the same for every
+frame (float16), ``part_depth_m`` (P,) mean camera depth of each part's visible pixels in frame 0 [m]
 (label 1 first), ``fps``, ``K``, ``cam_pos``, ``cam_forward``, ``cam_up`` (the projection convention of
 ``rendered/metaworld_laptop_hinge``), and for one-hinge objects ``hinge_angle_rad`` (T,) as that render has.
 
@@ -18,8 +25,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
-from dataclasses import dataclass
+import zlib
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +50,48 @@ class View:
 VIEWS = (View("left", 55.0, -28.0), View("right", 125.0, -38.0))
 
 
-def _assets_dir(cache: Path) -> Path:
+@dataclass(frozen=True)
+class Look:
+    """What a clip's surroundings look like: floor colour (RGB in [0, 1]) and light direction (world)."""
+
+    floor: tuple[float, float, float] = (0.42, 0.44, 0.46)
+    light: tuple[float, float, float] = (-0.3, 0.2, -1.0)
+
+
+def _jitter_colours(text: str, rng: np.random.Generator) -> str:
+    """Every ``rgb1``/``rgb2``/``rgba`` colour in MJCF ``text`` scaled by 0.8-1.2 per channel, every
+    ``texrepeat`` set to 5-9 cells (per metre)."""
+
+    def colour(m: re.Match) -> str:
+        values = [float(v) for v in m.group(2).split()]
+        rgb = np.clip(np.array(values[:3]) * rng.uniform(0.8, 1.2, 3), 0.05, 0.95)
+        return f'{m.group(1)}="{" ".join(f"{v:.3f}" for v in rgb)}{"" if len(values) == 3 else " " + str(values[3])}"'
+
+    text = re.sub(r'(rgb1|rgb2|rgba)="([^"]+)"', colour, text)
+    cells = int(rng.integers(5, 10))
+    return re.sub(r'texrepeat="[^"]+"', f'texrepeat="{cells} {cells}"', text)
+
+
+def variant(obj: SuiteObject, view: View, seed: int) -> tuple[SuiteObject, View, Look]:
+    """The object, view and look of the clip ``seed`` (seed 0: as defined): camera azimuth +-15 deg and
+    elevation +-8 deg, start state up to 15 % of the motion in, far end up to 10 % short, colours and
+    checker scale of the procedural objects, floor colour and light direction."""
+    if seed == 0:
+        return obj, view, Look()
+    rng = np.random.default_rng([seed, zlib.crc32(f"{obj.name}-{view.name}".encode())])
+    view = View(view.name, view.azimuth + rng.uniform(-15, 15), float(np.clip(view.elevation + rng.uniform(-8, 8), -60, -15)))
+    start, turn = np.asarray(obj.start), np.asarray(obj.turn)
+    span = turn - start
+    new_start = start + rng.uniform(0.0, 0.15, len(span)) * span
+    new_turn = turn - rng.uniform(0.0, 0.1, len(span)) * span
+    deps = obj.dependencies if obj.dependencies.startswith("<include") else _jitter_colours(obj.dependencies, rng)
+    obj = replace(obj, start=tuple(float(v) for v in new_start), turn=tuple(float(v) for v in new_turn), dependencies=deps)
+    floor = tuple(float(v) for v in np.clip(np.array(Look().floor) * rng.uniform(0.7, 1.3, 3), 0.1, 0.9))
+    light = tuple(float(v) for v in np.array(Look().light) + np.append(rng.uniform(-0.4, 0.4, 2), 0.0))
+    return obj, view, Look(floor=floor, light=light)  # type: ignore[arg-type]
+
+
+def assets_dir(cache: Path) -> Path:
     """A private copy of Meta-World's assets (wrapper files are written next to its object files)."""
     import metaworld
 
@@ -51,12 +101,13 @@ def _assets_dir(cache: Path) -> Path:
     return dst / "objects"
 
 
-def scene_xml(obj: SuiteObject) -> str:
+def scene_xml(obj: SuiteObject, look: Look = Look()) -> str:
     """A standalone MJCF scene: the object on a plain floor, lit, no gravity (kinematic playback)."""
+    floor, light = " ".join(f"{v:.3f}" for v in look.floor), " ".join(f"{v:.3f}" for v in look.light)
     return (f'<mujoco model="{obj.name}"><compiler angle="radian"/><option gravity="0 0 0"/>{obj.dependencies}'
             '<visual><headlight ambient="0.45 0.45 0.45" diffuse="0.5 0.5 0.5"/></visual>'
-            '<asset><material name="suite_floor" rgba=".42 .44 .46 1"/></asset>'
-            '<worldbody><light directional="true" diffuse=".5 .5 .5" pos="0 0 3" dir="-0.3 0.2 -1"/>'
+            f'<asset><material name="suite_floor" rgba="{floor} 1"/></asset>'
+            f'<worldbody><light directional="true" diffuse=".5 .5 .5" pos="0 0 3" dir="{light}"/>'
             '<geom name="suite_floor" type="plane" size="3 3 .05" material="suite_floor"/>'
             f"{obj.body_xml}</worldbody></mujoco>")
 
@@ -103,14 +154,64 @@ def _union_box_pose(model: object, data: object, joint_ids: list[int], values: n
     mujoco.mj_forward(model, data)
 
 
-def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: int, height: int, cache: Path) -> dict:
+def _segment(renderer: object, data: object, cam: object, model: object, part_of_body: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 part label of every pixel (0: background and floor)."""
+    import mujoco
+
+    renderer.enable_segmentation_rendering()  # type: ignore[attr-defined]
+    renderer.update_scene(data, camera=cam)  # type: ignore[attr-defined]
+    seg = renderer.render().copy()  # type: ignore[attr-defined]
+    renderer.disable_segmentation_rendering()  # type: ignore[attr-defined]
+    geom = np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)
+    body = model.geom_bodyid[np.maximum(geom, 0)]  # type: ignore[attr-defined]
+    lab = np.where(geom >= 0, part_of_body[body], 0).astype(np.uint8)
+    lab[(geom >= 0) & (body == 0)] = 0  # the floor
+    return lab
+
+
+def _depth(renderer: object, data: object, cam: object) -> np.ndarray:
+    """(H, W) distance along the view axis [m] (MuJoCo's depth buffer, as our z = (p - c).fwd)."""
+    renderer.enable_depth_rendering()  # type: ignore[attr-defined]
+    renderer.update_scene(data, camera=cam)  # type: ignore[attr-defined]
+    depth = renderer.render().copy()  # type: ignore[attr-defined]
+    renderer.disable_depth_rendering()  # type: ignore[attr-defined]
+    return depth
+
+
+def _play(model: object, data: object, cam: object, joint_ids: list[int], values: np.ndarray, size: tuple[int, int],
+          part_of_body: np.ndarray) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Render every frame: (rgb list, labels (T, H, W), depths (T, H, W), frame-0 joint axes (J, 3) and
+    anchors (J, 3), the GL camera's (pos, forward, up) (3, 3))."""
+    import mujoco
+
+    width, height = size
+    renderer = mujoco.Renderer(model, height, width)
+    rgb, labels, depths = [], [], []
+    for t in range(len(values)):
+        for k, j in enumerate(joint_ids):
+            data.qpos[model.jnt_qposadr[j]] = values[t, k]  # type: ignore[attr-defined]
+        mujoco.mj_forward(model, data)
+        renderer.update_scene(data, camera=cam)
+        rgb.append(renderer.render().copy())
+        labels.append(_segment(renderer, data, cam, model, part_of_body))
+        depths.append(np.where(labels[-1] > 0, _depth(renderer, data, cam), 0.0).astype(np.float32))
+        if t == 0:
+            axes = np.stack([data.xaxis[j] for j in joint_ids]).copy()  # type: ignore[attr-defined]
+            anchors = np.stack([data.xanchor[j] for j in joint_ids]).copy()  # type: ignore[attr-defined]
+    gl = renderer.scene.camera  # the two eyes of the GL camera: their mean is the view
+    pose = np.stack([np.mean([getattr(gl[i], k) for i in range(2)], 0) for k in ("pos", "forward", "up")])
+    renderer.close()
+    return rgb, np.stack(labels), np.stack(depths), axes, anchors, pose
+
+
+def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: int, height: int, cache: Path,
+                look: Look = Look()) -> dict:
     """Render one object from one view into ``out`` (rgb.mp4, masks/, gt.npz); returns a summary."""
     import imageio.v2 as imageio
     import mujoco
 
-    objects_dir = _assets_dir(cache)
-    xml_path = objects_dir / f"suite_{obj.name}.xml"
-    xml_path.write_text(scene_xml(obj))
+    xml_path = assets_dir(cache) / f"suite_{obj.name}.xml"
+    xml_path.write_text(scene_xml(obj, look))
     model = mujoco.MjModel.from_xml_path(str(xml_path))
     data = mujoco.MjData(model)
     joint_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n) if n else k for k, n in enumerate(obj.joints)]
@@ -118,51 +219,23 @@ def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: 
     part_of_body = _part_of_bodies(model, joint_ids)
     _union_box_pose(model, data, joint_ids, values)
     cam = _camera(model, data, view)
-    renderer = mujoco.Renderer(model, height, width)
-    rgb, labels, depth0 = [], [], None
-    for t in range(frames):
-        for k, j in enumerate(joint_ids):
-            data.qpos[model.jnt_qposadr[j]] = values[t, k]
-        mujoco.mj_forward(model, data)
-        renderer.update_scene(data, camera=cam)
-        rgb.append(renderer.render().copy())
-        renderer.enable_segmentation_rendering()
-        renderer.update_scene(data, camera=cam)
-        seg = renderer.render().copy()
-        renderer.disable_segmentation_rendering()
-        geom = np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)
-        lab = np.where(geom >= 0, part_of_body[model.geom_bodyid[np.maximum(geom, 0)]], 0).astype(np.uint8)
-        lab[(geom >= 0) & (model.geom_bodyid[np.maximum(geom, 0)] == 0)] = 0  # the floor
-        labels.append(lab)
-        if t == 0:
-            renderer.enable_depth_rendering()
-            renderer.update_scene(data, camera=cam)
-            depth0 = renderer.render().copy()
-            renderer.disable_depth_rendering()
-            axes = np.stack([data.xaxis[j] for j in joint_ids]).copy()
-            anchors = np.stack([data.xanchor[j] for j in joint_ids]).copy()
-    gl = renderer.scene.camera  # the two eyes of the GL camera: their mean is the view
-    pos = np.mean([gl[i].pos for i in range(2)], 0)
-    fwd = np.mean([gl[i].forward for i in range(2)], 0)
-    up = np.mean([gl[i].up for i in range(2)], 0)
-    renderer.close()
+    rgb, labels_a, depth, axes, anchors, pose = _play(model, data, cam, joint_ids, values, (width, height), part_of_body)
     fy = 0.5 * height / np.tan(np.radians(model.vis.global_.fovy) / 2)
     K = np.array([[fy, 0, width / 2], [0, fy, height / 2], [0, 0, 1.0]])
-    labels_a = np.stack(labels)
     n_parts = len(joint_ids) + 1
-    # MuJoCo's depth buffer holds distance along the view axis, as our z = (p - c).fwd
-    part_depth = np.array([float(depth0[labels_a[0] == p + 1].mean()) if (labels_a[0] == p + 1).any() else np.nan
+    part_depth = np.array([float(depth[0][labels_a[0] == p + 1].mean()) if (labels_a[0] == p + 1).any() else np.nan
                            for p in range(n_parts)])
     kinds = np.array(["hinge" if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE else "slide" for j in joint_ids])
     gt = {"part_labels": labels_a, "part_names": np.array(["background", "base"] + [f"part{j + 1}" for j in range(len(joint_ids))]),
-          "joint_type": kinds, "joint_value": values.astype(np.float64), "joint_axis": axes, "joint_pos": anchors, "part_depth_m": part_depth,
-          "depth_m": np.where(labels_a[0] > 0, depth0, 0.0).astype(np.float32),
-          "fps": np.int64(12), "K": K, "cam_pos": pos.astype(np.float32), "cam_forward": fwd.astype(np.float32),
-          "cam_up": up.astype(np.float32)}
+          "joint_type": kinds, "joint_value": values.astype(np.float64), "joint_axis": axes, "joint_pos": anchors,
+          "part_depth_m": part_depth, "depth_m": depth[0], "depth_t": depth,
+          "fps": np.int64(12), "K": K, "cam_pos": pose[0].astype(np.float32), "cam_forward": pose[1].astype(np.float32),
+          "cam_up": pose[2].astype(np.float32),
+          "variant": np.array(json.dumps({"azimuth": view.azimuth, "elevation": view.elevation, "start": obj.start,
+                                          "turn": obj.turn, "floor": look.floor, "light": look.light}))}
     if kinds.tolist() == ["hinge"]:
         gt["hinge_angle_rad"] = values[:, 0].astype(np.float32)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "masks").mkdir(exist_ok=True)
+    (out / "masks").mkdir(parents=True, exist_ok=True)
     for t, lab in enumerate(labels_a):
         imageio.imwrite(out / "masks" / f"{t:05d}.png", ((lab > 0) * 255).astype(np.uint8))
     imageio.mimwrite(out / "rgb.mp4", rgb, fps=12, quality=9, macro_block_size=1)
@@ -171,9 +244,15 @@ def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: 
             "part_pixels_frame0": [int((labels_a[0] == p + 1).sum()) for p in range(n_parts)]}
 
 
+def clip_name(obj: str, view: str, seed: int) -> str:
+    """The folder name of a clip: ``<object>-<view>`` at seed 0, ``<object>-<view>-s<seed>`` otherwise."""
+    return f"{obj}-{view}" if seed == 0 else f"{obj}-{view}-s{seed}"
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="outputs/cache/articulated")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--size", type=int, nargs=2, default=(240, 180), metavar=("W", "H"))
     parser.add_argument("--only", nargs="*", default=[], help="object names to render (default: all)")
@@ -181,14 +260,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
     cache = Path(args.out)
     cache.mkdir(parents=True, exist_ok=True)
     rows = []
-    for obj in suite_objects():
-        if args.only and obj.name not in args.only:
-            continue
-        for view in VIEWS:
-            clip = cache / "clips" / f"{obj.name}-{view.name}"
-            rows.append(render_clip(obj, view, clip, frames=args.frames, width=args.size[0], height=args.size[1],
-                                    cache=cache))
-            print(json.dumps(rows[-1]))
+    for seed in args.seeds:
+        for base in suite_objects():
+            if args.only and base.name not in args.only:
+                continue
+            for base_view in VIEWS:
+                obj, view, look = variant(base, base_view, seed)
+                clip = cache / "clips" / clip_name(base.name, base_view.name, seed)
+                rows.append(render_clip(obj, view, clip, frames=args.frames, width=args.size[0], height=args.size[1],
+                                        cache=cache, look=look))
+                print(json.dumps(rows[-1]))
     return rows
 
 

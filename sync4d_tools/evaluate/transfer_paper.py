@@ -12,7 +12,7 @@ defaults, onto the experiments' targets (the cross, the stuffed toy and the cow)
 pipeline's matcher, so seams lie where the matching put them.
 
 Without a truth, fidelity is the *follow error* (each target part's best rigid motion against its
-reference part's driving motion, :func:`sync4d.metrics.follow_error`) beside integrity. ``frozen`` (the rest
+reference part's driving motion, :func:`sync4d.run.metrics.follow_error`) beside integrity. ``frozen`` (the rest
 pose every frame) is the floor; ``lbs_hard`` follows every part's drive exactly (follow error 0: the ceiling
 of fidelity, the floor of integrity). Criteria (issue 30) for ``--candidate``: follow rotation error within
 2 degrees of lbs_hard's, fewer torn pairs than lbs_hard at 10, 20 and 30 %, lower worst-frame p99 strain,

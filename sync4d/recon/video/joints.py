@@ -131,7 +131,7 @@ class JointFit:
         for b, kind in enumerate(self.kinds):
             local = np.tile(np.eye(4), (n_frames, 1, 1))
             if kind == "hinge":
-                rot = _rodrigues_np(self.axes[b], self.values[:, b])
+                rot = rodrigues_np(self.axes[b], self.values[:, b])
                 local[:, :3, :3] = rot
                 local[:, :3, 3] = self.pivots[b] - rot @ self.pivots[b]
             elif kind == "slide":
@@ -140,7 +140,7 @@ class JointFit:
         return out
 
 
-def _rodrigues_np(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
+def rodrigues_np(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """(T, 3, 3) rotations by ``angles`` (T,) [rad] about the unit ``axis`` (3,)."""
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     s, c = np.sin(angles)[:, None, None], np.cos(angles)[:, None, None]
@@ -479,7 +479,7 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> 
     best_loss = optimise(best, cfg, cfg.steps // 2, pairs, windows=1)
     for _ in range(cfg.relabel_rounds):
         best_loss = relabel_and_refine(best, tracks, cfg, cfg.steps // 2)
-    return _result(best, best_loss, history)
+    return joint_fit_of(best, best_loss, history)
 
 
 def relabel_and_refine(model: Articulation, tracks: Tracks, cfg: FitConfig, steps: int) -> float:
@@ -580,7 +580,8 @@ def gauss_newton_travel(x0: np.ndarray, direction: np.ndarray, target: np.ndarra
     return s - s[0]
 
 
-def _result(model: Articulation, loss: float, history: list[float]) -> JointFit:
+def joint_fit_of(model: Articulation, loss: float, history: list[float]) -> JointFit:
+    """The fitted articulation of ``model`` as a :class:`JointFit` (slide values in metres)."""
     with torch.no_grad():
         axes = model.axes.numpy() / np.linalg.norm(model.axes.numpy(), axis=1, keepdims=True).clip(1e-9)
         values = np.concatenate([np.zeros((1, len(model.kinds))), model.values.numpy()], 0)
