@@ -18,7 +18,7 @@ SH_C0 = 0.28209479177387814
 def rgb_to_sh_dc(rgb: ArrayT) -> ArrayT:
     """(N, 3) RGB in [0, 1] -> (N, 1, 3) degree-0 SH coefficients (inverse of 0.5 + SH_C0 * c); NumPy arrays
     and torch tensors alike (differentiable)."""
-    return ((rgb - 0.5) / SH_C0)[:, None, :]  # type: ignore[no-any-return]
+    return ((rgb - 0.5) / SH_C0)[:, None, :]
 
 
 def quat_to_matrix(quats: np.ndarray) -> np.ndarray:

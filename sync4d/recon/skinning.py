@@ -280,6 +280,8 @@ class SkinningDelta(torch.nn.Module):
     The last layer starts at zero so the initial weights are the pure Gaussian-bone weights.
     """
 
+    center: torch.Tensor  # a registered buffer (moves with .to(), not trained)
+
     def __init__(self, bones: int, *, center: np.ndarray, scale: float, width: int = 64, layers: int = 2,
                  frequencies: int = 4, generator: torch.Generator | None = None) -> None:
         super().__init__()

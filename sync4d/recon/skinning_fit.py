@@ -183,6 +183,8 @@ class BoneModel(torch.nn.Module):
     """Gaussian bones (centres, orientations, log scales), per-frame rotations about fixed pivots with
     translations, and an optional skinning MLP delta, in normalised units (paper Eq. W = softmax(d_M + W_delta))."""
 
+    pivots: torch.Tensor  # a registered buffer (moves with .to(), not trained)
+
     def __init__(self, centers0: np.ndarray, rots0: np.ndarray, scales0: np.ndarray, init_j: np.ndarray,
                  opts: FitOptions) -> None:
         super().__init__()

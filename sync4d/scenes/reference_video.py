@@ -131,4 +131,4 @@ def film_reference(
 
 def _numpy(value: object) -> np.ndarray:
     """A renderer output (torch tensor or array) as a numpy array."""
-    return np.asarray(value.detach().cpu() if hasattr(value, "detach") else value)  # type: ignore[attr-defined]
+    return np.asarray(value.detach().cpu() if hasattr(value, "detach") else value)

@@ -236,7 +236,8 @@ def video_flow(frames: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(T-1, P, 2) DIS optical flow (OpenCV, medium preset) from frame t to t+1 at pixels ``uv`` (P, 2) [px]."""
     import cv2
 
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    # OpenCV's stubs omit the DIS optical flow factory that the module has.
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]
     grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
     h, w = grey[0].shape
     iu = np.clip(uv[:, 0].astype(int), 0, w - 1)
