@@ -1,12 +1,16 @@
 """Geometry used across the library, each in one place: rotations (quaternions, axis-angle), rigid
 transforms and fits, linear blend skinning, the interpolation of a part's pose within a frame, and the
-degree-0 spherical-harmonic constant that maps colours to 3DGS coefficients. Pure NumPy functions."""
+degree-0 spherical-harmonic constant that maps colours to 3DGS coefficients. NumPy functions, and a torch
+twin (``..._torch``) where an optimiser needs the gradient (torch is imported only by those)."""
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
 
 #: A NumPy array or a torch tensor (functions written once for both).
 ArrayT = TypeVar("ArrayT", bound=Any)
@@ -78,6 +82,21 @@ def rotation_vector_to_matrix(v: np.ndarray) -> np.ndarray:
     a = np.where(theta > 1e-12, np.sin(theta) / safe, 1.0)
     b = np.where(theta > 1e-12, (1.0 - np.cos(theta)) / safe**2, 0.5)
     return np.eye(3) + a * K + b * (K @ K)
+
+
+def rotation_vector_to_matrix_torch(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) rotation vectors [rad] -> (..., 3, 3) rotations (Rodrigues), differentiable; the angle is
+    clamped at 1e-8 rad so the axis (and the gradient) stays finite at zero."""
+    import torch
+
+    theta = v.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    k = v / theta
+    kx, ky, kz = k.unbind(-1)
+    zero = torch.zeros_like(kx)
+    kmat = torch.stack([zero, -kz, ky, kz, zero, -kx, -ky, kx, zero], -1).reshape(v.shape[:-1] + (3, 3))
+    th = theta[..., None]
+    eye = torch.eye(3, dtype=v.dtype).expand(kmat.shape)
+    return eye + torch.sin(th) * kmat + (1 - torch.cos(th)) * (kmat @ kmat)
 
 
 def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from sync4d.errors import InputError
+from sync4d.geometry import quat_to_matrix, rotation_about_axis
 from sync4d.io.mocap import SkeletonMotion
 
 # pybullet's DeepMimic humanoid environment loads humanoid.urdf with globalScaling=0.25.
@@ -63,25 +64,6 @@ def rpy_matrix(rpy: np.ndarray) -> np.ndarray:
     ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
     rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
     return rz @ ry @ rx
-
-
-def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations of (..., 4) quaternions (w, x, y, z), normalised first."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
-def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) rotations by ``angle`` (T,) [rad] about the unit ``axis`` (3,) (Rodrigues)."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    a = np.asarray(angle, dtype=np.float64)[:, None, None]
-    return np.eye(3) + np.sin(a) * k + (1 - np.cos(a)) * (k @ k)
 
 
 def _floats(text: str | None, count: int, what: str, source: str) -> np.ndarray:
@@ -301,15 +283,15 @@ def deepmimic_forward_kinematics(skeleton: UrdfSkeleton, rows: np.ndarray) -> tu
         p = skeleton.parents[j]
         if kind == "root":
             pos[:, j] = rows[:, 1:4]
-            rot[:, j] = quat_wxyz_to_matrix(rows[:, 4:8])
+            rot[:, j] = quat_to_matrix(rows[:, 4:8])
             continue
         local = np.tile(np.eye(3), (num, 1, 1))
         shift = np.zeros((num, 3))
         if kind == "spherical":
-            local = quat_wxyz_to_matrix(rows[:, col : col + 4])
+            local = quat_to_matrix(rows[:, col : col + 4])
             col += 4
         elif kind in ("revolute", "continuous"):
-            local = axis_angle_matrix(skeleton.axes[j], rows[:, col])
+            local = rotation_about_axis(skeleton.axes[j], rows[:, col])
             col += 1
         elif kind == "prismatic":
             shift = rows[:, col, None] * skeleton.axes[j]
