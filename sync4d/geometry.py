@@ -108,6 +108,19 @@ def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:
     return q[..., 1:] * scale[..., None]
 
 
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The (3, 3) rotation closest to ``matrix`` in the Frobenius norm (SVD, determinant +1)."""
+    u, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def best_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation R minimising sum |b_i - R a_i|^2 over directions a, b (N, 3), no translation (Wahba's
+    problem; :func:`rigid_fit` is the version with translation)."""
+    return nearest_rotation(b.T @ a)
+
+
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     """(...) the angle [deg] of rotations (..., 3, 3), from the trace (clipped for rounding)."""
     cos = (np.trace(np.asarray(R, dtype=np.float64), axis1=-2, axis2=-1) - 1.0) / 2.0
