@@ -109,10 +109,16 @@ def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:
 
 
 def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
-    """The (3, 3) rotation closest to ``matrix`` in the Frobenius norm (SVD, determinant +1)."""
-    u, _, vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
+    """(..., 3, 3) the rotations closest to ``matrix`` (..., 3, 3) in the Frobenius norm: the R of the polar
+    decomposition F = R U (U symmetric positive semi-definite).
+
+    From the SVD F = W S V^T, R = W V^T; an improper result (det -1, e.g. an inverted F) has W's last column
+    flipped so R stays a rotation.
+    """
+    W, _, Vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    flip = np.linalg.det(W @ Vt) < 0
+    W[flip, :, 2] *= -1.0
+    return W @ Vt
 
 
 def best_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
