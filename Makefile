@@ -46,6 +46,7 @@ train: $(STAMP)
 # The fast lane (4-6 minutes idle here, depending on the machine): lint, then every test not marked slow.
 test: $(STAMP)
 	$(PY) -m ruff check sync4d sync4d_tools tests benchmarks plugins train.py
+	$(PY) -m mypy
 	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
 
 # The slow lane: end-to-end runs and long fits (CI runs it after the fast lane).

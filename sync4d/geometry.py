@@ -1,12 +1,16 @@
 """Geometry used across the library, each in one place: rotations (quaternions, axis-angle), rigid
 transforms and fits, linear blend skinning, the interpolation of a part's pose within a frame, and the
-degree-0 spherical-harmonic constant that maps colours to 3DGS coefficients. Pure NumPy functions."""
+degree-0 spherical-harmonic constant that maps colours to 3DGS coefficients. NumPy functions, and a torch
+twin (``..._torch``) where an optimiser needs the gradient (torch is imported only by those)."""
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
 
 #: A NumPy array or a torch tensor (functions written once for both).
 ArrayT = TypeVar("ArrayT", bound=Any)
@@ -18,7 +22,7 @@ SH_C0 = 0.28209479177387814
 def rgb_to_sh_dc(rgb: ArrayT) -> ArrayT:
     """(N, 3) RGB in [0, 1] -> (N, 1, 3) degree-0 SH coefficients (inverse of 0.5 + SH_C0 * c); NumPy arrays
     and torch tensors alike (differentiable)."""
-    return ((rgb - 0.5) / SH_C0)[:, None, :]  # type: ignore[no-any-return]
+    return ((rgb - 0.5) / SH_C0)[:, None, :]
 
 
 def quat_to_matrix(quats: np.ndarray) -> np.ndarray:
@@ -80,6 +84,21 @@ def rotation_vector_to_matrix(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * K + b * (K @ K)
 
 
+def rotation_vector_to_matrix_torch(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) rotation vectors [rad] -> (..., 3, 3) rotations (Rodrigues), differentiable; the angle is
+    clamped at 1e-8 rad so the axis (and the gradient) stays finite at zero."""
+    import torch
+
+    theta = v.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    k = v / theta
+    kx, ky, kz = k.unbind(-1)
+    zero = torch.zeros_like(kx)
+    kmat = torch.stack([zero, -kz, ky, kz, zero, -kx, -ky, kx, zero], -1).reshape(v.shape[:-1] + (3, 3))
+    th = theta[..., None]
+    eye = torch.eye(3, dtype=v.dtype).expand(kmat.shape)
+    return eye + torch.sin(th) * kmat + (1 - torch.cos(th)) * (kmat @ kmat)
+
+
 def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotations -> (..., 3) rotation vectors (angle in [0, pi]), via the quaternion."""
     q = matrix_to_quat(R)  # w >= 0
@@ -87,6 +106,25 @@ def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:
     angle = 2.0 * np.arctan2(s, q[..., 0])
     scale = np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 2.0)
     return q[..., 1:] * scale[..., None]
+
+
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the rotations closest to ``matrix`` (..., 3, 3) in the Frobenius norm: the R of the polar
+    decomposition F = R U (U symmetric positive semi-definite).
+
+    From the SVD F = W S V^T, R = W V^T; an improper result (det -1, e.g. an inverted F) has W's last column
+    flipped so R stays a rotation.
+    """
+    W, _, Vt = np.linalg.svd(np.asarray(matrix, dtype=np.float64))
+    flip = np.linalg.det(W @ Vt) < 0
+    W[flip, :, 2] *= -1.0
+    return W @ Vt
+
+
+def best_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation R minimising sum |b_i - R a_i|^2 over directions a, b (N, 3), no translation (Wahba's
+    problem; :func:`rigid_fit` is the version with translation)."""
+    return nearest_rotation(b.T @ a)
 
 
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:

@@ -35,6 +35,16 @@ def area_samples(tri: np.ndarray, count: int, rng: np.random.Generator) -> tuple
     return face, np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
 
 
+def area_points(tri: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
+    """``count`` points (count, 3) uniform by area on triangles ``tri`` (F, 3, 3) and the face (count,) each lies
+    on (:func:`area_samples` placed on the triangles); None when the triangles have no area."""
+    sampled = area_samples(tri, count, rng)
+    if sampled is None:
+        return None
+    face, bary = sampled
+    return np.einsum("sk,skd->sd", bary, tri[face]), face
+
+
 def _occupied(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
     """Voxel index of each point (N,) and the number of occupied voxels, for voxels of side ``cell``."""
     coords = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)

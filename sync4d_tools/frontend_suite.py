@@ -40,7 +40,7 @@ import numpy as np
 
 from sync4d.errors import Sync4DError
 from sync4d.frontend import FrontEndConfig, run_front_end
-from sync4d.frontend.geometry import rotation_angle_deg
+from sync4d.geometry import rotation_angle_deg
 from sync4d.sources.references import camera_from_look
 from sync4d.types import Camera, VideoClip
 

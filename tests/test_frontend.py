@@ -13,7 +13,8 @@ from sync4d.errors import InputError
 from sync4d.frontend import FrontEndConfig, Prompt, complete_video, run_front_end
 from sync4d.frontend.bundle import bundle_adjust
 from sync4d.frontend.camera import static_camera
-from sync4d.frontend.geometry import intrinsics_from_fov, pose_matrix, project, rodrigues, rotation_angle_deg
+from sync4d.frontend.geometry import intrinsics_from_fov, pose_matrix, project
+from sync4d.geometry import rotation_angle_deg, rotation_vector_to_matrix
 from sync4d.frontend.outputs import write_video_inputs
 from sync4d.frontend.stage import CAMERA_TO_YUP
 from sync4d.frontend.tracks import Tracks
@@ -92,12 +93,12 @@ def test_bundle_adjustment_recovers_poses_from_noisy_starts():
     rng = np.random.default_rng(0)
     K = intrinsics_from_fov(W, H, 60.0)
     points = rng.uniform([-1, -1, 4], [1, 1, 6], (80, 3))
-    poses = np.stack([pose_matrix(rodrigues(np.array([0.0, 0.03 * t, 0.0])), np.array([-0.1 * t, 0, 0]))
+    poses = np.stack([pose_matrix(rotation_vector_to_matrix(np.array([0.0, 0.03 * t, 0.0])), np.array([-0.1 * t, 0, 0]))
                       for t in range(5)])
     uv = np.stack([project(points, K, p)[0] for p in poses])
     tracks = Tracks(uv=uv, valid=np.ones(uv.shape[:2], bool))
     noisy = poses.copy()
-    noisy[1:, :3, :3] = rodrigues(rng.normal(0, 0.01, (4, 3))) @ noisy[1:, :3, :3]
+    noisy[1:, :3, :3] = rotation_vector_to_matrix(rng.normal(0, 0.01, (4, 3))) @ noisy[1:, :3, :3]
     result = bundle_adjust(tracks, K, noisy, points + rng.normal(0, 0.05, points.shape), iterations=100,
                            refine_focal=False, scale_frame=4)
     err = rotation_angle_deg(result.poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2))

@@ -10,9 +10,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from sync4d.errors import ConfigError, InputError
+from sync4d.geometry import quat_to_matrix
 from sync4d.io.deepmimic import (
     parse_deepmimic_frames,
-    quat_wxyz_to_matrix,
     read_deepmimic,
     read_urdf_skeleton,
     rpy_matrix,
@@ -47,7 +47,7 @@ def test_rotation_helpers_match_scipy() -> None:
     np.testing.assert_allclose(rpy_matrix(rpy), Rotation.from_euler("xyz", rpy).as_matrix(), atol=1e-12)
     q = np.array([0.8, 0.1, -0.4, 0.3])
     expected = Rotation.from_quat(np.r_[q[1:], q[0]]).as_matrix()  # scipy wants (x, y, z, w)
-    np.testing.assert_allclose(quat_wxyz_to_matrix(q), expected, atol=1e-12)
+    np.testing.assert_allclose(quat_to_matrix(q), expected, atol=1e-12)
 
 
 def test_urdf_tree_order_scale_and_end_site(tmp_path: Path) -> None:

@@ -21,7 +21,7 @@ from sync4d.match.features_match import (
     part_mean_features,
     remove_outliers,
 )
-from sync4d.match.surface_points import target_surface
+from sync4d.match.surface_points import visible_gaussian_centres
 from sync4d.registry import build
 from sync4d.types import Reference, TargetGaussians
 
@@ -131,10 +131,10 @@ def test_gaussian_confidence_in_unit_interval_and_zero_for_orphans() -> None:
     assert conf.tolist() == [pytest.approx(0.3), 1.0, 0.0]
 
 
-def test_target_surface_skips_faint_gaussians_and_subsamples() -> None:
+def test_visible_gaussian_centres_skip_faint_gaussians_and_subsamples() -> None:
     g = gaussians_at(np.random.default_rng(0).normal(size=(100, 3)))
     g = g.replace(opacity_logits=np.r_[np.full(50, 3.0), np.full(50, -5.0)])
-    pts, idx = target_surface(g, max_vertices=20, min_opacity=0.1)
+    pts, idx = visible_gaussian_centres(g, max_vertices=20, min_opacity=0.1)
     assert len(idx) == 20 and (idx < 50).all()
     assert np.allclose(pts, g.means[idx])
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from sync4d.sim.deform import deform_gaussians, polar_rotation
+from sync4d.geometry import nearest_rotation
+from sync4d.sim.deform import deform_gaussians
 from sync4d.render.camera import look_at
 from sync4d.render.sh import eval_sh, rotate_sh, sh_basis
 from sync4d.render.splat_torch import SplatTorch
@@ -76,4 +77,4 @@ def test_rotated_part_from_rotated_camera_renders_like_the_unrotated_one():
 def test_polar_rotation_of_a_stretched_rotation():
     R = rotation([0.3, -1.0, 0.2], 40.0)
     U = np.diag([1.3, 0.8, 1.1])
-    np.testing.assert_allclose(polar_rotation((R @ U)[None])[0], R, atol=1e-12)
+    np.testing.assert_allclose(nearest_rotation((R @ U)[None])[0], R, atol=1e-12)

@@ -20,7 +20,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from sync4d.errors import InputError
-from sync4d.surface import area_samples
+from sync4d.surface import area_points
 
 
 @dataclass(frozen=True)
@@ -104,12 +104,11 @@ def surface_samples(
     if faces is None:
         return points, vn
     tri = points[faces]
-    sampled = area_samples(tri, n_samples, np.random.default_rng(seed))
+    sampled = area_points(tri, n_samples, np.random.default_rng(seed))
     if sampled is None:
         raise InputError("features.diff3f: the mesh has zero area")
-    face, bary = sampled
+    samples, face = sampled
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    samples = np.einsum("sk,skd->sd", bary, tri[face])
     normals = fn[face] / np.maximum(np.linalg.norm(fn[face], axis=1, keepdims=True), 1e-12)
     return np.concatenate([samples, points]), np.concatenate([normals, vn])
 

@@ -125,7 +125,7 @@ class Dinov2Backbone:
     def __init__(self, weights_path: str, *, device: str) -> None:
         folder = _check_weights(weights_path, "dinov2")
         try:
-            from transformers import AutoModel  # type: ignore[import-not-found]
+            from transformers import AutoModel
         except ImportError:
             raise ConfigError(f"backbone=dinov2 needs the `transformers` package, which is not installed. {WEIGHTS_HELP}") from None
         os.environ["HF_HUB_OFFLINE"] = "1"  # belt and braces: never reach the network
@@ -153,7 +153,7 @@ class StableDiffusionBackbone:
     def __init__(self, weights_path: str, *, device: str, timestep: int = 261, up_block: int = 1) -> None:
         folder = _check_weights(weights_path, "stable_diffusion")
         try:
-            from diffusers import StableDiffusionPipeline  # type: ignore[import-not-found]
+            from diffusers import StableDiffusionPipeline
         except ImportError:
             raise ConfigError(f"backbone=stable_diffusion needs `diffusers` and `transformers`, not installed. {WEIGHTS_HELP}") from None
         os.environ["HF_HUB_OFFLINE"] = "1"

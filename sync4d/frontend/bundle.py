@@ -7,7 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sync4d.frontend.geometry import pose_matrix, rodrigues, rotation_vector
+from sync4d.frontend.geometry import pose_matrix
+from sync4d.geometry import matrix_to_rotation_vector, nearest_rotation, rotation_vector_to_matrix
 from sync4d.frontend.tracks import Tracks
 
 #: the focal length is kept only when the refinement moved it by less than this factor (else: not constrained)
@@ -54,7 +55,7 @@ def residuals(x: np.ndarray, obs: Observations, n_frames: int, n_points: int, K:
     focal = K[0, 0] * np.exp(x[-1]) if refine_focal else K[0, 0]
     rvec = np.concatenate([np.zeros((1, 3)), cams[:, :3]])
     tvec = np.concatenate([np.zeros((1, 3)), cams[:, 3:]])
-    rot = rodrigues(rvec)
+    rot = rotation_vector_to_matrix(rvec)
     cam = np.einsum("mij,mj->mi", rot[obs.frame], pts[obs.point]) + tvec[obs.frame]
     z = np.where(np.abs(cam[:, 2]) < 1e-6, 1e-6, cam[:, 2])
     uv = focal * cam[:, :2] / z[:, None] + K[:2, 2]
@@ -94,7 +95,7 @@ def bundle_adjust(tracks: Tracks, K: np.ndarray, poses: np.ndarray, points: np.n
     n_frames, n_points = len(poses), len(used)
     if iterations <= 0 or n_points < 8:
         return BundleResult(poses, points, K, float("nan"), False)
-    cams = np.concatenate([[np.concatenate([rotation_vector(p[:3, :3]), p[:3, 3]]) for p in poses[1:]]]).ravel()
+    cams = np.concatenate([[np.concatenate([matrix_to_rotation_vector(nearest_rotation(p[:3, :3])), p[:3, 3]]) for p in poses[1:]]]).ravel()
     x0 = np.concatenate([cams, points[used].ravel()] + ([np.zeros(1)] if refine_focal else []))
     scale = float(np.linalg.norm(poses[scale_frame, :3, 3]))
     args = (obs, n_frames, n_points, K, refine_focal, scale_frame, scale)
@@ -108,7 +109,7 @@ def bundle_adjust(tracks: Tracks, K: np.ndarray, poses: np.ndarray, points: np.n
         return bundle_adjust(tracks, K, poses, points, iterations=iterations, refine_focal=False,
                              scale_frame=scale_frame)
     cams_out = x[: 6 * (n_frames - 1)].reshape(-1, 6)
-    out_poses = np.concatenate([[np.eye(4)], [pose_matrix(rodrigues(c[:3]), c[3:]) for c in cams_out]])
+    out_poses = np.concatenate([[np.eye(4)], [pose_matrix(rotation_vector_to_matrix(c[:3]), c[3:]) for c in cams_out]])
     out_points = points.copy()
     out_points[used] = x[6 * (n_frames - 1): 6 * (n_frames - 1) + 3 * n_points].reshape(-1, 3)
     K_out = K.copy()

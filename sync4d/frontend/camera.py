@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sync4d.frontend.config import CameraConfig
-from sync4d.frontend.geometry import kabsch_rotation, pose_matrix, project, rays, rotation_angle_deg
+from sync4d.frontend.geometry import pose_matrix, project, rays
+from sync4d.geometry import best_rotation, rotation_angle_deg
 from sync4d.frontend.tracks import Tracks
 
 log = logging.getLogger(__name__)
@@ -106,7 +107,7 @@ def rotation_between(uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray) -> tuple
 
     _, found = cv2.findHomography(uv_a, uv_b, cv2.RANSAC, 1.5)
     inl = np.ones(len(uv_a), bool) if found is None else np.asarray(found).ravel() > 0
-    return kabsch_rotation(rays(uv_a[inl], K), rays(uv_b[inl], K)), inl
+    return best_rotation(rays(uv_a[inl], K), rays(uv_b[inl], K)), inl
 
 
 def parallax_px(uv_a: np.ndarray, uv_b: np.ndarray, K: np.ndarray, rotation: np.ndarray) -> float:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from sync4d.frontend.geometry import rotation_angle_deg
+from sync4d.geometry import rotation_angle_deg
 from sync4d.types import Camera, VideoClip
 
 MASK_TINT = np.array([255, 60, 60], dtype=np.float32)

@@ -17,10 +17,12 @@ import json
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from sync4d.errors import InputError
+from sync4d.geometry import quat_to_matrix, rotation_about_axis
 from sync4d.io.mocap import SkeletonMotion
 
 # pybullet's DeepMimic humanoid environment loads humanoid.urdf with globalScaling=0.25.
@@ -62,25 +64,6 @@ def rpy_matrix(rpy: np.ndarray) -> np.ndarray:
     ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
     rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
     return rz @ ry @ rx
-
-
-def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations of (..., 4) quaternions (w, x, y, z), normalised first."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
-def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) rotations by ``angle`` (T,) [rad] about the unit ``axis`` (3,) (Rodrigues)."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    a = np.asarray(angle, dtype=np.float64)[:, None, None]
-    return np.eye(3) + np.sin(a) * k + (1 - np.cos(a)) * (k @ k)
 
 
 def _floats(text: str | None, count: int, what: str, source: str) -> np.ndarray:
@@ -130,6 +113,17 @@ def _end_site(link: ET.Element | None, incoming: np.ndarray, scale: float, sourc
     return scale * (centre + support * d)
 
 
+class JointRow(NamedTuple):
+    """One joint of a :class:`UrdfSkeleton` while the tree is being read (fields as there)."""
+
+    name: str
+    parent: int
+    offset: np.ndarray
+    rotation: np.ndarray
+    kind: str
+    axis: np.ndarray
+
+
 def read_urdf_skeleton(path: str | Path, *, scale: float = DEEPMIMIC_URDF_SCALE) -> UrdfSkeleton:
     """The joint tree of a URDF, with end sites on leaf links (see module docstring).
 
@@ -141,6 +135,23 @@ def read_urdf_skeleton(path: str | Path, *, scale: float = DEEPMIMIC_URDF_SCALE)
         InputError: unreadable XML, a joint without parent/child, a link with two parents, or a cycle.
     """
     source = str(path)
+    links, joints, base = parse_urdf_tree(path, source)
+    rows = joints_in_motion_order(joints, base, scale, source)
+    rows += end_site_rows(rows, links, scale, source)
+    return UrdfSkeleton(
+        names=tuple(r.name for r in rows), parents=np.asarray([r.parent for r in rows], dtype=np.int64),
+        offsets=np.asarray([r.offset for r in rows]), origin_rotations=np.asarray([r.rotation for r in rows]),
+        types=tuple(r.kind for r in rows), axes=np.asarray([r.axis for r in rows]),
+    )
+
+
+def parse_urdf_tree(path: str | Path, source: str) -> tuple[dict[str | None, ET.Element], list[ET.Element], str]:
+    """The links by name, the joints in file order and the one root (base) link of a URDF file.
+
+    Raises:
+        InputError: unreadable XML, no joint, a joint without parent/child, a link with two parents, or not
+            exactly one root link.
+    """
     raw = Path(path).read_bytes().replace(b"\x00", b"")  # pybullet's humanoid.urdf ends in NUL padding
     try:
         root_el = ET.fromstring(raw.decode("utf-8", errors="replace"))
@@ -161,17 +172,36 @@ def read_urdf_skeleton(path: str | Path, *, scale: float = DEEPMIMIC_URDF_SCALE)
     roots = [name for name in links if name not in child_of]
     if len(roots) != 1:
         raise InputError(f"{source}: expected one root link, found {roots}")
+    return links, joints, str(roots[0])
 
-    names: list[str] = []
-    parents: list[int] = []
-    offsets: list[np.ndarray] = []
-    rotations: list[np.ndarray] = []
-    types: list[str] = []
-    axes: list[np.ndarray] = []
-    # Joints in file order (the order of the motion's values), each placed after its parent link's joint.
+
+def joint_frame(j: ET.Element, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """A URDF joint's origin xyz (3,) and rpy (3,) [URDF units, rad], its raw axis (3,) and its type.
+
+    Raises:
+        InputError: a malformed number list or an unsupported joint type.
+    """
+    origin = j.find("origin")
+    xyz = np.zeros(3) if origin is None else _floats(origin.get("xyz", "0 0 0"), 3, "joint origin xyz", source)
+    rpy = np.zeros(3) if origin is None else _floats(origin.get("rpy", "0 0 0"), 3, "joint origin rpy", source)
+    axis_el = j.find("axis")
+    axis = np.array([1.0, 0.0, 0.0]) if axis_el is None else _floats(axis_el.get("xyz"), 3, "joint axis", source)
+    kind = str(j.get("type"))
+    if kind not in JOINT_WIDTH:
+        raise InputError(f"{source}: joint {j.get('name')!r} has unsupported type {kind!r}")
+    return xyz, rpy, axis, kind
+
+
+def joints_in_motion_order(joints: list[ET.Element], base: str, scale: float, source: str) -> list[JointRow]:
+    """The joints in file order (the order of the motion's values), each placed after its parent link's
+    joint; the first joint hanging from the ``base`` link is the motion's root.
+
+    Raises:
+        InputError: several joints hang from the base link, or some joints are not connected to it.
+    """
+    rows: list[JointRow] = []
     index_of_link: dict[str, int] = {}
     pending = list(joints)
-    base = roots[0]
     while pending:
         placed = False
         for j in list(pending):
@@ -179,50 +209,39 @@ def read_urdf_skeleton(path: str | Path, *, scale: float = DEEPMIMIC_URDF_SCALE)
             child_link = str(j.find("child").get("link"))  # type: ignore[union-attr]
             if parent_link != base and parent_link not in index_of_link:
                 continue
-            origin = j.find("origin")
-            xyz = np.zeros(3) if origin is None else _floats(origin.get("xyz", "0 0 0"), 3, "joint origin xyz", source)
-            rpy = np.zeros(3) if origin is None else _floats(origin.get("rpy", "0 0 0"), 3, "joint origin rpy", source)
-            axis_el = j.find("axis")
-            axis = np.array([1.0, 0.0, 0.0]) if axis_el is None else _floats(axis_el.get("xyz"), 3, "joint axis", source)
-            kind = str(j.get("type"))
-            if kind not in JOINT_WIDTH:
-                raise InputError(f"{source}: joint {j.get('name')!r} has unsupported type {kind!r}")
-            if parent_link == base and not names:
+            xyz, rpy, axis, kind = joint_frame(j, source)
+            if parent_link == base and not rows:
                 # The first joint hanging from the base link is the root of the motion (root position
                 # and rotation come from the clip), whatever its URDF type.
                 kind = "root"
             elif parent_link == base:
                 raise InputError(f"{source}: several joints hang from the base link {base!r}; expected one root")
-            names.append(child_link)
-            parents.append(-1 if parent_link == base else index_of_link[parent_link])
-            offsets.append(scale * xyz)
-            rotations.append(rpy_matrix(rpy))
-            types.append(kind)
-            axes.append(axis / max(np.linalg.norm(axis), 1e-12) if kind in ("revolute", "continuous", "prismatic") else np.zeros(3))
-            index_of_link[child_link] = len(names) - 1
+            moving = kind in ("revolute", "continuous", "prismatic")
+            rows.append(JointRow(
+                name=child_link, parent=-1 if parent_link == base else index_of_link[parent_link],
+                offset=scale * xyz, rotation=rpy_matrix(rpy), kind=kind,
+                axis=axis / max(np.linalg.norm(axis), 1e-12) if moving else np.zeros(3),
+            ))
+            index_of_link[child_link] = len(rows) - 1
             pending.remove(j)
             placed = True
         if not placed:
             raise InputError(f"{source}: joints {[j.get('name') for j in pending]} are not connected to the root")
-    # End sites on leaf links.
-    has_child = set(parents)
-    for i in range(len(names)):
+    return rows
+
+
+def end_site_rows(rows: list[JointRow], links: dict[str | None, ET.Element], scale: float,
+                  source: str) -> list[JointRow]:
+    """The end sites of the leaf joints' links (:func:`_end_site`), indexed after ``rows``."""
+    has_child = {r.parent for r in rows}
+    ends: list[JointRow] = []
+    for i, row in enumerate(rows):
         if i in has_child:
             continue
-        incoming = offsets[i] / max(scale, 1e-12)
-        end = _end_site(links.get(names[i]), incoming, scale, source)
-        if end is None:
-            continue
-        names.append(f"{names[i]}_end")
-        parents.append(i)
-        offsets.append(end)
-        rotations.append(np.eye(3))
-        types.append("end")
-        axes.append(np.zeros(3))
-    return UrdfSkeleton(
-        names=tuple(names), parents=np.asarray(parents, dtype=np.int64), offsets=np.asarray(offsets),
-        origin_rotations=np.asarray(rotations), types=tuple(types), axes=np.asarray(axes),
-    )
+        end = _end_site(links.get(row.name), row.offset / max(scale, 1e-12), scale, source)
+        if end is not None:
+            ends.append(JointRow(f"{row.name}_end", i, end, np.eye(3), "end", np.zeros(3)))
+    return ends
 
 
 def parse_deepmimic_frames(text: str, *, source: str = "<clip>") -> np.ndarray:
@@ -264,15 +283,15 @@ def deepmimic_forward_kinematics(skeleton: UrdfSkeleton, rows: np.ndarray) -> tu
         p = skeleton.parents[j]
         if kind == "root":
             pos[:, j] = rows[:, 1:4]
-            rot[:, j] = quat_wxyz_to_matrix(rows[:, 4:8])
+            rot[:, j] = quat_to_matrix(rows[:, 4:8])
             continue
         local = np.tile(np.eye(3), (num, 1, 1))
         shift = np.zeros((num, 3))
         if kind == "spherical":
-            local = quat_wxyz_to_matrix(rows[:, col : col + 4])
+            local = quat_to_matrix(rows[:, col : col + 4])
             col += 4
         elif kind in ("revolute", "continuous"):
-            local = axis_angle_matrix(skeleton.axes[j], rows[:, col])
+            local = rotation_about_axis(skeleton.axes[j], rows[:, col])
             col += 1
         elif kind == "prismatic":
             shift = rows[:, col, None] * skeleton.axes[j]

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from sync4d.errors import DataMissingError, InputError
+from sync4d.geometry import quat_to_matrix
 from sync4d.types import Reference
 
 COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
@@ -333,20 +334,10 @@ def pose_trs(mesh: SkinnedMesh, animation: GltfAnimation | None, time: float
     return t, r, s
 
 
-def quaternion_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions xyzw -> (..., 3, 3) rotation matrices."""
-    x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
-    return np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(np.shape(q)[:-1] + (3, 3))
-
-
 def world_matrices(parents: np.ndarray, t: np.ndarray, r: np.ndarray, s: np.ndarray) -> np.ndarray:
     """(N, 4, 4) node-to-world matrices ``T R S`` composed down the hierarchy (parents in any order)."""
     local = np.tile(np.eye(4), (len(parents), 1, 1))
-    local[:, :3, :3] = quaternion_matrix(r) * s[:, None, :]
+    local[:, :3, :3] = quat_to_matrix(r[:, [3, 0, 1, 2]]) * s[:, None, :]  # glTF stores x, y, z, w
     local[:, :3, 3] = t
     world = np.full_like(local, np.nan)
 

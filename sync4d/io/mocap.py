@@ -401,7 +401,7 @@ def rotations_from_positions(positions: np.ndarray, parents: np.ndarray, *, rest
     Returns:
         (T, J, 3, 3) rotations mapping rest-frame directions to frame t.
     """
-    from sync4d.geometry import rigid_fit as kabsch
+    from sync4d.geometry import rigid_fit
 
     n_frames, n_joints, _ = positions.shape
     parents = np.asarray(parents)
@@ -431,7 +431,7 @@ def rotations_from_positions(positions: np.ndarray, parents: np.ndarray, *, rest
                 group = [j] + group
                 src = rest[group] - rest[j]
                 dst = positions[:, group] - positions[:, j : j + 1]
-                rot[:, j] = kabsch(np.broadcast_to(src, dst.shape), dst)[..., :3, :3]
+                rot[:, j] = rigid_fit(np.broadcast_to(src, dst.shape), dst)[..., :3, :3]
                 continue
         if len(kids) == 1:
             c = int(kids[0])

@@ -52,7 +52,8 @@ def read_frames(path: str | Path) -> tuple[np.ndarray, float | None]:
             reader = imageio.get_reader(str(path))
             meta = reader.get_meta_data()
             fps = float(meta["fps"]) if meta.get("fps") else None
-            frames = [np.asarray(f) for f in reader]
+            # imageio's stubs type a v2 reader as an array; it is an iterator of frames.
+            frames = [np.asarray(f) for f in reader]  # type: ignore[attr-defined]
             reader.close()
         except (OSError, ValueError, RuntimeError) as err:
             raise InputError(f"{path}: cannot read the video ({type(err).__name__}: {err})") from None
@@ -112,6 +113,7 @@ def read_video_clip(
     rate = fps if fps is not None else file_fps
     if rate is None:
         raise InputError(f"{video_path}: the frame rate is unknown (image folder); pass fps")
+    masks: np.ndarray
     if masks_path is None:
         masks = np.zeros(frames.shape[:3], dtype=bool)
     else:
@@ -144,4 +146,5 @@ def write_video(path: str | Path, frames: np.ndarray, fps: float) -> None:
 
     with imageio.get_writer(str(path), fps=fps, macro_block_size=1) as writer:
         for f in frames:
-            writer.append_data(np.asarray(f, dtype=np.uint8))
+            # imageio's stubs give the v2 writer's base class, which lacks append_data.
+            writer.append_data(np.asarray(f, dtype=np.uint8))  # type: ignore[attr-defined]

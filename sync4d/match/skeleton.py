@@ -122,10 +122,6 @@ class CurveSkeleton:
     core: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     graph: csr_matrix | None = None
 
-    def terminal(self) -> list[int]:
-        """Indices of the branches without children (limb candidates of a reference), root excluded."""
-        return [i for i, b in enumerate(self.branches) if not b.children and i != 0]
-
     def is_ancestor(self, a: int, b: int) -> bool:
         """True if branch ``a`` is ``b`` or one of its ancestors."""
         while b >= 0:

@@ -9,11 +9,11 @@ from scipy.spatial import cKDTree
 from sync4d.errors import InputError
 from sync4d.match.config import MatchConfig
 from sync4d.match.skeleton import SkeletonConfig, cloud_volume_points, volume_points
-from sync4d.surface import area_samples
+from sync4d.surface import area_points
 from sync4d.types import TargetGaussians
 
 
-def target_surface(
+def visible_gaussian_centres(
     target: TargetGaussians, *, max_vertices: int, min_opacity: float, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Surface points of a Gaussian target without a mesh: the means of its visible Gaussians.
@@ -46,7 +46,7 @@ def target_points(
     if target_vertices is None:
         if target_faces is not None:
             raise InputError("match_parts: target_faces given without target_vertices")
-        points, index = target_surface(
+        points, index = visible_gaussian_centres(
             target, max_vertices=cfg.max_target_vertices, min_opacity=cfg.min_opacity, seed=seed
         )
         return points, index, None
@@ -63,11 +63,10 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int, 
             return vertices
         return vertices[rng.choice(len(vertices), count, replace=False)]
     tri = vertices[faces]
-    sampled = area_samples(tri, count, rng)
+    sampled = area_points(tri, count, rng)
     if sampled is None:
         raise InputError("match: the target mesh has zero area")
-    face, bary = sampled
-    return np.einsum("sk,skd->sd", bary, tri[face])
+    return sampled[0]
 
 
 def skeleton_points(

@@ -176,6 +176,8 @@ class BodyVideoReconstructor:
     def reconstruct(self, source: ReferenceInput) -> Reference:
         """The validated :class:`Reference` of the subject in ``source.video``."""
         fit = self.fit(source)
+        video = source.video
+        assert video is not None  # fit() refused a source without one
         cam_to_world = np.linalg.inv(fit.camera.world_to_cam if fit.extrinsics is None else fit.extrinsics[0])
         if source.camera is None and fit.extrinsics is None:
             cam_to_world = CAM_TO_YUP
@@ -189,9 +191,9 @@ class BodyVideoReconstructor:
             fit.parents,
             world,
             None,
-            float(source.fps or source.video.fps),
+            float(source.fps or video.fps),
             up_axis=up,
-            source=source.video.source,
+            source=video.source,
         )
         bones = self.cfg.bones or DEFAULT_BONES[self.cfg.subject]
         mocap = MocapReconstructor(MocapReconstructor.Config(bones=bones), device=self.device)
@@ -204,7 +206,7 @@ class BodyVideoReconstructor:
             reference.num_frames,
             fit.seconds,
         )
-        self.pictures = FitPictures(source.video, fit, reference, np.linalg.inv(cam_to_world))
+        self.pictures = FitPictures(video, fit, reference, np.linalg.inv(cam_to_world))
         return reference
 
     def write_figures(self, folder: Path) -> list[Path]:

@@ -163,10 +163,11 @@ class Lab4DReconstructor:
     @staticmethod
     def consistency_problem(export: Lab4DExport) -> str | None:
         """A sentence naming what disagrees in the export, or None when it can be imported as is."""
-        k_bones = None if export.bone_transforms is None else export.bone_transforms.shape[1]
-        k_skin = None if export.rest_skinning is None else export.rest_skinning.shape[1]
-        if k_bones is None:
+        transforms = export.bone_transforms
+        if transforms is None:
             return "no per-bone transforms (t_articulation / se3 files)"
+        k_bones = transforms.shape[1]
+        k_skin = None if export.rest_skinning is None else export.rest_skinning.shape[1]
         if k_skin is not None and k_skin != k_bones:
             return (f"the bone transforms hold {k_bones} bones but the rest skinning has {k_skin} columns, "
                     "so skinning column b cannot be matched to a bone transform")
@@ -178,9 +179,8 @@ class Lab4DReconstructor:
             return "neither a rest mesh nor rest skinning, so the bones cannot be tied to the meshes"
         if export.rest_skinning is None and export.posed_vertices is None:
             return "no skinning weights (fg-skin.npy) and no posed meshes (fg-%05d.obj) to fit them from"
-        if export.posed_vertices is not None and export.posed_vertices.shape[0] != export.bone_transforms.shape[0]:
-            return (f"{export.posed_vertices.shape[0]} posed meshes but bone transforms for "
-                    f"{export.bone_transforms.shape[0]} frames")
+        if export.posed_vertices is not None and export.posed_vertices.shape[0] != transforms.shape[0]:
+            return f"{export.posed_vertices.shape[0]} posed meshes but bone transforms for {transforms.shape[0]} frames"
         return None
 
     def _import(self, export: Lab4DExport, source: ReferenceInput) -> tuple[Reference, float | None]:
@@ -229,7 +229,11 @@ class Lab4DReconstructor:
 
         bones = self.cfg.bones
         if bones == "file":
-            bones = export.rest_skinning.shape[1] if export.rest_skinning is not None else export.bone_transforms.shape[1]
+            counted = export.rest_skinning if export.rest_skinning is not None else export.bone_transforms
+            if counted is None:
+                raise InputError(f"recon=lab4d: {export.path}: {problem}; recon.bones=file needs a skinning or "
+                                 "transform file to count the bones: set recon.bones to a number")
+            bones = counted.shape[1]
         log.warning("lab4d: %s: %s; on_mismatch=refit: fitting %s bones to the %d posed meshes",
                     export.path, problem, bones, export.posed_vertices.shape[0])
         opts = FitOptions(**{k: getattr(self.cfg, k) for k in FitOptions.__dataclass_fields__})

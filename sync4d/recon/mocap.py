@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from sync4d.errors import ConfigError, DataMissingError, InputError
+from sync4d.geometry import rigid_fit
 from sync4d.io.mocap import (
     CMU_UNIT_SCALE,
     SkeletonMotion,
@@ -438,5 +439,5 @@ def merged_bones(
             centers[b] = pts.mean(0)
             covs[b] = np.cov(pts.T) + 1e-8 * np.eye(3)
             js = np.unique(np.concatenate([segments[members], parents[segments[members]]]))
-            bone_world[:, b] = sk.kabsch(np.broadcast_to(pos[rest_frame, js], pos[:, js].shape), pos[:, js])
+            bone_world[:, b] = rigid_fit(np.broadcast_to(pos[rest_frame, js], pos[:, js].shape), pos[:, js])
     return centers, covs, bone_world, names

@@ -79,43 +79,6 @@ def _chunked_d2(feats: np.ndarray, centres: np.ndarray, chunk: int = 20000) -> n
     return out
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Best rigid transform (rotation + translation, no scale) taking ``src`` onto ``dst``.
-
-    Args:
-        src: (..., N, 3) source points [m].
-        dst: (..., N, 3) target points [m], same correspondence.
-        weights: (..., N) non-negative weights, or None for uniform.
-
-    Returns:
-        (..., 4, 4) transforms T with ``dst ~= R src + t``, det(R) = +1.
-    """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    w = np.ones(src.shape[:-1]) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / np.maximum(w.sum(-1, keepdims=True), 1e-12)
-    mu_s = (w[..., None] * src).sum(-2)
-    mu_d = (w[..., None] * dst).sum(-2)
-    cov = np.einsum("...n,...ni,...nj->...ij", w, dst - mu_d[..., None, :], src - mu_s[..., None, :])
-    u, _, vt = np.linalg.svd(cov)
-    # Flip the last singular direction when needed so that R is a rotation, not a reflection.
-    d = np.sign(np.linalg.det(u @ vt))
-    d = np.where(d == 0, 1.0, d)
-    fix = np.ones(u.shape[:-2] + (3,))
-    fix[..., 2] = d
-    rot = (u * fix[..., None, :]) @ vt
-    out = np.zeros(src.shape[:-2] + (4, 4))
-    out[..., :3, :3] = rot
-    out[..., :3, 3] = mu_d - np.einsum("...ij,...j->...i", rot, mu_s)
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def apply_transform(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N, 3) points mapped by one (4, 4) transform [m]."""
-    return points @ transform[:3, :3].T + transform[:3, 3]
-
-
 def rigid_inverse(transform: np.ndarray) -> np.ndarray:
     """(..., 4, 4) inverse of rigid transforms (rotation transposed, no general matrix inverse)."""
     out = np.zeros_like(transform)
@@ -229,27 +192,6 @@ def matrix_to_rot6d(rot: np.ndarray) -> np.ndarray:
     return np.concatenate([rot[..., :, 0], rot[..., :, 1]], axis=-1)
 
 
-def axis_angle_to_matrix_torch(v: torch.Tensor) -> torch.Tensor:
-    """(..., 3) rotation vectors [rad] -> (..., 3, 3) rotations (Rodrigues), smooth at zero."""
-    theta2 = (v * v).sum(-1, keepdim=True)[..., None]
-    theta = torch.sqrt(theta2 + 1e-16)
-    zeros = torch.zeros_like(v[..., 0])
-    k = torch.stack(
-        [
-            torch.stack([zeros, -v[..., 2], v[..., 1]], -1),
-            torch.stack([v[..., 2], zeros, -v[..., 0]], -1),
-            torch.stack([-v[..., 1], v[..., 0], zeros], -1),
-        ],
-        -2,
-    )
-    # Taylor series below 1e-3 rad keeps the gradient finite at the identity.
-    small = theta < 1e-3
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / (theta2 + 1e-16))
-    eye = torch.eye(3, dtype=v.dtype, device=v.device).expand(k.shape)
-    return eye + a * k + b * (k @ k)
-
-
 def mahalanobis_sq_torch(
     points: torch.Tensor, centers: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor
 ) -> torch.Tensor:
@@ -279,6 +221,8 @@ class SkinningDelta(torch.nn.Module):
     octaves, passed through ``layers`` hidden layers of ``width`` (softplus), and mapped to B logits.
     The last layer starts at zero so the initial weights are the pure Gaussian-bone weights.
     """
+
+    center: torch.Tensor  # a registered buffer (moves with .to(), not trained)
 
     def __init__(self, bones: int, *, center: np.ndarray, scale: float, width: int = 64, layers: int = 2,
                  frequencies: int = 4, generator: torch.Generator | None = None) -> None:

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from sync4d.errors import ConfigError, InputError
+from sync4d.geometry import rigid_fit
 from sync4d.recon import skinning as sk
 from sync4d.registry import register
 from sync4d.rng import torch_generator
@@ -173,7 +174,7 @@ def initial_bone_motion(rest_n: np.ndarray, local_n: np.ndarray, labels: np.ndar
     for b in range(bones):
         members = labels == b
         if members.sum() >= 3:
-            init_j[:, b] = sk.kabsch(np.broadcast_to(rest_n[members], local_n[:, members].shape), local_n[:, members])
+            init_j[:, b] = rigid_fit(np.broadcast_to(rest_n[members], local_n[:, members].shape), local_n[:, members])
         else:  # a 1-2 point cluster cannot fix a rotation: translate only
             init_j[:, b, :3, 3] = local_n[:, members].mean(1) - rest_n[members].mean(0)
     return init_j
@@ -182,6 +183,8 @@ def initial_bone_motion(rest_n: np.ndarray, local_n: np.ndarray, labels: np.ndar
 class BoneModel(torch.nn.Module):
     """Gaussian bones (centres, orientations, log scales), per-frame rotations about fixed pivots with
     translations, and an optional skinning MLP delta, in normalised units (paper Eq. W = softmax(d_M + W_delta))."""
+
+    pivots: torch.Tensor  # a registered buffer (moves with .to(), not trained)
 
     def __init__(self, centers0: np.ndarray, rots0: np.ndarray, scales0: np.ndarray, init_j: np.ndarray,
                  opts: FitOptions) -> None:
@@ -273,7 +276,7 @@ def fit_skinning(sequence: np.ndarray, bones: int, opts: FitOptions | None = Non
         raise InputError("skinning_fit: the rest shape is degenerate (zero bounding box)")
     # Work in normalised units (rest centred, diagonal 1) so learning rates do not depend on the scene.
     centre = rest.mean(0)
-    glob = sk.kabsch(np.broadcast_to(rest, seq.shape), seq) if opts.global_from == "kabsch" \
+    glob = rigid_fit(np.broadcast_to(rest, seq.shape), seq) if opts.global_from == "kabsch" \
         else np.tile(np.eye(4), (n_frames, 1, 1))
     local = np.einsum("tij,tvj->tvi", sk.rigid_inverse(glob)[:, :3, :3], seq) + sk.rigid_inverse(glob)[:, None, :3, 3]
     rest_n = (rest - centre) / diag

@@ -114,7 +114,7 @@ def frame_object(
     """
     center, radius = bounding_sphere(points)
     d = np.asarray(direction, dtype=np.float64)
-    d = d / max(np.linalg.norm(d), 1e-12)
+    d = d / max(float(np.linalg.norm(d)), 1e-12)
     # Half-angle of the narrower side; a sphere of radius r is inside a cone of half-angle a at distance
     # r / sin(a).
     half_v = math.radians(fov_deg) / 2.0

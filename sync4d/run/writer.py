@@ -112,6 +112,7 @@ class FrameWriter:
         """Every Gaussian of received frame ``t`` in the world (carried by the control points if any)."""
         x, F, G = self.frames_x[t], self.frames_F[t], self.motion.global_transforms[t]
         if self.control is not None:
+            assert F is not None, "control points are carried by their deformation gradients"
             return self.control.carry(self.target, x, F, G)
         return deform_gaussians(self.target, x, F, G)
 
@@ -183,7 +184,8 @@ class FrameWriter:
         """
         self.wait_for_frames()
         self._writer.shutdown(wait=True)  # every frame is on disk; no idle thread outlives the run
-        full_F = None if self.frames_F[0] is None else np.stack(self.frames_F)
+        known_F = [F for F in self.frames_F if F is not None]
+        full_F = np.stack(known_F) if len(known_F) == len(self.frames_F) else None
         trajectory = with_control(Trajectory(
             x=np.stack(self.frames_x), F=full_F, frame_dt=trajectory.frame_dt,
             v=trajectory.v if trajectory.v is not None and len(trajectory.v) == len(self.frames_x) else None,
@@ -407,7 +409,7 @@ def compute_metrics(
 
     return {
         "pose_error_pct": mean_after_rest(per_frame, "pose_error_pct"),
-        "pose_error_max_pct": None if truth is None else float(max(r["pose_error_pct"] for r in per_frame[1:] or per_frame)),
+        "pose_error_max_pct": None if truth is None else float(max(v for r in per_frame[1:] or per_frame if (v := r["pose_error_pct"]) is not None)),
         "displacement_error_pct": mean_after_rest(per_frame, "displacement_error_pct"),
         "drift_pct": mean_after_rest(per_frame, "drift_pct"),
         "drift_final_pct": per_frame[-1]["drift_pct"],

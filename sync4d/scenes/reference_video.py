@@ -14,9 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sync4d.errors import ConfigError
+from sync4d.geometry import rgb_to_sh_dc
 from sync4d.types import Camera, Reference, TargetGaussians, VideoClip
-
-SH_C0 = 0.28209479177387814  # degree-0 spherical harmonic: colour = 0.5 + SH_C0 * sh
 
 
 @dataclass(frozen=True)
@@ -65,7 +64,7 @@ def textured(gaussians: TargetGaussians, cell: float, contrast: float) -> Target
     if cell <= 0 or contrast <= 0:
         return gaussians
     colours = np.clip(gaussians.colors() * (1.0 + contrast * checker(gaussians.means, cell))[:, None], 0.0, 1.0)
-    sh = ((colours - 0.5) / SH_C0)[:, None, :].astype(np.float32)
+    sh = rgb_to_sh_dc(colours).astype(np.float32)
     return TargetGaussians(
         means=gaussians.means, quats=gaussians.quats, log_scales=gaussians.log_scales,
         opacity_logits=gaussians.opacity_logits, sh=sh, name=gaussians.name,
@@ -131,4 +130,4 @@ def film_reference(
 
 def _numpy(value: object) -> np.ndarray:
     """A renderer output (torch tensor or array) as a numpy array."""
-    return np.asarray(value.detach().cpu() if hasattr(value, "detach") else value)  # type: ignore[attr-defined]
+    return np.asarray(value.detach().cpu() if hasattr(value, "detach") else value)

@@ -147,10 +147,6 @@ class ControlPoints:
     rest: np.ndarray
     gaussian_to_point: np.ndarray
 
-    @property
-    def num_gaussians(self) -> int:
-        return int(len(self.gaussian_to_point))
-
     def carry(self, target: TargetGaussians, points_t: np.ndarray, F_t: np.ndarray,
               global_transform: np.ndarray | None = None) -> TargetGaussians:
         """Every Gaussian of one frame carried by its point (:func:`carry_frame`)."""

@@ -18,7 +18,7 @@ import numpy as np
 from sync4d.errors import InputError
 from sync4d.render.sh import rotate_sh
 from sync4d.types import TargetGaussians
-from sync4d.geometry import matrix_to_quat
+from sync4d.geometry import matrix_to_quat, nearest_rotation
 
 
 def covariance_to_quat_scale(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -31,18 +31,6 @@ def covariance_to_quat_scale(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     flip = np.linalg.det(eigvec) < 0
     eigvec[flip, :, 2] *= -1.0
     return matrix_to_quat(eigvec), np.sqrt(np.maximum(eigval, 1e-20))
-
-
-def polar_rotation(F: np.ndarray) -> np.ndarray:
-    """(P, 3, 3) rotations R of the polar decompositions F = R U (U symmetric positive semi-definite).
-
-    From the SVD F = W S V^T, R = W V^T; an improper result (det -1, F inverted) has W's last column
-    flipped so R stays a rotation.
-    """
-    W, _, Vt = np.linalg.svd(np.asarray(F, dtype=np.float64))
-    flip = np.linalg.det(W @ Vt) < 0
-    W[flip, :, 2] *= -1.0
-    return W @ Vt
 
 
 def deform_gaussians(
@@ -78,7 +66,7 @@ def deform_gaussians(
         pick = np.arange(gaussians.num) if index is None else np.asarray(index, dtype=np.int64)
         Fg = F[pick] if index is not None else F
         cov = Fg @ gaussians.covariances() @ np.swapaxes(Fg, 1, 2)
-        turn = polar_rotation(F)
+        turn = nearest_rotation(F)
     if global_transform is not None:
         rot = np.asarray(global_transform, dtype=np.float64)[:3, :3]
         means = means @ rot.T + global_transform[:3, 3]

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sync4d.surface import area_samples
+from sync4d.surface import area_points
 from sync4d.types import DrivingMotion, Reference
 
 
@@ -26,11 +26,8 @@ def surface_samples(points: np.ndarray, faces: np.ndarray | None, *, count: int 
     if faces is None or len(faces) == 0:
         return points
     tri = points[faces]
-    sampled = area_samples(tri, count, np.random.default_rng(seed))
-    if sampled is None:
-        return points
-    face, bary = sampled
-    return np.einsum("nk,nki->ni", bary, tri[face])
+    sampled = area_points(tri, count, np.random.default_rng(seed))
+    return points if sampled is None else sampled[0]
 
 
 def coverage(points: np.ndarray, faces: np.ndarray | None = None) -> float:

@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from sync4d.view.data import (
     place,
     splat_buffer,
 )
+
+if TYPE_CHECKING:
+    from viser import PointCloudHandle
 
 log = logging.getLogger(__name__)
 PANEL_GAP = 1.3   # [viewer units] between panel centres; objects are scaled to radius 0.5
@@ -110,7 +113,7 @@ class RunRow:
         server.scene.add_label(f"{prefix}/run_label", run.name, position=tuple(middle + [0.0, 0.72, 0.0]))
         self.video = self._add_image(f"{prefix}/video", run.video, offsets.get("video"))
         self.masks = self._add_image(f"{prefix}/masks", run.masks, offsets.get("masks"))
-        self.particles = None
+        self.particles: PointCloudHandle | None = None
         self.prefix = prefix
 
     def _add_image(self, name: str, frames: Any, offset: np.ndarray | None) -> Any:
@@ -247,7 +250,8 @@ class Viewer:
 
     def step(self, delta: int) -> None:
         """Move the slider by ``delta`` frames (wrapping); the slider's callback shows the frame."""
-        self.slider.value = (int(self.slider.value) + delta) % self.num_frames
+        # viser defines the value setter apart from its getter, which mypy reads as a read-only property.
+        self.slider.value = (int(self.slider.value) + delta) % self.num_frames  # type: ignore[misc]
 
     def show(self, t: int) -> None:
         """Show frame ``t`` of every run (one batch of messages)."""

@@ -44,7 +44,7 @@ from scipy.spatial.transform import Rotation
 from sync4d.errors import DataMissingError, InputError
 from sync4d.match import METHODS, MatchConfig, MatchResult, match_parts
 from sync4d.registry import build
-from sync4d.surface import area_samples
+from sync4d.surface import area_points
 from sync4d.types import Reference, TargetGaussians
 
 log = logging.getLogger(__name__)
@@ -265,11 +265,10 @@ def sample_labelled_surface(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Area-uniform surface samples (count, 3) and the part of the face each came from (count,)."""
     tri = vertices[faces]
-    sampled = area_samples(tri, count, rng)
+    sampled = area_points(tri, count, rng)
     if sampled is None:
         raise InputError("match_gt: a reference body has zero surface area")
-    face, bary = sampled
-    points = np.einsum("sk,skd->sd", bary, tri[face])
+    points, face = sampled
     return points, part[faces[face, 0]]
 
 
@@ -435,11 +434,10 @@ def sampled_target(vertices: np.ndarray, faces: np.ndarray, names: np.ndarray | 
                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Area-uniform surface samples (S, 3) of a labelled target, their part names (or None) and face (S,)."""
     tri = vertices[faces]
-    sampled = area_samples(tri, LABEL_SAMPLES, rng)
+    sampled = area_points(tri, LABEL_SAMPLES, rng)
     if sampled is None:
         raise InputError("match_gt: a labelled target has zero surface area")
-    face, bary = sampled
-    points = np.einsum("sk,skd->sd", bary, tri[face])
+    points, face = sampled
     return points, None if names is None else names[faces[face, 0]], face
 
 

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sync4d.errors import InputError
+from sync4d.recon.pose.models import TFLiteModel
 
 log = logging.getLogger(__name__)
 
@@ -213,7 +214,7 @@ def crop_to_image(points: np.ndarray, roi: Roi, out_size: int) -> np.ndarray:
     return roi.center + rel @ np.array([[c, -s], [s, c]]).T
 
 
-def detect(detector, frame: np.ndarray, anchors: np.ndarray) -> Roi | None:
+def detect(detector: TFLiteModel, frame: np.ndarray, anchors: np.ndarray) -> Roi | None:
     """Run the detector on one frame; the region of interest of the best person, or None."""
     img, scale, pad = letterbox(frame, DET_SIZE)
     out = detector.run(img[None].astype(np.float32) / 127.5 - 1.0)
@@ -275,7 +276,7 @@ class CropOutput:
     presence: float
 
 
-def run_crop(model, img: np.ndarray, *, flip: bool = False) -> CropOutput:
+def run_crop(model: TFLiteModel, img: np.ndarray, *, flip: bool = False) -> CropOutput:
     """The landmark model on one 256x256 crop; ``flip`` runs it on the mirrored crop and mirrors back.
 
     A mirrored person is a person whose left is the original's right, so the mirrored outputs are
@@ -338,7 +339,7 @@ def mean_pose(poses: list[FramePose]) -> FramePose:
                      presence=float(mean("presence")), mask=mean("mask") > 0.5, aux=mean("aux"))
 
 
-def landmarks_in_roi(model, frame: np.ndarray, roi: Roi, *, flip_test: bool = True) -> FramePose:
+def landmarks_in_roi(model: TFLiteModel, frame: np.ndarray, roi: Roi, *, flip_test: bool = True) -> FramePose:
     """Run the landmark model on the crop ``roi`` of ``frame`` and map its outputs back to the image.
 
     With ``flip_test`` the model also runs on the mirrored crop, and the two passes are averaged when
@@ -351,7 +352,7 @@ def landmarks_in_roi(model, frame: np.ndarray, roi: Roi, *, flip_test: bool = Tr
 
 
 def track_video(
-    frames: np.ndarray, detector, landmark_model, *, source: str, min_presence: float = 0.5, flip_test: bool = True,
+    frames: np.ndarray, detector: TFLiteModel, landmark_model: TFLiteModel, *, source: str, min_presence: float = 0.5, flip_test: bool = True,
     with_flow: bool = True,
 ) -> PoseTrack:
     """BlazePose over a clip: detect, then track the region of interest from the previous landmarks.

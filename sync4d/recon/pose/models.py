@@ -70,10 +70,6 @@ class TFLiteModel:
         self._input = self._interp.get_input_details()[0]
         self._outputs = self._interp.get_output_details()
 
-    @property
-    def input_shape(self) -> tuple[int, ...]:
-        return tuple(int(s) for s in self._input["shape"])
-
     def run(self, x: np.ndarray) -> dict[str, np.ndarray]:
         """Run on one (1, H, W, 3) float32 input; returns {output tensor name: array (copied)}."""
         self._interp.set_tensor(self._input["index"], np.ascontiguousarray(x, dtype=np.float32))

@@ -24,7 +24,9 @@ import numpy as np
 import torch
 
 from sync4d.errors import InputError
+from sync4d.geometry import rotation_vector_to_matrix_torch
 from sync4d.recon.pose.templates import BodyTemplate, body_template
+from sync4d.surface import area_samples
 from sync4d.types import Camera
 
 log = logging.getLogger(__name__)
@@ -108,18 +110,6 @@ class QuadrupedFit:
     iou: np.ndarray
 
 
-def rodrigues(v: torch.Tensor) -> torch.Tensor:
-    """(..., 3) axis-angle -> (..., 3, 3) rotation matrices (smooth at zero)."""
-    theta = v.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    k = v / theta
-    kx, ky, kz = k.unbind(-1)
-    zero = torch.zeros_like(kx)
-    kmat = torch.stack([zero, -kz, ky, kz, zero, -kx, -ky, kx, zero], -1).reshape(v.shape[:-1] + (3, 3))
-    th = theta[..., None]
-    eye = torch.eye(3, dtype=v.dtype).expand(kmat.shape)
-    return eye + torch.sin(th) * kmat + (1 - torch.cos(th)) * (kmat @ kmat)
-
-
 class TemplateTensors:
     """A template's arrays as tensors, with what skinning needs precomputed (top-4 joints per vertex,
     offsets split along and across each joint's bone)."""
@@ -155,15 +145,15 @@ class TemplateTensors:
 
 
 def surface_samples(vertices: np.ndarray, faces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """``count`` fixed samples uniform by area on a mesh: (N,) face index, (N, 3) barycentric weights, and the
-    mean spacing sqrt(area / N) (the mesh's units). Deterministic (its own seeded generator)."""
-    rng = np.random.default_rng(0)
+    """``count`` fixed samples uniform by area on a mesh (:func:`sync4d.surface.area_samples`): (N,) face index,
+    (N, 3) barycentric weights, and the mean spacing sqrt(area / N) (the mesh's units). Deterministic (its own
+    seeded generator)."""
     tri = vertices[faces]
+    sampled = area_samples(tri, count, np.random.default_rng(0))
+    if sampled is None:
+        raise InputError("quadruped_fit: the body template's mesh has zero area")
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    face = rng.choice(len(faces), count, p=area / area.sum())
-    r1, r2 = np.sqrt(rng.uniform(size=count)), rng.uniform(size=count)
-    bary = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], 1)
-    return face, bary, float(np.sqrt(area.sum() / count))
+    return sampled[0], sampled[1], float(np.sqrt(area.sum() / count))
 
 
 def body_samples(tt: TemplateTensors, verts: torch.Tensor) -> torch.Tensor:
@@ -174,9 +164,9 @@ def body_samples(tt: TemplateTensors, verts: torch.Tensor) -> torch.Tensor:
 def pose_body(tt: TemplateTensors, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
     """(T, J, 3) joints and (T, V, 3) skinned vertices [m] of ``params`` (first camera frame)."""
     scale = params["log_scale"].exp()
-    rot_local = rodrigues(params["local"])
+    rot_local = rotation_vector_to_matrix_torch(params["local"])
     n = len(tt.parents)
-    rots: list[torch.Tensor] = [rodrigues(params["root_rot"]) @ rot_local[:, 0]]
+    rots: list[torch.Tensor] = [rotation_vector_to_matrix_torch(params["root_rot"]) @ rot_local[:, 0]]
     pos: list[torch.Tensor] = [params["root_pos"]]
     for j in range(1, n):
         p = int(tt.parents[j])
@@ -236,7 +226,8 @@ def video_flow(frames: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(T-1, P, 2) DIS optical flow (OpenCV, medium preset) from frame t to t+1 at pixels ``uv`` (P, 2) [px]."""
     import cv2
 
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    # OpenCV's stubs omit the DIS optical flow factory that the module has.
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]
     grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
     h, w = grey[0].shape
     iu = np.clip(uv[:, 0].astype(int), 0, w - 1)
