@@ -176,7 +176,8 @@ def bad_clip(kind: str, folder: Path) -> tuple[str, ...]:
         imageio.imwrite(folder / "photo.png", square_clip()[0].frames[0])
         return ("reference.video=" + str(folder / "photo.png"), "reference.fps=10")
     write_video(folder / f"{kind}.mp4", clips[kind].frames, 10.0)
-    extra = ("reference.prompt=[500,20]",) if kind == "prompt" else ()
+    # a run reads only the frames it uses (debug=smoke: 3), so the leaving clip asks for all 14
+    extra = {"prompt": ("reference.prompt=[500,20]",), "leaves": ("reference.max_frames=14",)}.get(kind, ())
     return ("reference.video=" + str(folder / f"{kind}.mp4"), *extra)
 
 

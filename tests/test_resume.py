@@ -77,7 +77,7 @@ def test_resume_refuses_other_settings(tmp_path: Path) -> None:
     proc = run_train(tmp_path / "other", *FRAMES, "sim.E=20000", f"resume={killed}")
     assert proc.returncode == 2, proc.stderr[-3000:]
     line = proc.stderr.strip().splitlines()[-1]
-    assert line.startswith("sync4d: ConfigError: resume=") and "sim.E=10000.0" in line and "20000" in line, line
+    assert line.startswith("sync4d: ConfigError: resume=") and "sim.E=30000.0" in line and "20000" in line, line
 
 
 def test_never_writes_into_another_runs_folder(tmp_path: Path) -> None:

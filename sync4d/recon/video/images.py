@@ -25,7 +25,7 @@ def optical_flow(frames: np.ndarray, method: str = "dis") -> tuple[np.ndarray, n
     """
     grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
     if method == "dis":
-        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
 
         def flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             return dis.calc(a, b, None)

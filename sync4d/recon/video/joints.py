@@ -474,6 +474,7 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> 
         log.info("recon=video: hinge start %d (axes %s): data loss %.4f", s, np.round(axes, 2).tolist(), loss)
         if loss < best_loss:
             best, best_loss = model, loss
+    assert best is not None, "at least one hinge start runs"
     best = choose_kinds(best, tracks, cfg, history)
     pairs = neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride)
     best_loss = optimise(best, cfg, cfg.steps // 2, pairs, windows=1)
@@ -533,7 +534,7 @@ def slide_from(model: Articulation, b: int, tracks: Tracks, cfg: FitConfig) -> A
     target = project(sc, torch.as_tensor(xt)).numpy()
     kinds = list(model.kinds)
     kinds[b] = "slide"
-    starts = []
+    starts: list[tuple[float, int, Articulation]] = []
     for direction in slide_directions(x0, xt, target, sc):
         axes = model.axes.detach().numpy().copy()
         axes[b] = direction

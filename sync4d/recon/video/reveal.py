@@ -28,7 +28,7 @@ def project_np(x: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
 def _flow_cost(q: np.ndarray, x0: np.ndarray, motion: np.ndarray, t: int, tracks: Tracks, camera: Camera) -> np.ndarray:
     """(M,) image distance [px] between the flow from frame t at pixels q (M, 2) and the displacement that
     ``motion`` (T, 4, 4) predicts for rest points x0 (M, 3); NaN where the flow is not consistent."""
-    if tracks.flow is None or t >= len(tracks.flow):
+    if tracks.flow is None or tracks.flow_ok is None or t >= len(tracks.flow):
         return np.full(len(q), np.nan)
     nxt = x0 @ motion[t + 1, :3, :3].T + motion[t + 1, :3, 3]
     pred = project_np(nxt, camera)[0] - q
