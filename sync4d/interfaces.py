@@ -1,6 +1,6 @@
 """What a component of each registry group must provide (structural types; no base class needed).
 
-Every component is built as ``cls(cfg, **deps)`` by :func:`sync4d.registry.build`; the keyword
+Every component is built as ``cls(config, **deps)`` by :func:`sync4d.registry.build`; the keyword
 dependencies each group receives are listed below. ``device`` is always the config's ``device`` value
 (``cpu``, ``cuda``); map it with :mod:`sync4d.device`.
 """
@@ -23,25 +23,25 @@ from sync4d.types import (
 
 
 class ReferenceSource(Protocol):
-    """Group ``reference``: built with ``(cfg, device=..., seed=...)``; loads or makes the reference input."""
+    """Group ``reference``: built with ``(config, device=..., seed=...)``; loads or makes the reference input."""
 
     def load(self) -> ReferenceInput: ...
 
 
 class Reconstructor(Protocol):
-    """Group ``recon``: built with ``(cfg, device=...)``; turns the input into an articulated reference."""
+    """Group ``recon``: built with ``(config, device=...)``; turns the input into an articulated reference."""
 
     def reconstruct(self, source: ReferenceInput) -> Reference: ...
 
 
 class TargetSource(Protocol):
-    """Group ``target``: built with ``(cfg, device=..., seed=...)``; loads or makes the static target."""
+    """Group ``target``: built with ``(config, device=..., seed=...)``; loads or makes the static target."""
 
     def load(self) -> TargetGaussians: ...
 
 
 class FeatureExtractor(Protocol):
-    """Group ``features``: built with ``(cfg, device=...)``; per-point descriptors of a shape.
+    """Group ``features``: built with ``(config, device=...)``; per-point descriptors of a shape.
 
     ``points`` (V, 3) [m] are already normalised and aligned by :mod:`sync4d.match` when coordinates
     matter; ``faces`` (F, 3) or None for a point cloud. Returns (V, D) float features.
@@ -51,7 +51,7 @@ class FeatureExtractor(Protocol):
 
 
 class Simulator(Protocol):
-    """Group ``sim``: built with ``(cfg, device=...)``. A simulator only steps: it models a particle set and
+    """Group ``sim``: built with ``(config, device=...)``. A simulator only steps: it models a particle set and
     advances a state by one frame; the transfer stage (:mod:`sync4d.transfer`) owns the frame-pair loop.
 
     ``differentiable``: whether :meth:`rollout` carries gradients to its inputs (velocity training needs it);
@@ -88,7 +88,7 @@ class Simulator(Protocol):
 
 
 class VelocityField(Protocol):
-    """Group ``velocity``: built with ``(cfg, num_parts=B, bounds=(lo, hi), seed=...)``; a torch module giving
+    """Group ``velocity``: built with ``(config, num_parts=B, bounds=(lo, hi), seed=...)``; a torch module giving
     the delta velocity [m/s] added to the reference velocities (paper Eq. v <- v0 + dv)."""
 
     trainable: bool
@@ -110,7 +110,7 @@ class VelocityField(Protocol):
 
 
 class Logger(Protocol):
-    """Group ``logger``: built with ``(cfg, run_dir=...)``; scalars, images and hyper-parameters of a run."""
+    """Group ``logger``: built with ``(config, run_dir=...)``; scalars, images and hyper-parameters of a run."""
 
     def scalar(self, tag: str, value: float, step: int) -> None: ...
 
@@ -122,7 +122,7 @@ class Logger(Protocol):
 
 
 class Renderer(Protocol):
-    """Group ``render``: built with ``(cfg, device=...)``; draws Gaussians from a camera.
+    """Group ``render``: built with ``(config, device=...)``; draws Gaussians from a camera.
 
     Arrays may be numpy or torch; returns (H, W, 3) float RGB in [0, 1] (torch tensor when inputs are
     tensors, so gradients flow).

@@ -210,7 +210,7 @@ def omegaconf_schema(config: type) -> type:
 
 
 def build(group: str, cfg: Mapping[str, Any] | DictConfig, **deps: Any) -> Any:
-    """Build the component selected by ``cfg.type`` with its typed config and keyword dependencies."""
+    """Build the component selected by the ``type`` key with its typed config and keyword dependencies."""
     return component(group, cfg).build(**deps)
 
 

@@ -36,10 +36,10 @@ def make_run(folder: Path, *, frames: int = 4, n: int = 1200, video: bool = True
     folder.mkdir(parents=True, exist_ok=True)
     means, covs, parts = lid_sequence(frames, n, seed=0)
     write_seq4d(folder / "sequence.s4d", means, covs, np.tile(RED, (n, 1)), np.full(n, 0.95), fps=8.0,
-                cfg=Seq4DConfig(), parts=parts)
+                config=Seq4DConfig(), parts=parts)
     ref_means, ref_covs, ref_parts = lid_sequence(frames, n // 2, seed=1)
     write_seq4d(folder / "reference.s4d", ref_means, ref_covs, np.full((n // 2, 3), 0.35), np.full(n // 2, 0.95),
-                fps=8.0, cfg=Seq4DConfig(), parts=ref_parts)
+                fps=8.0, config=Seq4DConfig(), parts=ref_parts)
     if video:
         clip = np.full((frames, 48, 64, 3), 240, np.uint8)
         for k in range(frames):

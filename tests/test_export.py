@@ -199,7 +199,7 @@ def test_seq4d_round_trip_within_its_stated_bounds(tmp_path: Path) -> None:
     rng = np.random.default_rng(1)
     colors, opac, parts = rng.uniform(0, 1, (n, 3)), rng.uniform(0, 1, n), rng.integers(0, 3, n)
     cfg = Seq4DConfig(chunk=7)  # several chunks, the last one short
-    path = write_seq4d(tmp_path / "s.s4d", means, covs, colors, opac, fps=24.0, cfg=cfg, parts=parts,
+    path = write_seq4d(tmp_path / "s.s4d", means, covs, colors, opac, fps=24.0, config=cfg, parts=parts,
                        sh=rng.normal(size=(n, 4, 3)))
     seq = Sequence4D(path)
     assert (seq.num_frames, seq.num, seq.fps) == (20, n, 24.0)
@@ -219,7 +219,7 @@ def test_seq4d_round_trip_within_its_stated_bounds(tmp_path: Path) -> None:
     np.testing.assert_allclose(seq.means(), means, atol=seq.position_error * (1 + 1e-6))
     # A coarser bound gives a smaller file, and a wrong-length read fails loudly.
     coarse = write_seq4d(tmp_path / "c.s4d", means, covs, colors, opac, fps=24.0,
-                         cfg=Seq4DConfig(relative_error=1e-3, log_cov_error=1 / 32))
+                         config=Seq4DConfig(relative_error=1e-3, log_cov_error=1 / 32))
     assert coarse.stat().st_size < path.stat().st_size
     with pytest.raises(InputError, match="frame 20"):
         seq.frame(20)
@@ -242,7 +242,7 @@ def test_seq4d_is_over_ten_times_smaller_than_the_ply_sequence(tmp_path: Path) -
                                 opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
         ply_bytes += write_gaussians_ply(tmp_path / f"{t:06d}.ply", frame).stat().st_size
     path = write_seq4d(tmp_path / "s.s4d", means, covs, np.full((n, 3), 0.5), np.full(n, 0.5), fps=12.0,
-                       cfg=Seq4DConfig(), sh=np.zeros((n, 1, 3)))
+                       config=Seq4DConfig(), sh=np.zeros((n, 1, 3)))
     assert ply_bytes / path.stat().st_size >= 10.0
 
 
@@ -250,7 +250,7 @@ def test_seq4d_rejects_bad_input(tmp_path: Path) -> None:
     from sync4d.io.seq4d import Seq4DConfig, Sequence4D, write_seq4d
 
     means, covs = deforming_gaussians(t=3, n=10)
-    ok = dict(colors=np.zeros((10, 3)), opacities=np.ones(10), fps=12.0, cfg=Seq4DConfig())
+    ok = dict(colors=np.zeros((10, 3)), opacities=np.ones(10), fps=12.0, config=Seq4DConfig())
     with pytest.raises(InputError, match="covariances"):
         write_seq4d(tmp_path / "a.s4d", means, covs[:, :5], **ok)
     bad = means.copy()

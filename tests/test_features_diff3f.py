@@ -141,7 +141,7 @@ def test_feature_yaml_files_build(repo_root) -> None:
         cfg = OmegaConf.to_container(OmegaConf.load(repo_root / "conf" / "features" / f"{name}.yaml"))
         cfg.pop("defaults", None)  # the Hydra schema line (schema_<name>); defaults come from the Config
         assert cfg["type"] == name
-        assert build("features", cfg, device="cpu").cfg is not None
+        assert build("features", cfg, device="cpu").config is not None
 
 
 def test_neighbour_graph_is_symmetric() -> None:

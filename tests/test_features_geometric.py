@@ -61,7 +61,7 @@ def test_spectral_blocks_invariant_to_rigid_motion_and_scale(with_faces: bool) -
     moved = 3.7 * v @ Rotation.random(random_state=4).as_matrix().T + [1.0, -2.0, 0.5]
     ex = geometric(xyz_weight=0.0)
     a, b = ex.extract(v, f), ex.extract(moved, f)
-    assert a.shape == (len(v), 16 + 16 + ex.cfg.xyz_dims)
+    assert a.shape == (len(v), 16 + 16 + ex.config.xyz_dims)
     assert np.allclose(a[:, :32], b[:, :32], atol=1e-3)
 
 

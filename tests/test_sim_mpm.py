@@ -89,9 +89,9 @@ def test_yaml_builds(repo_root):
     cfg = OmegaConf.load(repo_root / "conf/sim/mpm_warp.yaml")
     cfg.pop("defaults", None)  # Hydra's schema line; the values come from MPMWarp.Config
     sim = build("sim", cfg, device="cpu")
-    assert isinstance(sim, MPMWarp) and sim.cfg.E == MPMWarp.Config().E and sim.cfg.n_grid == MPMWarp.Config().n_grid
+    assert isinstance(sim, MPMWarp) and sim.config.E == MPMWarp.Config().E and sim.config.n_grid == MPMWarp.Config().n_grid
     # the simulated time of a frame is the reference's frame interval unless set
-    assert sim.cfg.frame_time is None and sim.frame_time_for(12.0) == pytest.approx(1 / 12)
+    assert sim.config.frame_time is None and sim.frame_time_for(12.0) == pytest.approx(1 / 12)
     with pytest.raises(ConfigError, match="sim.frame_time"):
         sim.frame_time_for(None)
 
@@ -409,7 +409,7 @@ def test_dt_ten_times_over_cfl_raises_without_auto_substep():
     st = sim.initial_state(model)
     with pytest.raises(SimulationUnstable, match=r"CFL bound .* use dt <="):
         sim.rollout(model, st["x"], st["v"], st["F"], st["C"], substeps=5, dt=10 * dt_max)
-    sim.cfg.frame_time = 4 * 10 * dt_max  # 4 substeps of 10x the bound
+    sim.config.frame_time = 4 * 10 * dt_max  # 4 substeps of 10x the bound
     with pytest.raises(SimulationUnstable, match="sim.auto_substep=true"):
         sim.substeps_for(model)
 
@@ -426,7 +426,7 @@ def test_dt_ten_times_over_cfl_runs_stably_with_auto_substep():
     assert torch.isfinite(x).all() and torch.isfinite(F).all()
     ke = float(0.5 * (m * (v.double() ** 2).sum(1)).sum())
     assert ke <= 1.01 * ke0  # started undeformed: kinetic energy cannot exceed the initial energy
-    sim.cfg.frame_time = 4 * 10 * dt_max
+    sim.config.frame_time = 4 * 10 * dt_max
     n, dt = sim.substeps_for(model)
     assert n >= 40 and dt <= dt_max
 

@@ -36,17 +36,17 @@ class ConcatFeatures:
             if any(w < 0 for w in self.weights):
                 raise ConfigError("features.weights: weights must be >= 0")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        self.config = config
         self.extractors = []
-        for i, part in enumerate(cfg.parts):
+        for i, part in enumerate(config.parts):
             if not isinstance(part, dict) or "type" not in part:
                 raise ConfigError(f"features.parts[{i}]: each part needs a 'type' (e.g. {{type: geometric}})")
             if part["type"] == "concat":
                 raise ConfigError(f"features.parts[{i}]: nested concat is not supported; list the parts flat")
             cls, typed = make_config("features", part)
             self.extractors.append(cls(typed, device=device))
-        self.weights = list(cfg.weights) if cfg.weights else [1.0] * len(self.extractors)
+        self.weights = list(config.weights) if config.weights else [1.0] * len(self.extractors)
 
     def extract(self, points: np.ndarray, faces: np.ndarray | None) -> np.ndarray:
         """(V, sum D_i) float32 concatenation of the per-vertex L2-normalised, weighted parts."""

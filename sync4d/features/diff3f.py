@@ -266,40 +266,40 @@ class Diff3FFeatures:
             if self.n_views < 1 or self.resolution < 16:
                 raise ConfigError("features.n_views must be >= 1 and features.resolution >= 16")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        self.config = config
         self.device = device
-        if cfg.backbone == "shading_fourier":
+        if config.backbone == "shading_fourier":
             self.backbone: Backbone = ShadingFourierBackbone(
-                scales=tuple(cfg.scales), dims=cfg.feature_dims, bandwidth=cfg.bandwidth, seed=cfg.seed
+                scales=tuple(config.scales), dims=config.feature_dims, bandwidth=config.bandwidth, seed=config.seed
             )
-        elif cfg.backbone == "dinov2":
-            self.backbone = Dinov2Backbone(cfg.weights_path, device=device)
+        elif config.backbone == "dinov2":
+            self.backbone = Dinov2Backbone(config.weights_path, device=device)
         else:
-            self.backbone = StableDiffusionBackbone(cfg.weights_path, device=device)
+            self.backbone = StableDiffusionBackbone(config.weights_path, device=device)
 
     def view_rotations(self) -> np.ndarray:
         """(K, 3, 3) view rotations of the configured cameras."""
-        dirs = view_directions(self.cfg.n_views, self.cfg.elevation_deg)
+        dirs = view_directions(self.config.n_views, self.config.elevation_deg)
         return np.stack([look_at_rotation(d) for d in dirs])
 
     def render_views(self, points: np.ndarray, faces: np.ndarray | None) -> tuple[list, torch.Tensor]:
         """Render every view; returns the renders and the (K, 6, H, W) backbone input images."""
-        cfg = self.cfg
+        config = self.config
         centre = 0.5 * (points.max(axis=0) + points.min(axis=0))
         pts = points - centre
         extent = 1.05 * float(np.linalg.norm(pts, axis=1).max())  # bounding sphere: fits every view
-        pix = 2 * extent / cfg.resolution
-        n_samples = int(cfg.samples_per_pixel * cfg.resolution**2)
-        samples, normals = surface_samples(pts, faces, n_samples, seed=cfg.seed)
-        radius = cfg.splat_radius_px
+        pix = 2 * extent / config.resolution
+        n_samples = int(config.samples_per_pixel * config.resolution**2)
+        samples, normals = surface_samples(pts, faces, n_samples, seed=config.seed)
+        radius = config.splat_radius_px
         if faces is None:  # a point cloud must cover its gaps itself
             radius = max(radius, 0.75 * point_spacing(pts) / pix)
         renders, images = [], []
         for rot in self.view_rotations():
             view = render_view(
-                pts, samples, normals, rot, resolution=cfg.resolution, extent=extent,
-                splat_radius_px=radius, depth_tolerance_px=cfg.depth_tolerance_px,
+                pts, samples, normals, rot, resolution=config.resolution, extent=extent,
+                splat_radius_px=radius, depth_tolerance_px=config.depth_tolerance_px,
             )
             depth = np.where(view.mask, (view.depth + extent) / (2 * extent), 1.0)
             img = np.concatenate(
@@ -319,7 +319,7 @@ class Diff3FFeatures:
         count = np.zeros(n_vertices)
         for view, fmap in zip(renders, feature_maps):
             vis = view.vertex_visible
-            total[vis] += sample_feature_maps(fmap, view.vertex_pixel[vis], self.cfg.resolution)
+            total[vis] += sample_feature_maps(fmap, view.vertex_pixel[vis], self.config.resolution)
             count[vis] += 1
         seen = count > 0
         total[seen] /= count[seen, None]

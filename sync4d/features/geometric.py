@@ -69,8 +69,8 @@ class GeometricFeatures:
             if self.xyz_bandwidth <= 0:
                 raise ConfigError(f"features.xyz_bandwidth={self.xyz_bandwidth}: must be > 0")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        self.config = config
         self.device = device  # the computation is sparse linear algebra on the CPU
 
     def spectral(self, points: np.ndarray, faces: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -80,29 +80,29 @@ class GeometricFeatures:
         """
         pts, fcs = check_shape(points, faces)
         if fcs is not None and (
-            self.cfg.laplacian == "point_cloud" or (self.cfg.laplacian == "auto" and mesh_components(len(pts), fcs) > 1)
+            self.config.laplacian == "point_cloud" or (self.config.laplacian == "auto" and mesh_components(len(pts), fcs) > 1)
         ):
             # Intrinsic descriptors of a mesh made of separate shells (e.g. a capsule body) would only
             # see each shell; the point-cloud Laplacian connects nearby shells through space.
             fcs = None
-        L, M = laplacian(unit_rms(pts), fcs, n_neighbors=self.cfg.n_neighbors)
-        evals, evecs = laplacian_spectrum(L, M, self.cfg.n_eigen)
-        hks = heat_kernel_signature(evals, evecs, self.cfg.hks_times)
-        wks = wave_kernel_signature(evals, evecs, self.cfg.wks_energies, variance=self.cfg.wks_variance)
+        L, M = laplacian(unit_rms(pts), fcs, n_neighbors=self.config.n_neighbors)
+        evals, evecs = laplacian_spectrum(L, M, self.config.n_eigen)
+        hks = heat_kernel_signature(evals, evecs, self.config.hks_times)
+        wks = wave_kernel_signature(evals, evecs, self.config.wks_energies, variance=self.config.wks_variance)
         return hks, wks
 
     def coordinates(self, points: np.ndarray) -> np.ndarray:
         """(V, D_xyz) coordinate block (mean squared row norm ~1 for points of unit RMS radius)."""
-        pts = unit_rms(points) if self.cfg.normalize_xyz else np.asarray(points, dtype=np.float64)
-        if self.cfg.xyz_encoding == "raw":
+        pts = unit_rms(points) if self.config.normalize_xyz else np.asarray(points, dtype=np.float64)
+        if self.config.xyz_encoding == "raw":
             return pts
         # Several octaves sum several Gaussian kernels: fine scales separate neighbouring parts, coarse
         # scales keep a vertex related to a part it is not right next to (different proportions).
         blocks = [
-            fourier_encoding(pts, dims=self.cfg.xyz_dims, bandwidth=self.cfg.xyz_bandwidth / 2**k, seed=self.cfg.seed + k)
-            for k in range(self.cfg.xyz_scales)
+            fourier_encoding(pts, dims=self.config.xyz_dims, bandwidth=self.config.xyz_bandwidth / 2**k, seed=self.config.seed + k)
+            for k in range(self.config.xyz_scales)
         ]
-        return np.concatenate(blocks, axis=1) / np.sqrt(self.cfg.xyz_scales)
+        return np.concatenate(blocks, axis=1) / np.sqrt(self.config.xyz_scales)
 
     def extract(self, points: np.ndarray, faces: np.ndarray | None) -> np.ndarray:
         """Per-vertex features.
@@ -117,10 +117,10 @@ class GeometricFeatures:
         """
         pts, fcs = check_shape(points, faces)
         blocks = []
-        if self.cfg.hks_weight > 0 or self.cfg.wks_weight > 0:
+        if self.config.hks_weight > 0 or self.config.wks_weight > 0:
             hks, wks = self.spectral(pts, fcs)
             # HKS spans orders of magnitude across times; the log keeps every time scale in play.
-            blocks.append(self.cfg.hks_weight * standardize_columns(np.log(np.maximum(hks, 1e-30))))
-            blocks.append(self.cfg.wks_weight * standardize_columns(np.log(np.maximum(wks, 1e-30))))
-        blocks.append(self.cfg.xyz_weight * self.coordinates(pts))
+            blocks.append(self.config.hks_weight * standardize_columns(np.log(np.maximum(hks, 1e-30))))
+            blocks.append(self.config.wks_weight * standardize_columns(np.log(np.maximum(wks, 1e-30))))
+        blocks.append(self.config.xyz_weight * self.coordinates(pts))
         return np.concatenate(blocks, axis=1).astype(np.float32)

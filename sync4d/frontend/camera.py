@@ -235,7 +235,7 @@ def incremental_poses(tracks: Tracks, K: np.ndarray, k: int) -> tuple[np.ndarray
     return poses, points, float(np.mean(placed)) if placed else 1.0
 
 
-def solve_camera(tracks: Tracks, K: np.ndarray, cfg: CameraConfig, *, focal_given: bool) -> CameraFit:
+def solve_camera(tracks: Tracks, K: np.ndarray, config: CameraConfig, *, focal_given: bool) -> CameraFit:
     """The camera of a clip from its background tracks (see the module's docstring)."""
     from sync4d.frontend.bundle import bundle_adjust
 
@@ -246,15 +246,15 @@ def solve_camera(tracks: Tracks, K: np.ndarray, cfg: CameraConfig, *, focal_give
         log.warning("frontend camera: the background has no texture to track (%d corners at most); the camera "
                     "is taken as static", int(tracks.valid.sum(axis=1).max(initial=0)))
         return CameraFit(K, np.tile(np.eye(4), (n_frames, 1, 1)), True, "static", source, 0.0, empty)
-    if static_camera(tracks, cfg.static_px):
+    if static_camera(tracks, config.static_px):
         return CameraFit(K, np.tile(np.eye(4), (n_frames, 1, 1)), True, "static", source, 0.0, empty)
     k, parallax = best_pair(tracks, K)
     log.info("frontend camera: best pair (0, %d), rotation-compensated parallax %.2f px", k, parallax)
     if k == 0 or parallax < PARALLAX_PX:
         return CameraFit(K, rotation_only_poses(tracks, K), False, "rotation", source, 0.0, empty)
     poses, points, placed = incremental_poses(tracks, K, k)
-    adjusted = bundle_adjust(tracks, K, poses, points, iterations=cfg.bundle_iters,
-                             refine_focal=cfg.refine_focal and not focal_given, scale_frame=k)
+    adjusted = bundle_adjust(tracks, K, poses, points, iterations=config.bundle_iters,
+                             refine_focal=config.refine_focal and not focal_given, scale_frame=k)
     if not adjusted.median_error_px <= MAX_BUNDLE_ERROR_PX:
         log.warning("frontend camera: the moving-camera solution does not fit (PnP placed %.0f%% of the frames, "
                     "%.2f px after adjustment); a turning-only camera is used", 100 * placed, adjusted.median_error_px)

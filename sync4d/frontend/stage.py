@@ -84,28 +84,28 @@ def resize_masks(masks: np.ndarray, height: int, width: int) -> np.ndarray:
                      for m in masks])
 
 
-def choose_method(cfg: SubjectConfig, prompt: Prompt | None, frames: np.ndarray) -> str:
+def choose_method(config: SubjectConfig, prompt: Prompt | None, frames: np.ndarray) -> str:
     """``prompt`` when a prompt is given, else the configured method; ``auto`` asks the pose model."""
     if prompt is not None:
         return "prompt"
-    if cfg.method == "prompt":
+    if config.method == "prompt":
         raise InputError("frontend.subject.method=prompt needs reference.prompt=[x, y] or [x0, y0, x1, y1]")
-    if cfg.method != "auto":
-        return cfg.method
+    if config.method != "auto":
+        return config.method
     from sync4d.frontend.person import PersonModels, shows_person
 
     return "person" if shows_person(PersonModels(), frames) else "motion"
 
 
-def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, cfg: SubjectConfig, *, static: bool,
+def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, config: SubjectConfig, *, static: bool,
                   prompt: Prompt | None, factor: float, source: str) -> np.ndarray:
     """(T, h, w) bool masks at work size by ``method`` (``person``, ``motion`` or ``prompt``)."""
     if method == "person":
         from sync4d.frontend.person import PersonModels, person_masks
 
         return np.stack([largest_component(m) for m in
-                         person_masks(PersonModels(), work, cfg.person_threshold, source=source)])
-    evidence = motion_evidence(grey, static=static, sigma=cfg.motion_sigma, min_px=cfg.min_motion_px)
+                         person_masks(PersonModels(), work, config.person_threshold, source=source)])
+    evidence = motion_evidence(grey, static=static, sigma=config.motion_sigma, min_px=config.min_motion_px)
     moving, flows = evidence.moving, evidence.flows
     h, w = grey.shape[1:]
     if method == "prompt":
@@ -114,33 +114,33 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, cfg: SubjectC
         values = np.asarray(prompt.values) * factor
         prior = seed_from_prompt(values, moving[start], work[start])
         if len(values) == 4:  # GrabCut's own start: outside the box background, inside undecided
-            first = largest_component(box_grabcut(work[start], prior, max(cfg.grabcut_iters, 1)))
+            first = largest_component(box_grabcut(work[start], prior, max(config.grabcut_iters, 1)))
         else:  # the pixels next to the point are the subject
             sure = np.zeros((h, w), bool)
             x, y = int(min(values[0], w - 1)), int(min(values[1], h - 1))
             sure[max(y - 2, 0): y + 3, max(x - 2, 0): x + 3] = True
-            first = largest_component(grabcut(work[start], prior, sure=sure, iterations=max(cfg.grabcut_iters, 1)))
+            first = largest_component(grabcut(work[start], prior, sure=sure, iterations=max(config.grabcut_iters, 1)))
     else:
-        seed = seed_from_motion(moving, flows, cfg.min_area * h * w)
+        seed = seed_from_motion(moving, flows, config.min_area * h * w)
         if seed is None:
             raise InputError(f"{source}: no subject found (nothing moves against the background); film a moving "
                              "subject, or point at it: reference.prompt=[x, y] or [x0, y0, x1, y1]")
         start, region = seed
         # no sure core: the moving region is blurred by the flow beyond the subject; colour decides within it
         first = largest_component(grabcut(work[start], region, sure=np.zeros_like(region),
-                                          iterations=max(cfg.grabcut_iters, 1)))
+                                          iterations=max(config.grabcut_iters, 1)))
     log.info("frontend: subject seeded in frame %d (%d px at work size)", start, int(first.sum()))
-    return propagate(work, start, first, evidence, cfg.grabcut_iters)
+    return propagate(work, start, first, evidence, config.grabcut_iters)
 
 
-def run_front_end(clip: VideoClip, cfg: FrontEndConfig, *, prompt: Prompt | None = None, masks_given: bool = False,
+def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | None = None, masks_given: bool = False,
                   camera_given: bool = False) -> FrontEndResult:
     """The subject's masks and the camera of ``clip`` (see the module docstring).
 
     Args:
         clip: the video; its masks are used when ``masks_given``, its intrinsics when not None, its
             extrinsics when ``camera_given``.
-        cfg: the front end's options.
+        config: the front end's options.
         prompt: where the subject is, when the clip is ambiguous.
 
     Raises:
@@ -148,28 +148,28 @@ def run_front_end(clip: VideoClip, cfg: FrontEndConfig, *, prompt: Prompt | None
             the frame.
     """
     cpu = time.process_time()
-    cfg.validate()
+    config.validate()
     n_frames, height, width = clip.frames.shape[:3]
     check_clip(clip.frames, clip.source)
     if prompt is not None:
         check_prompt(prompt.values, prompt.frame, width, height, n_frames)
-    work, factor = scale_to(clip.frames, cfg.subject.work_size)
+    work, factor = scale_to(clip.frames, config.subject.work_size)
     grey = np.stack([np.asarray(f.mean(axis=2), np.uint8) for f in work])
     focal_given = clip.intrinsics is not None
-    K = np.asarray(clip.intrinsics, np.float64) if focal_given else intrinsics_from_fov(width, height, cfg.camera.fov_deg)
+    K = np.asarray(clip.intrinsics, np.float64) if focal_given else intrinsics_from_fov(width, height, config.camera.fov_deg)
     K_work = np.diag([factor, factor, 1.0]) @ K
-    tracks = track_corners(grey, cfg.camera.features)
+    tracks = track_corners(grey, config.camera.features)
     if masks_given:
         masks_work, method = resize_masks(clip.masks, *grey.shape[1:]), "given"
     else:
-        method = choose_method(cfg.subject, prompt, work)
-        masks_work = subject_masks(work, grey, method, cfg.subject, static=static_camera(tracks, cfg.camera.static_px),
+        method = choose_method(config.subject, prompt, work)
+        masks_work = subject_masks(work, grey, method, config.subject, static=static_camera(tracks, config.camera.static_px),
                                    prompt=prompt, factor=factor, source=clip.source)
-        check_subject(masks_work, min_area=cfg.subject.min_area, source=clip.source)
+        check_subject(masks_work, min_area=config.subject.min_area, source=clip.source)
     if camera_given and clip.extrinsics is not None:
         fit = CameraFit(K_work, np.asarray(clip.extrinsics, np.float64), False, "given", "given", 0.0, np.zeros((0, 3)))
     else:
-        fit = solve_camera(background_only(tracks, masks_work), K_work, cfg.camera, focal_given=focal_given)
+        fit = solve_camera(background_only(tracks, masks_work), K_work, config.camera, focal_given=focal_given)
     K_full = np.diag([1.0 / factor, 1.0 / factor, 1.0]) @ fit.K
     if not (camera_given and clip.extrinsics is not None):  # world: the first camera's, turned to Y up
         fit = replace(fit, extrinsics=fit.extrinsics @ CAMERA_TO_YUP, background_points=fit.background_points * [1, -1, -1])
@@ -182,7 +182,7 @@ def run_front_end(clip: VideoClip, cfg: FrontEndConfig, *, prompt: Prompt | None
     return FrontEndResult(out, fit, method, masks_given, camera_given, seconds)
 
 
-def complete_video(clip: VideoClip, camera: Camera | None, cfg: FrontEndConfig, *, masks_given: bool,
+def complete_video(clip: VideoClip, camera: Camera | None, config: FrontEndConfig, *, masks_given: bool,
                    prompt: Prompt | None = None) -> tuple[VideoClip, Camera]:
     """A reference video with whatever it lacks found by the front end: masks when not ``masks_given``, the
     camera when ``camera`` is None. Returns the clip (masks, intrinsics, per-frame extrinsics) and the
@@ -192,7 +192,7 @@ def complete_video(clip: VideoClip, camera: Camera | None, cfg: FrontEndConfig, 
     given = clip
     if camera is not None:
         given = replace(clip, intrinsics=camera.K, extrinsics=np.tile(camera.world_to_cam, (clip.num_frames, 1, 1)))
-    found = run_front_end(given, cfg, prompt=prompt, masks_given=masks_given, camera_given=camera is not None)
+    found = run_front_end(given, config, prompt=prompt, masks_given=masks_given, camera_given=camera is not None)
     out = found.clip
     assert out.extrinsics is not None  # run_front_end always fills the camera
     first = camera if camera is not None else Camera(K=np.asarray(out.intrinsics), world_to_cam=out.extrinsics[0],

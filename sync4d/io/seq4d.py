@@ -135,7 +135,7 @@ def write_seq4d(
     opacities: np.ndarray,
     *,
     fps: float,
-    cfg: Seq4DConfig,
+    config: Seq4DConfig,
     sh: np.ndarray | None = None,
     parts: np.ndarray | None = None,
 ) -> Path:
@@ -148,7 +148,7 @@ def write_seq4d(
         colors: (N, 3) RGB in [0, 1].
         opacities: (N,) in [0, 1].
         fps: frame rate [1/s].
-        cfg: precision and chunking.
+        config: precision and chunking.
         sh: (N, K, 3) SH coefficients, stored as float16, or None.
         parts: (N,) integer part labels, or None.
 
@@ -159,17 +159,17 @@ def write_seq4d(
     covariances = np.asarray(covariances, dtype=np.float64)
     colors, opacities = np.asarray(colors, dtype=np.float64), np.asarray(opacities, dtype=np.float64)
     _check_inputs(means, covariances, colors, opacities)
-    if cfg.chunk < 1 or cfg.log_cov_error <= 0 or not 0 <= cfg.preset <= 9:
-        raise InputError(f"write_seq4d: chunk >= 1, log_cov_error > 0 and preset 0-9 required, got {cfg}")
+    if config.chunk < 1 or config.log_cov_error <= 0 or not 0 <= config.preset <= 9:
+        raise InputError(f"write_seq4d: chunk >= 1, log_cov_error > 0 and preset 0-9 required, got {config}")
     lo, hi = means.reshape(-1, 3).min(axis=0), means.reshape(-1, 3).max(axis=0)
-    pos_err = cfg.position_error or cfg.relative_error * max(float(np.linalg.norm(hi - lo)), 1e-9)
+    pos_err = config.position_error or config.relative_error * max(float(np.linalg.norm(hi - lo)), 1e-9)
     if not pos_err > 0:
         raise InputError(f"write_seq4d: position_error must be > 0, got {pos_err}")
     num_frames, num = means.shape[:2]
     header = {"format": FORMAT, "version": VERSION, "frames": num_frames, "gaussians": num, "fps": float(fps),
-              "chunk": cfg.chunk, "origin": lo.tolist(), "position_step": 2.0 * pos_err,
-              "log_cov_step": 2.0 * cfg.log_cov_error, "position_error": pos_err,
-              "log_cov_error": cfg.log_cov_error}
+              "chunk": config.chunk, "origin": lo.tolist(), "position_step": 2.0 * pos_err,
+              "log_cov_step": 2.0 * config.log_cov_error, "position_error": pos_err,
+              "log_cov_error": config.log_cov_error}
     arrays: dict[str, np.ndarray] = {
         "colors": np.round(np.clip(colors, 0, 1) * 255).astype(np.uint8),
         "opacities": np.round(np.clip(opacities, 0, 1) * 255).astype(np.uint8),
@@ -178,12 +178,12 @@ def write_seq4d(
         arrays["sh"] = np.asarray(sh, dtype=np.float16)
     if parts is not None:
         arrays["parts"] = np.asarray(parts).astype(np.int16)
-    for k, start in enumerate(range(0, num_frames, cfg.chunk)):
-        stop = min(start + cfg.chunk, num_frames)
+    for k, start in enumerate(range(0, num_frames, config.chunk)):
+        stop = min(start + config.chunk, num_frames)
         q_pos = np.round((means[start:stop] - lo) / header["position_step"]).astype(np.int64)
         q_cov = np.round(log_covariances(covariances[start:stop]) / header["log_cov_step"]).astype(np.int64)
-        arrays[f"pos_{k}"] = np.frombuffer(_encode_ints(q_pos, cfg.preset), dtype=np.uint8)
-        arrays[f"cov_{k}"] = np.frombuffer(_encode_ints(q_cov, cfg.preset), dtype=np.uint8)
+        arrays[f"pos_{k}"] = np.frombuffer(_encode_ints(q_pos, config.preset), dtype=np.uint8)
+        arrays[f"cov_{k}"] = np.frombuffer(_encode_ints(q_cov, config.preset), dtype=np.uint8)
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
 
     def write(tmp: Path) -> None:

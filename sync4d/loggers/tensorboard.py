@@ -23,11 +23,11 @@ class TensorBoardLogger:
         subdir: str = "tb"       # event folder inside the run folder
         flush_secs: int = 10
 
-    def __init__(self, cfg: Config, *, run_dir: Path) -> None:
+    def __init__(self, config: Config, *, run_dir: Path) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
-        self.dir = Path(run_dir) / cfg.subdir
-        self.writer = SummaryWriter(log_dir=str(self.dir), flush_secs=cfg.flush_secs)
+        self.dir = Path(run_dir) / config.subdir
+        self.writer = SummaryWriter(log_dir=str(self.dir), flush_secs=config.flush_secs)
 
     def scalar(self, tag: str, value: float, step: int) -> None:
         self.writer.add_scalar(tag, float(value), step)
@@ -58,7 +58,7 @@ class NullLogger:
     class Config:
         pass
 
-    def __init__(self, cfg: Config, *, run_dir: Path) -> None:
+    def __init__(self, config: Config, *, run_dir: Path) -> None:
         pass
 
     def scalar(self, tag: str, value: float, step: int) -> None:

@@ -39,11 +39,11 @@ def match_parts(
     Returns:
         MatchResult: the PartMap (tgt_part per Gaussian), diagnostics, the target -> reference similarity.
     """
-    cfg = (config or MatchConfig()).validate()
-    if cfg.method == "structure":
-        return match_by_structure(reference, target, cfg, target_vertices, target_faces, seed)
+    config = (config or MatchConfig()).validate()
+    if config.method == "structure":
+        return match_by_structure(reference, target, config, target_vertices, target_faces, seed)
     if extractor is None:
-        raise ConfigError(f"match.method={cfg.method} needs a features component (features=geometric, ...)")
-    if cfg.method == "auto":
-        return match_auto(reference, target, extractor, cfg, target_vertices, target_faces, seed)
-    return match_by_features(reference, target, extractor, cfg, target_vertices, target_faces, seed)
+        raise ConfigError(f"match.method={config.method} needs a features component (features=geometric, ...)")
+    if config.method == "auto":
+        return match_auto(reference, target, extractor, config, target_vertices, target_faces, seed)
+    return match_by_features(reference, target, extractor, config, target_vertices, target_faces, seed)

@@ -48,14 +48,14 @@ def match_auto(
     reference: Reference,
     target: TargetGaussians,
     extractor: FeatureExtractor,
-    cfg: MatchConfig,
+    config: MatchConfig,
     target_vertices: np.ndarray | None,
     target_faces: np.ndarray | None,
     seed: int,
 ) -> MatchResult:
     """Run both methods, keep the one :func:`choose_method` prefers (its diagnostics carry both scores)."""
-    by_features = match_by_features(reference, target, extractor, cfg, target_vertices, target_faces, seed)
-    by_structure = match_by_structure(reference, target, cfg, target_vertices, target_faces, seed)
+    by_features = match_by_features(reference, target, extractor, config, target_vertices, target_faces, seed)
+    by_structure = match_by_structure(reference, target, config, target_vertices, target_faces, seed)
     rng = np.random.default_rng(seed)
     index = np.sort(rng.choice(target.num, min(target.num, SCORE_POINTS), replace=False))
     scores = {"features": result_consistency(by_features, reference, target, index),

@@ -20,30 +20,30 @@ from sync4d.types import Reference, TargetGaussians
 def match_by_structure(
     reference: Reference,
     target: TargetGaussians,
-    cfg: MatchConfig,
+    config: MatchConfig,
     target_vertices: np.ndarray | None,
     target_faces: np.ndarray | None,
     seed: int,
 ) -> MatchResult:
     """Structure-aware matching (:mod:`sync4d.match.structure`) wrapped into a MatchResult."""
     rng = np.random.default_rng(seed)
-    tgt_vertices, index, tgt_faces = target_points(target, cfg, target_vertices, target_faces, seed)
+    tgt_vertices, index, tgt_faces = target_points(target, config, target_vertices, target_faces, seed)
     check_target_surface(tgt_vertices)
-    if cfg.align in ("pca", "pca_icp"):
+    if config.align in ("pca", "pca_icp"):
         alignment = align_shapes(
-            tgt_vertices, reference.rest_vertices, method=cfg.align, icp_iterations=cfg.icp_iterations, seed=seed
+            tgt_vertices, reference.rest_vertices, method=config.align, icp_iterations=config.icp_iterations, seed=seed
         )
     else:
         alignment = AlignResult(Similarity.identity(), float("nan"), np.zeros(0), "none")
     # the reference's surface is enough: its parts give the trunk, and distances are taken from it
     ref_samples = skeleton_points(
-        reference.rest_vertices, reference.rest_faces, replace(cfg.structure.skeleton, volume=False), rng
+        reference.rest_vertices, reference.rest_faces, replace(config.structure.skeleton, volume=False), rng
     )
     ref_norm = normalization(reference.rest_vertices)
     _, nearest = cKDTree(reference.rest_vertices).query(ref_samples)
     ref_labels = reference.part_labels()[nearest]
     pre = alignment.transform
-    tgt_raw, tgt_depth = skeleton_points_depth(tgt_vertices, tgt_faces, cfg.structure.skeleton, rng)
+    tgt_raw, tgt_depth = skeleton_points_depth(tgt_vertices, tgt_faces, config.structure.skeleton, rng)
     tgt_samples = pre.apply(tgt_raw)
     tgt_norm = normalization(tgt_samples)
     # the structure match works on each shape normalised by itself, then turns the target about the up axis
@@ -52,11 +52,11 @@ def match_by_structure(
         ref_labels,
         reference.num_bones,
         tgt_norm.apply(tgt_samples),
-        cfg.structure,
-        up_axis=cfg.up_axis,
+        config.structure,
+        up_axis=config.up_axis,
         part_parents=reference.bone_parents,
         tgt_depth=None if tgt_depth is None else tgt_depth * pre.scale * tgt_norm.scale,
-        turn_cost=cfg.structure.aligned_turn_cost if cfg.align in ("pca", "pca_icp") else 0.0,
+        turn_cost=config.structure.aligned_turn_cost if config.align in ("pca", "pca_icp") else 0.0,
     )
     frame = pre.then(tgt_norm).then(Similarity(sm.rotation, 1.0, np.zeros(3)))
     sample_pts = tgt_norm.apply(tgt_samples) @ sm.rotation.T

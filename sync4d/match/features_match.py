@@ -373,7 +373,7 @@ def match_by_features(
     reference: Reference,
     target: TargetGaussians,
     extractor: FeatureExtractor,
-    cfg: MatchConfig,
+    config: MatchConfig,
     target_vertices: np.ndarray | None,
     target_faces: np.ndarray | None,
     seed: int,
@@ -382,10 +382,10 @@ def match_by_features(
     """The paper's part mapping (Sec. 3.3), with alignment first (unless given); see the module docstring."""
     num_parts = reference.num_bones
     ref_labels = reference.part_labels()
-    tgt_vertices, index, tgt_faces = target_points(target, cfg, target_vertices, target_faces, seed)
+    tgt_vertices, index, tgt_faces = target_points(target, config, target_vertices, target_faces, seed)
     if alignment is None:
         alignment = align_shapes(
-            tgt_vertices, reference.rest_vertices, method=cfg.align, icp_iterations=cfg.icp_iterations, seed=seed
+            tgt_vertices, reference.rest_vertices, method=config.align, icp_iterations=config.icp_iterations, seed=seed
         )
     ref_norm = normalization(reference.rest_vertices)
     frame = alignment.transform.then(ref_norm)
@@ -397,18 +397,18 @@ def match_by_features(
     if f_ref.shape[1] != f_tgt.shape[1]:
         raise InputError(f"match: reference features have {f_ref.shape[1]} dims, target {f_tgt.shape[1]}")
     means, present = part_mean_features(f_ref, ref_labels, num_parts)
-    per_part = prototype_count(cfg.prototypes)
+    per_part = prototype_count(config.prototypes)
     if per_part == 1:
         similarity = cosine_similarity(f_tgt, means)  # the paper's rule, exactly
     else:
         protos, owner = part_prototype_features(f_ref, ref_labels, num_parts, per_part, seed=seed)
         similarity = prototype_similarity(f_tgt, protos, owner, num_parts)
     vertex_part, margin = assign_by_similarity(similarity, present)
-    if cfg.smooth_neighbours > 1:
-        vertex_part = smooth_labels(tgt_pts, vertex_part, similarity, num_parts, cfg.smooth_neighbours)
-    kept = remove_outliers(tgt_pts, vertex_part, num_parts, cfg.outlier_sigma)
+    if config.smooth_neighbours > 1:
+        vertex_part = smooth_labels(tgt_pts, vertex_part, similarity, num_parts, config.smooth_neighbours)
+    kept = remove_outliers(tgt_pts, vertex_part, num_parts, config.outlier_sigma)
     boxes, rots, valid, centroids = part_boxes(
-        tgt_pts, vertex_part, kept, num_parts, frame=cfg.box_frame, padding=cfg.box_padding
+        tgt_pts, vertex_part, kept, num_parts, frame=config.box_frame, padding=config.box_padding
     )
     g_pts = frame.apply(target.means)
     distances = part_distances(
@@ -417,7 +417,7 @@ def match_by_features(
         valid,
         **(
             {"vertex_points": tgt_pts[kept], "vertex_labels": vertex_part[kept]}
-            if cfg.tie_break == "nearest_vertex"
+            if config.tie_break == "nearest_vertex"
             else {}
         ),
     )

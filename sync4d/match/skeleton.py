@@ -381,14 +381,14 @@ def trunk_core(graph: csr_matrix, points: np.ndarray, depth: np.ndarray, fractio
     return deep[np.isfinite(dist)]
 
 
-def curve_skeleton(points: np.ndarray, cfg: SkeletonConfig, depth: np.ndarray | None = None) -> CurveSkeleton:
+def curve_skeleton(points: np.ndarray, config: SkeletonConfig, depth: np.ndarray | None = None) -> CurveSkeleton:
     """The curve skeleton of a normalised point set (see the module docstring).
 
     Args:
         points: (M, 3) points in a normalised frame (unit RMS radius about their centroid), M >= 16.
-        cfg: skeleton options.
+        config: skeleton options.
         depth: (M,) distance of each point to the outside of the solid (any unit), or None; with it and
-            ``cfg.core_depth > 0`` geodesic distance is taken from the trunk's core (:func:`trunk_core`).
+            ``config.core_depth > 0`` geodesic distance is taken from the trunk's core (:func:`trunk_core`).
 
     Returns:
         CurveSkeleton.
@@ -396,19 +396,19 @@ def curve_skeleton(points: np.ndarray, cfg: SkeletonConfig, depth: np.ndarray | 
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 16 or not np.isfinite(pts).all():
         raise InputError(f"curve_skeleton: need (M >= 16, 3) finite points, got {pts.shape}")
-    graph = neighbour_graph(pts, cfg.neighbours, cfg.max_edge_factor)
-    if depth is not None and cfg.core_depth > 0 and len(depth) == len(pts):
-        core = trunk_core(graph, pts, np.asarray(depth, dtype=np.float64), cfg.core_depth, cfg.core_reach)
-        sk = _skeleton_from(pts, graph, core, cfg)
+    graph = neighbour_graph(pts, config.neighbours, config.max_edge_factor)
+    if depth is not None and config.core_depth > 0 and len(depth) == len(pts):
+        core = trunk_core(graph, pts, np.asarray(depth, dtype=np.float64), config.core_depth, config.core_reach)
+        sk = _skeleton_from(pts, graph, core, config)
         if len(sk.branches) > 1:
             return sk
         # no branch off the core (a shape of bars of one thickness, whose deepest part is an end):
         # the levels from the centre point still split where its bars meet
     centre = int(np.argmin(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))
-    return _skeleton_from(pts, graph, np.array([centre]), cfg)
+    return _skeleton_from(pts, graph, np.array([centre]), config)
 
 
-def _skeleton_from(pts: np.ndarray, graph: csr_matrix, core: np.ndarray, cfg: SkeletonConfig) -> CurveSkeleton:
+def _skeleton_from(pts: np.ndarray, graph: csr_matrix, core: np.ndarray, config: SkeletonConfig) -> CurveSkeleton:
     """The skeleton of levels of geodesic distance from the ``core`` points (a single centre, or a core)."""
     centre = int(core[np.argmin(np.linalg.norm(pts[core] - pts[core].mean(axis=0), axis=1))])
     if len(core) > 1:
@@ -416,7 +416,7 @@ def _skeleton_from(pts: np.ndarray, graph: csr_matrix, core: np.ndarray, cfg: Sk
     else:
         geo, pred = geodesic_from(graph, centre)
     spacing = float(np.median(cKDTree(pts).query(pts, 2)[0][:, 1]))
-    width = max(cfg.level_width, cfg.level_spacings * spacing)
+    width = max(config.level_width, config.level_spacings * spacing)
     node, parent = reeb_tree(graph, geo, pred, width, centre)
     num = len(parent)
     top = np.full(num, -np.inf)
@@ -424,7 +424,7 @@ def _skeleton_from(pts: np.ndarray, graph: csr_matrix, core: np.ndarray, cfg: Sk
     np.maximum.at(top, node, geo)
     np.minimum.at(bottom, node, geo)
     root = int(node[centre])
-    alive, owner = prune_branches(parent, top, bottom, root, cfg.prune_length)
+    alive, owner = prune_branches(parent, top, bottom, root, config.prune_length)
     node = owner[node]
     chains, chain_parent = node_chains(parent, alive, root)
     return replace(_assemble(pts, geo, centre, node, chains, chain_parent, width), core=core, graph=graph)

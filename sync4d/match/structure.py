@@ -280,7 +280,7 @@ def limb_cost(
     ref: LimbSet,
     tgt: LimbSet,
     rotation: np.ndarray,
-    cfg: StructureConfig,
+    config: StructureConfig,
     *,
     up: int = 1,
     ref_scale: np.ndarray | None = None,
@@ -311,11 +311,11 @@ def limb_cost(
     # below where it leaves the trunk, so a target limb branch is typically a limb's lower part)
     d_area = np.maximum(np.log(np.maximum(tgt.area[None], 1e-6) / np.maximum(ref.area[:, None], 1e-6)), 0.0) ** 2
     return (
-        cfg.base_weight * d_base
-        + cfg.tip_weight * d_tip
-        + cfg.direction_weight * d_dir
-        + cfg.length_weight * d_len
-        + cfg.area_weight * d_area
+        config.base_weight * d_base
+        + config.tip_weight * d_tip
+        + config.direction_weight * d_dir
+        + config.length_weight * d_len
+        + config.area_weight * d_area
     )
 
 
@@ -384,7 +384,7 @@ def transfer_along(
     return profile[np.clip((s_tgt * bins).astype(np.int64), 0, bins - 1)]
 
 
-def distance_from_trunk(skeleton: CurveSkeleton, trunk: np.ndarray, cfg: SkeletonConfig) -> CurveSkeleton:
+def distance_from_trunk(skeleton: CurveSkeleton, trunk: np.ndarray, config: SkeletonConfig) -> CurveSkeleton:
     """The skeleton with its geodesic distance measured from the trunk's points instead of the centre.
 
     The reference's parts say where its trunk is; along a limb the distance from the trunk is the
@@ -392,7 +392,7 @@ def distance_from_trunk(skeleton: CurveSkeleton, trunk: np.ndarray, cfg: Skeleto
     """
     if not trunk.any():
         return skeleton
-    graph = neighbour_graph(skeleton.points, cfg.neighbours, cfg.max_edge_factor)
+    graph = neighbour_graph(skeleton.points, config.neighbours, config.max_edge_factor)
     geo = dijkstra(graph, directed=False, indices=np.flatnonzero(trunk), min_only=True)
     return replace(skeleton, geodesic=np.where(np.isfinite(geo), geo, 0.0))
 
@@ -478,7 +478,7 @@ def match_structure(
     ref_labels: np.ndarray,
     num_parts: int,
     tgt_points: np.ndarray,
-    cfg: StructureConfig,
+    config: StructureConfig,
     *,
     up_axis: str = "y",
     part_parents: np.ndarray | None = None,
@@ -492,7 +492,7 @@ def match_structure(
         ref_labels: (V,) reference part per point in [0, num_parts).
         num_parts: B.
         tgt_points: (M, 3) target points, normalised the same way, upright along ``up_axis``.
-        cfg: options.
+        config: options.
         up_axis: the shared up axis of both normalised frames.
         part_parents: (B,) the reference's bone tree if known (see :func:`reference_limbs`).
         tgt_depth: (M,) depth of each target point inside its solid, or None (see :func:`curve_skeleton`).
@@ -502,12 +502,12 @@ def match_structure(
     Returns:
         StructureMatch (``point_part`` labels the target points).
     """
-    ref_sk = curve_skeleton(ref_points, cfg.skeleton)
-    tgt_sk = curve_skeleton(tgt_points, cfg.skeleton, tgt_depth)
+    ref_sk = curve_skeleton(ref_points, config.skeleton)
+    tgt_sk = curve_skeleton(tgt_points, config.skeleton, tgt_depth)
     limb_parts, trunk = reference_limbs(ref_sk, ref_labels, num_parts, part_parents)
-    ref_sk = distance_from_trunk(ref_sk, np.isin(ref_labels, trunk), cfg.skeleton)
+    ref_sk = distance_from_trunk(ref_sk, np.isin(ref_labels, trunk), config.skeleton)
     ref_limbs = limb_descriptors(
-        ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts], base_share=cfg.reference_base_share
+        ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts], base_share=config.reference_base_share
     )
     tgt_thick = None if tgt_depth is None else local_thickness(tgt_sk.points, tgt_depth)
     cand = np.arange(1, len(tgt_sk.branches))
@@ -517,18 +517,18 @@ def match_structure(
     tgt_sub = tgt_points[rng.choice(len(tgt_points), min(800, len(tgt_points)), replace=False)]
     up = UP_AXES[up_axis]
     ref_scale = horizontal_scale(ref_points, np.eye(3), up)
-    turns = score_turns(ref_limbs, tgt_limbs, tgt_sk, cand, ref_sub, tgt_sub, cfg, up_axis, ref_scale, turn_cost)
+    turns = score_turns(ref_limbs, tgt_limbs, tgt_sk, cand, ref_sub, tgt_sub, config, up_axis, ref_scale, turn_cost)
     _, rot, pairs, total = turns[0]
-    if cfg.mirror_repair and len(pairs):
+    if config.mirror_repair and len(pairs):
         pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, horizontal_scale(tgt_points, rot, up))
     limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
-                                                   cfg.profile_bins)) for r, t in pairs]
+                                                   config.profile_bins)) for r, t in pairs]
     in_trunk = np.isin(ref_labels, trunk)
     point_part = label_regions(
         tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(tgt_sk.branch == 0), limbs,
         ref_sk.points[in_trunk], ref_labels[in_trunk],
         thickness=tgt_thick,
-        reach=cfg.limb_reach,
+        reach=config.limb_reach,
     )
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
@@ -551,7 +551,7 @@ def score_turns(
     cand: np.ndarray,
     ref_sub: np.ndarray,
     tgt_sub: np.ndarray,
-    cfg: StructureConfig,
+    config: StructureConfig,
     up_axis: str,
     ref_scale: np.ndarray,
     turn_cost: float,
@@ -566,15 +566,15 @@ def score_turns(
     tree = cKDTree(ref_sub)
     tgt_all = tgt_sk.points
     out = []
-    for rot in yaw_rotations(up_axis, cfg.yaw_steps):
+    for rot in yaw_rotations(up_axis, config.yaw_steps):
         if len(ref_limbs.members) and len(cand):
             cost = limb_cost(
-                ref_limbs, tgt_limbs, rot, cfg, up=up, ref_scale=ref_scale, tgt_scale=horizontal_scale(tgt_all, rot, up)
+                ref_limbs, tgt_limbs, rot, config, up=up, ref_scale=ref_scale, tgt_scale=horizontal_scale(tgt_all, rot, up)
             )
-            pairs, total = assign_limbs(cost, tgt_sk, cand, cfg.miss_cost)
+            pairs, total = assign_limbs(cost, tgt_sk, cand, config.miss_cost)
         else:
-            pairs, total = [], cfg.miss_cost * len(ref_limbs.members)
-        score = total + cfg.chamfer_weight * chamfer_distance(tgt_sub @ rot.T, ref_sub, tree_b=tree)
+            pairs, total = [], config.miss_cost * len(ref_limbs.members)
+        score = total + config.chamfer_weight * chamfer_distance(tgt_sub @ rot.T, ref_sub, tree_b=tree)
         cos_turn = (float(np.trace(rot)) - 1.0) / 2.0
         score += turn_cost * (1.0 - cos_turn) / 2.0
         out.append((score, rot, pairs, total))

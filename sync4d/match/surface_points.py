@@ -37,7 +37,7 @@ def visible_gaussian_centres(
 
 def target_points(
     target: TargetGaussians,
-    cfg: MatchConfig,
+    config: MatchConfig,
     target_vertices: np.ndarray | None,
     target_faces: np.ndarray | None,
     seed: int,
@@ -47,7 +47,7 @@ def target_points(
         if target_faces is not None:
             raise InputError("match_parts: target_faces given without target_vertices")
         points, index = visible_gaussian_centres(
-            target, max_vertices=cfg.max_target_vertices, min_opacity=cfg.min_opacity, seed=seed
+            target, max_vertices=config.max_target_vertices, min_opacity=config.min_opacity, seed=seed
         )
         return points, index, None
     faces = None if target_faces is None else np.asarray(target_faces, dtype=np.int64)
@@ -70,26 +70,26 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int, 
 
 
 def skeleton_points(
-    vertices: np.ndarray, faces: np.ndarray | None, cfg: SkeletonConfig, rng: np.random.Generator
+    vertices: np.ndarray, faces: np.ndarray | None, config: SkeletonConfig, rng: np.random.Generator
 ) -> np.ndarray:
-    """The points a curve skeleton is built on: voxels of the solid (``cfg.volume`` and a mesh), else
-    surface samples or the given points, subsampled to ``cfg.samples``."""
-    return skeleton_points_depth(vertices, faces, cfg, rng)[0]
+    """The points a curve skeleton is built on: voxels of the solid (``config.volume`` and a mesh), else
+    surface samples or the given points, subsampled to ``config.samples``."""
+    return skeleton_points_depth(vertices, faces, config, rng)[0]
 
 
 def skeleton_points_depth(
-    vertices: np.ndarray, faces: np.ndarray | None, cfg: SkeletonConfig, rng: np.random.Generator
+    vertices: np.ndarray, faces: np.ndarray | None, config: SkeletonConfig, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`skeleton_points` and, for voxels of the solid, each one's depth inside it [m] (else None)."""
     depth = None
-    if cfg.volume and faces is not None and len(faces):
-        pts, depth = volume_points(vertices, faces, cfg.resolution, rng, with_depth=True)
-    elif cfg.volume:
-        pts, depth = cloud_volume_points(vertices, cfg.resolution, with_depth=True)
+    if config.volume and faces is not None and len(faces):
+        pts, depth = volume_points(vertices, faces, config.resolution, rng, with_depth=True)
+    elif config.volume:
+        pts, depth = cloud_volume_points(vertices, config.resolution, with_depth=True)
     else:
-        pts = surface_samples(vertices, faces, cfg.samples, rng)
-    if len(pts) > cfg.samples:
-        keep = rng.choice(len(pts), cfg.samples, replace=False)
+        pts = surface_samples(vertices, faces, config.samples, rng)
+    if len(pts) > config.samples:
+        keep = rng.choice(len(pts), config.samples, replace=False)
         pts, depth = pts[keep], None if depth is None else depth[keep]
     return pts, depth
 

@@ -123,9 +123,9 @@ class BodyVideoReconstructor:
             if not 1.0 < self.fov_deg < 170.0:
                 raise ConfigError(f"recon.fov_deg={self.fov_deg}: the field of view must be in (1, 170) degrees")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        cfg.validate()
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        config.validate()
+        self.config = config
         self.device = device
         self.pictures: FitPictures | None = None
 
@@ -137,15 +137,15 @@ class BodyVideoReconstructor:
                 "use reference=video reference.video=<file>"
             )
         clip = source.video
-        camera = clip_camera(clip, source.camera, self.cfg.fov_deg)
+        camera = clip_camera(clip, source.camera, self.config.fov_deg)
         started = time.perf_counter()
-        if self.cfg.subject == "human":
+        if self.config.subject == "human":
             from sync4d.recon.pose.blazepose import track_video
             from sync4d.recon.pose.models import load_models
 
-            detector, landmarks = load_models(self.cfg.model_dir)
+            detector, landmarks = load_models(self.config.model_dir)
             track = track_video(clip.frames, detector, landmarks, source=clip.source or source.name)
-            fit = fit_human(track, camera.K, self.cfg.human, fps=float(source.fps or clip.fps))
+            fit = fit_human(track, camera.K, self.config.human, fps=float(source.fps or clip.fps))
             return BodyVideoFit(
                 fit.joints,
                 fit.names,
@@ -159,11 +159,11 @@ class BodyVideoReconstructor:
         if not masks.any():
             from sync4d.recon.video import background_masks
 
-            masks = background_masks(clip.frames, threshold=self.cfg.quadruped.background_threshold)
+            masks = background_masks(clip.frames, threshold=self.config.quadruped.background_threshold)
         qfit = fit_quadruped(
             masks,
             camera,
-            self.cfg.quadruped,
+            self.config.quadruped,
             source=clip.source or source.name,
             world_up=source.world_up,
             frames=clip.frames,
@@ -195,12 +195,12 @@ class BodyVideoReconstructor:
             up_axis=up,
             source=video.source,
         )
-        bones = self.cfg.bones or DEFAULT_BONES[self.cfg.subject]
+        bones = self.config.bones or DEFAULT_BONES[self.config.subject]
         mocap = MocapReconstructor(MocapReconstructor.Config(bones=bones), device=self.device)
         reference = mocap.from_motion(motion, name=source.name)
         log.info(
             "body_video %s: %d joints, %d bones, %d frames in %.1f s",
-            self.cfg.subject,
+            self.config.subject,
             len(fit.names),
             reference.num_bones,
             reference.num_frames,
@@ -212,7 +212,7 @@ class BodyVideoReconstructor:
     def write_figures(self, folder: Path) -> list[Path]:
         """Pictures of the last fit over its frames into ``folder`` (``body_fit.png``, ``.mp4``); the pipeline
         calls this after the reconstruction is cached, so a failed picture never costs the fit."""
-        if not self.cfg.figures or self.pictures is None:
+        if not self.config.figures or self.pictures is None:
             return []
         pic = self.pictures
         paths = write_fit_pictures(folder, pic.clip, pic.fit, pic.reference, pic.world_to_cam)

@@ -24,8 +24,8 @@ class GroundTruthReconstructor:
 
         bones: Optional[int] = None
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        self.config = config
         self.device = device
 
     def reconstruct(self, source: ReferenceInput) -> Reference:

@@ -132,9 +132,9 @@ class Lab4DReconstructor:
             if self.bones != "file":
                 self.bones = parse_bones(self.bones)
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        cfg.validate()
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        config.validate()
+        self.config = config
         self.device = device
         self.last_fit_report: dict[str, Any] = {}
 
@@ -147,13 +147,13 @@ class Lab4DReconstructor:
         problem = self.consistency_problem(export)
         if problem is None:
             ref, err = self._import(export, source)
-            if err is None or err <= self.cfg.tolerance_pct:
+            if err is None or err <= self.config.tolerance_pct:
                 self.last_fit_report = {"mode": "import", "mean_error_pct": err, "bones": ref.num_bones}
                 log.info("lab4d: imported %s (%d bones, mean error %s %%)", export.path, ref.num_bones, err)
                 return ref
             problem = (f"the imported bones and skinning reproduce the posed meshes with a mean error of {err:.2f}% "
-                       f"of the bbox diagonal (tolerance {self.cfg.tolerance_pct}%)")
-        if self.cfg.on_mismatch == "error":
+                       f"of the bbox diagonal (tolerance {self.config.tolerance_pct}%)")
+        if self.config.on_mismatch == "error":
             raise InputError(
                 f"recon=lab4d: {export.path}: {problem}; fix the export, or set recon.on_mismatch=refit to fit "
                 "new bones to the posed meshes"
@@ -200,7 +200,7 @@ class Lab4DReconstructor:
             local0 = export.posed_vertices[0]  # per-frame layout: meshes and se3 share one frame (G = I)
             rest = unskin(local0, weights, transforms[0])
         local = None
-        if export.posed_vertices is not None and export.layout == "export" and self.cfg.posed_frame == "object":
+        if export.posed_vertices is not None and export.layout == "export" and self.config.posed_frame == "object":
             local = export.posed_vertices
         elif export.posed_vertices is not None:
             inv = sk.rigid_inverse(glob)
@@ -210,7 +210,7 @@ class Lab4DReconstructor:
             log.info("lab4d: no skinning file; fitting weights to %d posed meshes with the file's transforms", n_frames)
             weights = fit_weights_fixed_transforms(rest, local, transforms)
         diag = bbox_diagonal(rest)
-        centers, covs = weighted_bones(rest, weights, floor=self.cfg.bone_floor * diag)
+        centers, covs = weighted_bones(rest, weights, floor=self.config.bone_floor * diag)
         err = None
         if local is not None:
             posed = sk.linear_blend(rest, weights, transforms)
@@ -227,7 +227,7 @@ class Lab4DReconstructor:
             raise InputError(f"recon=lab4d: {export.path}: {problem}, and there are no posed meshes to refit from")
         from sync4d.recon.skinning_fit import choose_bones
 
-        bones = self.cfg.bones
+        bones = self.config.bones
         if bones == "file":
             counted = export.rest_skinning if export.rest_skinning is not None else export.bone_transforms
             if counted is None:
@@ -236,11 +236,11 @@ class Lab4DReconstructor:
             bones = counted.shape[1]
         log.warning("lab4d: %s: %s; on_mismatch=refit: fitting %s bones to the %d posed meshes",
                     export.path, problem, bones, export.posed_vertices.shape[0])
-        opts = FitOptions(**{k: getattr(self.cfg, k) for k in FitOptions.__dataclass_fields__})
+        opts = FitOptions(**{k: getattr(self.config, k) for k in FitOptions.__dataclass_fields__})
         curve: list[tuple[int, float]] = []
         if bones == "auto":
-            fit, curve = choose_bones(export.posed_vertices, list(self.cfg.auto_candidates),
-                                      self.cfg.auto_tolerance_pct, opts)
+            fit, curve = choose_bones(export.posed_vertices, list(self.config.auto_candidates),
+                                      self.config.auto_tolerance_pct, opts)
         else:
             fit = fit_skinning(export.posed_vertices, int(bones), opts)
         self.last_fit_report = {

@@ -274,9 +274,9 @@ class MocapReconstructor:
             if self.radius_scale <= 0 and self.min_radius <= 0:
                 raise ConfigError("recon.radius_scale and recon.min_radius: at least one must be > 0")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        cfg.validate()
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        config.validate()
+        self.config = config
         self.device = device
         self.last_fit_report: dict[str, Any] = {}
         self.last_motion: SkeletonMotion | None = None
@@ -291,23 +291,23 @@ class MocapReconstructor:
         path = Path(source.path)
         if not path.is_file():
             raise DataMissingError(f"motion file not found: {path}")
-        fmt = self.cfg.format
+        fmt = self.config.format
         if fmt == "auto":
             fmt = detect_motion_format(path)
         if fmt == "bvh":
-            motion = read_bvh(path, unit_scale=self.cfg.bvh_unit_scale)
+            motion = read_bvh(path, unit_scale=self.config.bvh_unit_scale)
         elif fmt == "deepmimic":
-            motion = read_deepmimic(path, clip_urdf(path, self.cfg.urdf), urdf_scale=self.cfg.urdf_scale)
+            motion = read_deepmimic(path, clip_urdf(path, self.config.urdf), urdf_scale=self.config.urdf_scale)
         else:
             motion = read_joint_position_motion(
-                path, fps=source.fps, unit_scale=self.cfg.joint_unit_scale, root=self.cfg.root,
-                parents=np.asarray(self.cfg.parents) if self.cfg.parents else None,
+                path, fps=source.fps, unit_scale=self.config.joint_unit_scale, root=self.config.root,
+                parents=np.asarray(self.config.parents) if self.config.parents else None,
             )
-        if self.cfg.target_fps > 0:
-            step = max(1, int(round(motion.fps / self.cfg.target_fps)))
+        if self.config.target_fps > 0:
+            step = max(1, int(round(motion.fps / self.config.target_fps)))
             motion = motion.subsample(step)
-        if not 0 <= self.cfg.rest_frame < motion.num_frames:
-            raise ConfigError(f"recon.rest_frame={self.cfg.rest_frame}: the motion has {motion.num_frames} frames")
+        if not 0 <= self.config.rest_frame < motion.num_frames:
+            raise ConfigError(f"recon.rest_frame={self.config.rest_frame}: the motion has {motion.num_frames} frames")
         return motion
 
     def reconstruct(self, source: ReferenceInput) -> Reference:
@@ -318,44 +318,44 @@ class MocapReconstructor:
 
     def from_motion(self, motion: SkeletonMotion, *, name: str = "mocap") -> Reference:
         """Build the reference from an already-read :class:`SkeletonMotion`."""
-        cfg = self.cfg
-        r = cfg.rest_frame
+        config = self.config
+        r = config.rest_frame
         pos = motion.positions
         parents = motion.parents
         rest_joints = pos[r]
-        segments = skeleton_segments(rest_joints, parents, min_length=cfg.min_segment_length)
+        segments = skeleton_segments(rest_joints, parents, min_length=config.min_segment_length)
         if len(segments) == 0:
-            raise InputError(f"{motion.source}: the skeleton has no segment longer than {cfg.min_segment_length} m")
+            raise InputError(f"{motion.source}: the skeleton has no segment longer than {config.min_segment_length} m")
         n_seg = len(segments)
-        if cfg.bones == "skeleton":
+        if config.bones == "skeleton":
             groups = np.arange(n_seg)
         else:
-            if cfg.bones > n_seg:
-                raise ConfigError(f"recon.bones={cfg.bones}: the skeleton has only {n_seg} segments")
-            groups = merge_segments(rest_joints, parents, segments, int(cfg.bones))
+            if config.bones > n_seg:
+                raise ConfigError(f"recon.bones={config.bones}: the skeleton has only {n_seg} segments")
+            groups = merge_segments(rest_joints, parents, segments, int(config.bones))
         n_bones = int(groups.max()) + 1
 
         rel = relative_rotations(motion, r)
         seg_world = segment_transforms(pos, rel, parents, segments, r, align_ends=motion.rotations is None)  # (T, S, 4, 4)
 
-        radii = segment_radii(rest_joints, parents, segments, cfg.radius_scale, min_radius=cfg.min_radius)
+        radii = segment_radii(rest_joints, parents, segments, config.radius_scale, min_radius=config.min_radius)
         full_radii = np.zeros(len(parents))
         full_radii[segments] = radii
         verts, faces, owner_joint = capsule_body(
-            rest_joints, parents, radii=full_radii, min_radius=cfg.min_radius, min_length=cfg.min_segment_length,
-            rings=cfg.capsule_rings, sectors=cfg.capsule_sectors, band_spacing=cfg.capsule_band,
+            rest_joints, parents, radii=full_radii, min_radius=config.min_radius, min_length=config.min_segment_length,
+            rings=config.capsule_rings, sectors=config.capsule_sectors, band_spacing=config.capsule_band,
         )
         seg_index = {int(j): i for i, j in enumerate(segments)}
         owner_seg = np.array([seg_index[int(j)] for j in owner_joint])
         owner_bone = groups[owner_seg]
 
-        seg_centers, seg_covs = segment_gaussians(rest_joints, parents, segments, radii, along_factor=cfg.along_factor)
+        seg_centers, seg_covs = segment_gaussians(rest_joints, parents, segments, radii, along_factor=config.along_factor)
         centers, covs, bone_world, names = merged_bones(
             motion, segments, groups, seg_centers, seg_covs, seg_world, verts, owner_bone, r
         )
         bone_parents = segment_group_parents(parents, segments, groups)
         weights = segment_skinning(
-            verts, rest_joints, parents, segments, radii, groups, temperature=cfg.skin_temperature
+            verts, rest_joints, parents, segments, radii, groups, temperature=config.skin_temperature
         )
 
         glob = self.global_transforms(pos, rel, parents, r, motion.up_axis)
@@ -394,10 +394,10 @@ class MocapReconstructor:
         """(T, 4, 4) G_t per ``global_motion``; G at the rest frame is the identity."""
         n_frames = pos.shape[0]
         glob = np.tile(np.eye(4), (n_frames, 1, 1))
-        if self.cfg.global_motion == "none":
+        if self.config.global_motion == "none":
             return glob
         root = int(np.flatnonzero(np.asarray(parents) < 0)[0])
-        rot = rel[:, root] if self.cfg.global_motion == "root" else heading_transform(rel[:, root], up_axis)
+        rot = rel[:, root] if self.config.global_motion == "root" else heading_transform(rel[:, root], up_axis)
         glob[:, :3, :3] = rot
         glob[:, :3, 3] = pos[:, root] - rot @ pos[rest_frame, root]
         return glob

@@ -405,25 +405,25 @@ class SkinningFit:
             if any(int(b) < 1 for b in self.auto_candidates) or not self.auto_candidates:
                 raise ConfigError(f"recon.auto_candidates={self.auto_candidates}: positive bone counts needed")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        cfg.validate()
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        config.validate()
+        self.config = config
         self.device = device  # the fit is small; it always runs on the CPU
         self.last_fit_report: dict[str, Any] = {}
 
     def fit(self, sequence: np.ndarray) -> FitResult:
         """Fit the configured (or automatically chosen) bone count to a (T, V, 3) sequence [m]."""
-        opts = FitOptions(**{k: getattr(self.cfg, k) for k in FitOptions.__dataclass_fields__})
+        opts = FitOptions(**{k: getattr(self.config, k) for k in FitOptions.__dataclass_fields__})
         curve: list[tuple[int, float]] = []
-        if self.cfg.bones == "auto":
-            fit, curve = choose_bones(sequence, [int(b) for b in self.cfg.auto_candidates],
-                                      self.cfg.auto_tolerance_pct, opts)
+        if self.config.bones == "auto":
+            fit, curve = choose_bones(sequence, [int(b) for b in self.config.auto_candidates],
+                                      self.config.auto_tolerance_pct, opts)
         else:
-            if int(self.cfg.bones) > sequence.shape[1]:
+            if int(self.config.bones) > sequence.shape[1]:
                 raise ConfigError(
-                    f"recon.bones={self.cfg.bones}: more bones than the {sequence.shape[1]} vertices of the input"
+                    f"recon.bones={self.config.bones}: more bones than the {sequence.shape[1]} vertices of the input"
                 )
-            fit = fit_skinning(sequence, int(self.cfg.bones), opts)
+            fit = fit_skinning(sequence, int(self.config.bones), opts)
         self.last_fit_report = {
             "bones": int(fit.centers.shape[0]),
             "frame_error_m": fit.frame_error_m.tolist(),

@@ -43,12 +43,12 @@ class GsplatRenderer(SplatTorch):
     class Config(SplatTorch.Config):
         tile_size: int = 16  # gsplat's CUDA tile side [px]
 
-    def __init__(self, cfg: Config | None = None, *, device: str = "cuda") -> None:
+    def __init__(self, config: Config | None = None, *, device: str = "cuda") -> None:
         reason = gsplat_unavailable_reason()
         if reason is not None:
             raise ConfigError(reason)
-        self.cfg = cfg if cfg is not None else self.Config()
-        self.cfg.validate()
+        self.config = config if config is not None else self.Config()
+        self.config.validate()
         # gsplat runs on CUDA whatever the run's device; results go back to the inputs' device.
         self.device = torch.device(device if str(device).startswith("cuda") else "cuda:0")
 
@@ -57,7 +57,7 @@ class GsplatRenderer(SplatTorch):
     ) -> dict[str, torch.Tensor]:
         from gsplat import rasterization
 
-        cfg = self.cfg
+        config = self.config
         out_device = means.device if isinstance(means, torch.Tensor) else torch.device("cpu")
         dtype = torch.float32  # gsplat's kernels are float32 only
         dev = self.device
@@ -70,13 +70,13 @@ class GsplatRenderer(SplatTorch):
             all_idx = torch.arange(means_t.shape[0], device=dev)
             cols_t = self._colors(cols_t, means_t, all_idx, camera)
         channels = cols_t.shape[1]
-        bg = background if background is not None else (cfg.background if channels == 3 else [0.0] * channels)
+        bg = background if background is not None else (config.background if channels == 3 else [0.0] * channels)
         bg_t = self._tensor(bg, dtype, dev).reshape(-1)
         viewmat = torch.as_tensor(np.asarray(camera.world_to_cam), dtype=dtype, device=dev)[None]
         K = torch.as_tensor(np.asarray(camera.K), dtype=dtype, device=dev)[None]
         img, alpha, _meta = rasterization(
             means_t, None, None, opac_t, cols_t, viewmat, K, int(camera.width), int(camera.height),
-            near_plane=cfg.near, far_plane=cfg.far, eps2d=cfg.eps2d, tile_size=cfg.tile_size,
+            near_plane=config.near, far_plane=config.far, eps2d=config.eps2d, tile_size=config.tile_size,
             render_mode="RGB+ED", covars=covs_t, packed=False,
         )
         img, alpha = img[0], alpha[0, ..., 0]

@@ -427,11 +427,11 @@ class SplatTorch:
             if self.max_pairs < 1:
                 raise ConfigError(f"render.max_pairs={self.max_pairs}: must be >= 1")
 
-    def __init__(self, cfg: Config | None = None, *, device: str = "cpu") -> None:
+    def __init__(self, config: Config | None = None, *, device: str = "cpu") -> None:
         from sync4d.device import torch_device
 
-        self.cfg = cfg if cfg is not None else self.Config()
-        self.cfg.validate()
+        self.config = config if config is not None else self.Config()
+        self.config.validate()
         self.device = torch.device(torch_device(device))
 
     # -- public API -------------------------------------------------------------------------------
@@ -467,7 +467,7 @@ class SplatTorch:
 
         Args:
             means, covariances, colors, opacities, camera: as in :meth:`render`.
-            background: (C,) colour behind the Gaussians; None uses ``cfg.background`` for RGB, zeros
+            background: (C,) colour behind the Gaussians; None uses ``config.background`` for RGB, zeros
                 otherwise.
 
         Returns:
@@ -477,7 +477,7 @@ class SplatTorch:
             ``means`` is a tensor, else float32 numpy arrays.
         """
         as_numpy = not isinstance(means, torch.Tensor)
-        with _torch_threads(self.cfg.num_threads):
+        with _torch_threads(self.config.num_threads):
             if as_numpy:
                 with torch.no_grad():
                     out = self._render(means, covariances, colors, opacities, camera, background)
@@ -494,11 +494,11 @@ class SplatTorch:
     def _render(
         self, means: Any, covariances: Any, colors: Any, opacities: Any, camera: Camera, background: Any | None
     ) -> dict[str, torch.Tensor]:
-        cfg = self.cfg
+        config = self.config
         if isinstance(means, torch.Tensor) and means.is_floating_point():
             dtype, device = means.dtype, means.device
         else:
-            dtype, device = _DTYPES[cfg.dtype], self.device
+            dtype, device = _DTYPES[config.dtype], self.device
         means_t = self._tensor(means, dtype, device)
         covs_t = self._tensor(covariances, dtype, device)
         cols_t = self._tensor(colors, dtype, device)
@@ -507,7 +507,7 @@ class SplatTorch:
         width, height = int(camera.width), int(camera.height)
         channels = 3 if cols_t.ndim == 3 else cols_t.shape[1]
         if background is None:
-            bg = cfg.background if channels == 3 else [0.0] * channels
+            bg = config.background if channels == 3 else [0.0] * channels
         else:
             bg = background
         bg_t = self._tensor(bg, dtype, device).reshape(-1)
@@ -518,11 +518,11 @@ class SplatTorch:
         feats = self._colors(cols_t, means_t, proj.index, camera)
         # Depth rides along as one more composited channel.
         table = torch.cat([feats, proj.depths[:, None]], dim=1)
-        ts = cfg.tile_size
+        ts = config.tile_size
         tiles_x, tiles_y = -(-width // ts), -(-height // ts)
         tile_boxes = torch.div(proj.boxes, ts, rounding_mode="floor")
         if proj.index.numel():
-            bands = tile_row_bands(tile_boxes, tiles_y, max(cfg.max_pairs // (ts * ts), 1))
+            bands = tile_row_bands(tile_boxes, tiles_y, max(config.max_pairs // (ts * ts), 1))
         else:
             bands = [(0, tiles_y)]
         out_parts, acc_parts = [], []
@@ -553,14 +553,14 @@ class SplatTorch:
         Returns:
             The visible Gaussians in front-to-back order (see :class:`Projection`).
         """
-        cfg = self.cfg
+        config = self.config
         means2d, cov2d, depths, valid = project_gaussians(
-            means, covariances, camera, near=cfg.near, far=cfg.far, eps2d=cfg.eps2d
+            means, covariances, camera, near=config.near, far=config.far, eps2d=config.eps2d
         )
         conics, det = conics_from_cov2d(cov2d)
         boxes, visible, cutoff2 = footprint_boxes(
             means2d, cov2d, opacities, camera.width, camera.height,
-            sigma_cutoff=cfg.sigma_cutoff, alpha_min=cfg.alpha_min,
+            sigma_cutoff=config.sigma_cutoff, alpha_min=config.alpha_min,
         )
         keep = valid & visible & (det > 0) & torch.isfinite(det)
         idx = torch.nonzero(keep, as_tuple=False)[:, 0]
@@ -585,7 +585,7 @@ class SplatTorch:
         center = camera_tensors(camera, means.dtype, means.device)["center"]
         dirs = means.index_select(0, index) - center
         dirs = dirs / torch.clamp_min(torch.linalg.norm(dirs, dim=-1, keepdim=True), 1e-12)
-        return sh_to_rgb(picked, dirs, self.cfg.sh_degree)
+        return sh_to_rgb(picked, dirs, self.config.sh_degree)
 
 
 @contextlib.contextmanager

@@ -90,7 +90,7 @@ def render_run_outputs(
     from sync4d.render.video import render_sequence, write_mp4
 
     renderer = render.build(device=device)
-    rc = renderer.cfg
+    rc = renderer.config
     fps = rc.fps or motion.fps
     num = trajectory.num_frames
     globals_ = motion.global_transforms[:num]
@@ -116,10 +116,10 @@ def render_run_outputs(
     store = Seq4DConfig()
     parts = None if part_map is None else part_map.tgt_part if index is None else part_map.tgt_part[index]
     files["sequence.s4d"] = write_seq4d(run_dir / "sequence.s4d", means, covs, shown.colors(), shown.opacities,
-                                        fps=motion.fps, cfg=store, sh=shown.sh, parts=parts)
+                                        fps=motion.fps, config=store, sh=shown.sh, parts=parts)
     files["reference.s4d"] = write_seq4d(
         run_dir / "reference.s4d", ref_means, ref_covs, ref_rest.colors(), ref_rest.opacities, fps=motion.fps,
-        cfg=store, parts=reference.part_labels()[reference_nearest(reference, ref_rest.means)])
+        config=store, parts=reference.part_labels()[reference_nearest(reference, ref_rest.means)])
     files.update(write_exports(run_dir, means, covs, shown, reference, globals_, fps=motion.fps))
     log.info("wrote %s", ", ".join(files))
     return files
@@ -131,7 +131,7 @@ def write_turntable(path: Path, renderer: Any, means: np.ndarray, covs: np.ndarr
     from sync4d.render.camera import orbit
     from sync4d.render.video import render_sequence, write_mp4
 
-    rc = renderer.cfg
+    rc = renderer.config
     cams = orbit(means, int(rc.turntable_frames), up=rc.up, fov_deg=rc.fov_deg, width=rc.width, height=rc.height,
                  margin=rc.margin)
     spin = render_sequence(renderer, np.repeat(means[None], len(cams), 0), covs, target.sh, target.opacities, cams,

@@ -111,9 +111,9 @@ class CrossTarget:
             if self.subdivisions < 0 or self.num_surface < 1 or self.num_interior < 0:
                 raise ConfigError("target: need subdivisions >= 0, num_surface >= 1, num_interior >= 0")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg, self.seed = cfg, seed
-        c = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config, self.seed = config, seed
+        c = config
         self.vertices, self.faces = cross_mesh(
             c.height, c.bar_width, c.arm_span, c.arm_height, c.arm_center_y, c.depth, c.subdivisions
         )
@@ -123,8 +123,8 @@ class CrossTarget:
         return self.vertices, self.faces
 
     def load(self) -> TargetGaussians:
-        colors = np.tile(np.asarray(self.cfg.color, dtype=np.float64), (len(self.vertices), 1))
+        colors = np.tile(np.asarray(self.config.color, dtype=np.float64), (len(self.vertices), 1))
         return mesh_to_gaussians(
-            self.vertices, self.faces, num_surface=self.cfg.num_surface, num_interior=self.cfg.num_interior,
+            self.vertices, self.faces, num_surface=self.config.num_surface, num_interior=self.config.num_interior,
             vertex_colors=colors, seed=self.seed, name="cross",
         )

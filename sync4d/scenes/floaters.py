@@ -145,7 +145,7 @@ def robust_box(points: np.ndarray, quantile: float) -> tuple[np.ndarray, np.ndar
     return lo, hi
 
 
-def voxel_status(pts: np.ndarray, origin: np.ndarray, cell: float, cfg: FloaterConfig) -> tuple[np.ndarray, np.ndarray]:
+def voxel_status(pts: np.ndarray, origin: np.ndarray, cell: float, config: FloaterConfig) -> tuple[np.ndarray, np.ndarray]:
     """Density and connectivity tests of (M, 3) centres on voxels of side ``cell`` [m] from ``origin``.
 
     Returns:
@@ -160,34 +160,34 @@ def voxel_status(pts: np.ndarray, origin: np.ndarray, cell: float, cfg: FloaterC
     neighbourhood = counts.copy()
     np.add.at(neighbourhood, a, counts[b])
     np.add.at(neighbourhood, b, counts[a])
-    dense = neighbourhood >= cfg.min_neighbours
+    dense = neighbourhood >= config.min_neighbours
     # connectivity among the dense voxels only: a chain of isolated voxels must not bridge two pieces
     both = dense[a] & dense[b]
     m = len(unique_keys)
     graph = coo_matrix((np.ones(int(both.sum())), (a[both], b[both])), shape=(m, m))
     _, label = connected_components(graph, directed=False)
     piece = np.bincount(label, weights=counts * dense, minlength=label.max() + 1)
-    big = piece[label] >= cfg.min_cluster_fraction * len(pts)
+    big = piece[label] >= config.min_cluster_fraction * len(pts)
     return (dense & big)[inverse], ~dense[inverse]
 
 
-def find_floaters(means: np.ndarray, cfg: FloaterConfig) -> tuple[np.ndarray, FloaterReport]:
+def find_floaters(means: np.ndarray, config: FloaterConfig) -> tuple[np.ndarray, FloaterReport]:
     """Which Gaussians are floaters (see the module docstring).
 
     Args:
         means: (N, 3) finite Gaussian centres [m].
-        cfg: the thresholds.
+        config: the thresholds.
 
     Returns:
         keep: (N,) bool, True for Gaussians of the object.
         report: the counts per test, the voxel size chosen and the kept / removed bounding boxes.
     """
-    cfg.validate()
+    config.validate()
     pts = np.asarray(means, dtype=np.float64)
     n = len(pts)
-    lo, hi = robust_box(pts, cfg.quantile)
+    lo, hi = robust_box(pts, config.quantile)
     size = max(float((hi - lo).max()), 1e-12)
-    margin = cfg.far_factor * size
+    margin = config.far_factor * size
     near = np.all((pts >= lo - margin) & (pts <= hi + margin), axis=1)
     idx = np.flatnonzero(near)
     # coarse to fine: the finest voxel at which the object still holds (1 - max_noise_fraction) of the
@@ -195,8 +195,8 @@ def find_floaters(means: np.ndarray, cfg: FloaterConfig) -> tuple[np.ndarray, Fl
     chosen = None
     for cells_across in CELLS_ACROSS:
         cell = size / cells_across
-        keep_near, sparse_near = voxel_status(pts[idx], lo - margin, cell, cfg)
-        if chosen is not None and keep_near.mean() < 1.0 - cfg.max_noise_fraction:
+        keep_near, sparse_near = voxel_status(pts[idx], lo - margin, cell, config)
+        if chosen is not None and keep_near.mean() < 1.0 - config.max_noise_fraction:
             break
         chosen = (cell, keep_near, sparse_near)
     assert chosen is not None
@@ -214,12 +214,12 @@ def find_floaters(means: np.ndarray, cfg: FloaterConfig) -> tuple[np.ndarray, Fl
     return keep, report
 
 
-def remove_floaters(means: np.ndarray, cfg: FloaterConfig, *, source: str) -> tuple[np.ndarray, FloaterReport]:
+def remove_floaters(means: np.ndarray, config: FloaterConfig, *, source: str) -> tuple[np.ndarray, FloaterReport]:
     """:func:`find_floaters`, logged, refusing a target of which too little is left.
 
     Args:
         means: (N, 3) Gaussian centres [m].
-        cfg: the thresholds; ``cfg.enabled`` False keeps everything.
+        config: the thresholds; ``config.enabled`` False keeps everything.
         source: names the input in the log and the error (e.g. the file).
 
     Returns:
@@ -228,15 +228,15 @@ def remove_floaters(means: np.ndarray, cfg: FloaterConfig, *, source: str) -> tu
     Raises:
         InputError: fewer than ``min_kept_fraction`` of the Gaussians are kept.
     """
-    if not cfg.enabled:
+    if not config.enabled:
         return np.ones(len(means), dtype=bool), None  # type: ignore[return-value]
-    keep, report = find_floaters(means, cfg)
+    keep, report = find_floaters(means, config)
     kept = int(keep.sum())
-    if kept < cfg.min_kept_fraction * report.total or kept == 0:
+    if kept < config.min_kept_fraction * report.total or kept == 0:
         raise InputError(
             f"{source}: floater removal kept only {kept} of {report.total} Gaussians "
             f"({report.removed_far} far, {report.removed_sparse} isolated, {report.removed_clusters} in small pieces; "
-            f"target.floaters.min_kept_fraction={cfg.min_kept_fraction}); the splat is mostly scattered noise: "
+            f"target.floaters.min_kept_fraction={config.min_kept_fraction}); the splat is mostly scattered noise: "
             "check the file, or loosen target.floaters (min_neighbours, min_cluster_fraction) or set "
             "target.floaters.enabled=false"
         )

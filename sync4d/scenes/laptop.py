@@ -196,13 +196,13 @@ class LaptopReference:
             if not 0.0 <= self.min_angle_deg <= self.rest_angle_deg <= 180.0:
                 raise ConfigError("reference: need 0 <= min_angle_deg <= rest_angle_deg <= 180")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config = config
         self.device = device
 
     def film_settings(self) -> FilmSettings:
         """The camera and texture the laptop is filmed with (its ``up`` is the world's up)."""
-        c = self.cfg
+        c = self.config
         return FilmSettings(width=c.video_width, height=c.video_height, gaussians=c.video_gaussians,
                             texture_cell=c.video_texture_cell)
 
@@ -210,14 +210,14 @@ class LaptopReference:
         """The laptop filmed by the project's renderer from a fixed camera (see :mod:`sync4d.scenes.reference_video`)."""
         from sync4d.registry import build
 
-        c = self.cfg
+        c = self.config
         renderer = build("render", {"type": "splat_torch", "width": c.video_width, "height": c.video_height},
                          device=self.device)
         clip, camera, *_ = film_reference(reference, renderer, self.film_settings())
         return clip, camera
 
     def load(self) -> ReferenceInput:
-        c = self.cfg
+        c = self.config
         reference = laptop_reference(
             c.num_frames,
             width=c.width,

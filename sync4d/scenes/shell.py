@@ -121,10 +121,10 @@ class ShellTarget:
             if self.num_surface < 1 or self.num_interior < 0:
                 raise ConfigError("target: num_surface must be >= 1 and num_interior >= 0")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config = config
         self.seed = seed
-        c = cfg
+        c = config
         self.vertices, self.faces, self.part = shell_mesh(
             c.half_width, c.half_depth, c.bottom_height, c.top_height, c.open_angle_deg
         )
@@ -137,8 +137,8 @@ class ShellTarget:
         return mesh_to_gaussians(
             self.vertices,
             self.faces,
-            num_surface=self.cfg.num_surface,
-            num_interior=self.cfg.num_interior,
+            num_surface=self.config.num_surface,
+            num_interior=self.config.num_interior,
             vertex_colors=shell_colors(self.vertices, self.part),
             seed=self.seed,
             name="shell",

@@ -72,9 +72,9 @@ class LaptopTarget:
         num_surface: int = 3000
         num_interior: int = 1500
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg, self.seed = cfg, seed
-        c = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config, self.seed = config, seed
+        c = config
         self.vertices, self.faces, self.part = laptop_mesh(
             c.width, c.depth, c.base_thickness, c.lid_thickness, c.rest_angle_deg, c.subdivisions
         )
@@ -85,7 +85,7 @@ class LaptopTarget:
     def load(self) -> TargetGaussians:
         colors = np.where(self.part[:, None] == 0, [[0.55, 0.57, 0.62]], [[0.25, 0.27, 0.32]])
         return mesh_to_gaussians(
-            self.vertices, self.faces, num_surface=self.cfg.num_surface, num_interior=self.cfg.num_interior,
+            self.vertices, self.faces, num_surface=self.config.num_surface, num_interior=self.config.num_interior,
             vertex_colors=colors, seed=self.seed, name="laptop",
         )
 
@@ -103,13 +103,13 @@ class MeshTarget:
         num_interior: int = 1500
         color: list[float] = field(default_factory=lambda: [0.75, 0.7, 0.65])
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg, self.seed = cfg, seed
-        path = resolve_data_path(cfg.path)
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config, self.seed = config, seed
+        path = resolve_data_path(config.path)
         if not path.is_file():
-            raise DataMissingError(f"target.path={cfg.path}: mesh file not found (looked at {path})")
+            raise DataMissingError(f"target.path={config.path}: mesh file not found (looked at {path})")
         vertices, self.faces, self.colors = load_mesh(path)
-        self.vertices = fit_to_size(vertices, cfg.size, cfg.up_axis)
+        self.vertices = fit_to_size(vertices, config.size, config.up_axis)
         self.name = path.stem
 
     def surface(self) -> tuple[np.ndarray, np.ndarray]:
@@ -117,8 +117,8 @@ class MeshTarget:
 
     def load(self) -> TargetGaussians:
         return mesh_to_gaussians(
-            self.vertices, self.faces, num_surface=self.cfg.num_surface, num_interior=self.cfg.num_interior,
-            vertex_colors=self.colors, default_color=(self.cfg.color[0], self.cfg.color[1], self.cfg.color[2]), seed=self.seed, name=self.name,
+            self.vertices, self.faces, num_surface=self.config.num_surface, num_interior=self.config.num_interior,
+            vertex_colors=self.colors, default_color=(self.config.color[0], self.config.color[1], self.config.color[2]), seed=self.seed, name=self.name,
         )
 
 
@@ -136,25 +136,25 @@ class PlyTarget:
         max_gaussians: int | None = None  # keep a random subset of this size (None keeps all)
         floaters: FloaterConfig = field(default_factory=FloaterConfig)  # statistical outlier removal
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg, self.seed = cfg, seed
-        cfg.floaters.validate()
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config, self.seed = config, seed
+        config.floaters.validate()
 
     def surface(self) -> None:
         return None
 
     def load_checked(self) -> tuple[TargetGaussians, FloaterReport | None]:
         """The splat without its floaters, and the removal's report (None when removal is off)."""
-        path = resolve_data_path(self.cfg.path)
+        path = resolve_data_path(self.config.path)
         if not path.is_file():
-            raise DataMissingError(f"target.path={self.cfg.path}: .ply file not found (looked at {path})")
+            raise DataMissingError(f"target.path={self.config.path}: .ply file not found (looked at {path})")
         gaussians = read_gaussians_ply(path)
         check_target_extent(gaussians.means, str(path))
-        keep, report = remove_floaters(gaussians.means, self.cfg.floaters, source=str(path))
+        keep, report = remove_floaters(gaussians.means, self.config.floaters, source=str(path))
         if not keep.all():
             gaussians = gaussians.subset(keep)
-        if self.cfg.max_gaussians is not None and gaussians.num > self.cfg.max_gaussians:
-            keep = np.sort(np.random.default_rng(self.seed).choice(gaussians.num, self.cfg.max_gaussians, replace=False))
+        if self.config.max_gaussians is not None and gaussians.num > self.config.max_gaussians:
+            keep = np.sort(np.random.default_rng(self.seed).choice(gaussians.num, self.config.max_gaussians, replace=False))
             gaussians = gaussians.subset(keep)
         return gaussians, report
 

@@ -36,8 +36,8 @@ class Kinematic:
     differentiable = True
     dtype = torch.float64  # point-wise: exact in double precision
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        self.config = config
 
     def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None,
                 part: np.ndarray | None = None) -> KinematicModel:

@@ -53,9 +53,9 @@ class LinearBlendSkinning:
     differentiable = False
     dtype = torch.float64  # point-wise: exact in double precision
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        cfg.validate()
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        config.validate()
+        self.config = config
 
     def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None,
                 part: np.ndarray | None = None) -> SkinningModel:
@@ -64,7 +64,7 @@ class LinearBlendSkinning:
             raise InputError("sim=lbs: prepare needs the particles' parts")
         rest = np.asarray(points, dtype=np.float64)
         parts = np.asarray(part, dtype=np.int64)
-        return SkinningModel(rest, smoothed_part_weights(rest, parts, int(parts.max()) + 1, self.cfg.neighbours))
+        return SkinningModel(rest, smoothed_part_weights(rest, parts, int(parts.max()) + 1, self.config.neighbours))
 
     def domain(self, model: SkinningModel) -> tuple[np.ndarray, np.ndarray]:
         return padded_box(model.rest_points)

@@ -86,21 +86,21 @@ class MeshSequenceSource:
         unit_scale: float = 1.0
         max_frames: int = 0
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config = config
 
     def load(self) -> ReferenceInput:
-        path = self.cfg.path
+        path = self.config.path
         if not any(ch in path for ch in "*?["):
             path = str(resolve_path(path, what="mesh sequence"))
         elif not Path(path).is_absolute() and not list(Path().glob(path)):
             path = str(PROJECT_ROOT / path)
         files = find_mesh_files(path)
-        if self.cfg.max_frames > 0:
-            files = files[: self.cfg.max_frames]
+        if self.config.max_frames > 0:
+            files = files[: self.config.max_frames]
         verts, faces, _ = read_mesh_sequence(files)
         return ReferenceInput(
-            name=Path(files[0]).parent.name, fps=self.cfg.fps, mesh_sequence=verts * self.cfg.unit_scale,
+            name=Path(files[0]).parent.name, fps=self.config.fps, mesh_sequence=verts * self.config.unit_scale,
             faces=faces, path=str(Path(files[0]).parent),
         )
 
@@ -119,16 +119,16 @@ class Lab4DSource:
         path: str = "../shared/data/lab4d_export/shiba-haru-1002"
         fps: float = 10.0
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config = config
 
     def load(self) -> ReferenceInput:
         from sync4d.io.lab4d import read_lab4d_export
 
-        root = resolve_path(self.cfg.path, what="Lab4D export folder")
+        root = resolve_path(self.config.path, what="Lab4D export folder")
         export = read_lab4d_export(root)
         return ReferenceInput(
-            name=root.name, fps=self.cfg.fps, mesh_sequence=export.posed_vertices, faces=export.faces, path=str(root)
+            name=root.name, fps=self.config.fps, mesh_sequence=export.posed_vertices, faces=export.faces, path=str(root)
         )
 
 
@@ -144,13 +144,13 @@ class BVHSource:
 
         path: str = "../shared/data/motion/cmu_bvh/131_01.bvh"
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config = config
 
     def load(self) -> ReferenceInput:
         from sync4d.io.mocap import parse_bvh
 
-        path = resolve_path(self.cfg.path, what="BVH file")
+        path = resolve_path(self.config.path, what="BVH file")
         _, _, frame_time = parse_bvh(path.read_text(errors="replace"), source=str(path))
         return ReferenceInput(name=path.stem, fps=1.0 / frame_time, path=str(path))
 
@@ -169,15 +169,15 @@ class JointPositionsSource:
         path: str = "../shared/data/motion/dog_mocap/dog_trot_joint_pos.txt"
         fps: float = 60.0
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config = config
 
     def load(self) -> ReferenceInput:
         from sync4d.io.mocap import read_joint_positions
 
-        path = resolve_path(self.cfg.path, what="joint-position file")
+        path = resolve_path(self.config.path, what="joint-position file")
         read_joint_positions(path)  # fail here, at load, on a malformed file
-        return ReferenceInput(name=path.stem, fps=self.cfg.fps, path=str(path))
+        return ReferenceInput(name=path.stem, fps=self.config.fps, path=str(path))
 
 
 @register("reference", "deepmimic")
@@ -192,13 +192,13 @@ class DeepMimicSource:
 
         path: str = "../shared/data/motion/deepmimic/humanoid3d_walk.txt"
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config = config
 
     def load(self) -> ReferenceInput:
         from sync4d.io.deepmimic import parse_deepmimic_frames
 
-        path = resolve_path(self.cfg.path, what="DeepMimic clip")
+        path = resolve_path(self.config.path, what="DeepMimic clip")
         rows = parse_deepmimic_frames(path.read_text(errors="replace"), source=str(path))  # fail early
         return ReferenceInput(name=path.stem, fps=1.0 / float(rows[0, 0]), path=str(path))
 
@@ -226,19 +226,19 @@ class GltfSource:
         unit_scale: float = 0.01
         max_frames: int = 0
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        self.config = config
 
     def load(self) -> ReferenceInput:
         from sync4d.io.gltf import read_gltf, skinned_reference
 
-        path = resolve_path(self.cfg.path, what="glTF file")
+        path = resolve_path(self.config.path, what="glTF file")
         mesh = read_gltf(path)
-        truth = skinned_reference(mesh, mesh.animation(self.cfg.animation), self.cfg.fps,
-                                  unit_scale=self.cfg.unit_scale, frames=self.cfg.max_frames, name=path.stem)
+        truth = skinned_reference(mesh, mesh.animation(self.config.animation), self.config.fps,
+                                  unit_scale=self.config.unit_scale, frames=self.config.max_frames, name=path.stem)
         homo = np.concatenate([truth.rest_vertices, np.ones((len(truth.rest_vertices), 1))], axis=1)
         posed = np.einsum("vb,tbij,vj->tvi", truth.skinning, truth.bone_transforms[..., :3, :], homo)
-        return ReferenceInput(name=path.stem, fps=self.cfg.fps, mesh_sequence=posed, faces=mesh.faces, path=str(path),
+        return ReferenceInput(name=path.stem, fps=self.config.fps, mesh_sequence=posed, faces=mesh.faces, path=str(path),
                               ground_truth=truth)
 
 
@@ -277,26 +277,26 @@ class VideoSource:
         stride: int = 1
         frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
 
-    def __init__(self, cfg: Config, *, device: str = "cpu", seed: int = 0) -> None:
-        cfg.frontend.validate()
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
+        config.frontend.validate()
+        self.config = config
 
     def load(self) -> ReferenceInput:
-        video = resolve_path(self.cfg.video, what="reference video")
-        masks = beside(video, self.cfg.masks, "masks", what="mask folder")
-        camera_file = beside(video, self.cfg.camera, "gt.npz", what="camera file")
+        video = resolve_path(self.config.video, what="reference video")
+        masks = beside(video, self.config.masks, "masks", what="mask folder")
+        camera_file = beside(video, self.config.camera, "gt.npz", what="camera file")
         clip = read_video_clip(
-            video, masks, fps=self.cfg.fps or None, max_frames=self.cfg.max_frames or None, stride=self.cfg.stride
+            video, masks, fps=self.config.fps or None, max_frames=self.config.max_frames or None, stride=self.config.stride
         )
         camera = None
         if camera_file is not None:
             camera = load_camera(camera_file, clip.frames.shape[2], clip.frames.shape[1])
             clip = type(clip)(clip.frames, clip.masks, clip.fps, camera.K, None, clip.source).validate()
-        prompt = Prompt(tuple(float(v) for v in self.cfg.prompt), int(self.cfg.prompt_frame)) if self.cfg.prompt else None
+        prompt = Prompt(tuple(float(v) for v in self.config.prompt), int(self.config.prompt_frame)) if self.config.prompt else None
         # the front end's world is Y up when the phone is held upright (its first camera turned to Y up)
         up = None if camera is not None else np.array([0.0, 1.0, 0.0])
         if masks is None or camera is None or prompt is not None:
-            clip, camera = complete_video(clip, camera, self.cfg.frontend, masks_given=masks is not None and prompt is None,
+            clip, camera = complete_video(clip, camera, self.config.frontend, masks_given=masks is not None and prompt is None,
                                           prompt=prompt)
         return ReferenceInput(name=video.parent.name if video.is_file() else video.name, fps=clip.fps, video=clip,
                               camera=camera, path=str(video), world_up=up)

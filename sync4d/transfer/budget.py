@@ -168,10 +168,10 @@ class SimSettings:
         return tuple(f for f in SimSettings.__dataclass_fields__ if f != "control_grid")
 
     @staticmethod
-    def of(cfg: object, control_grid: int | None) -> SimSettings:
+    def of(config: object, control_grid: int | None) -> SimSettings:
         """The settings of a simulator config holding these fields (e.g. ``MPMWarp.Config``) with the
         transfer's control lattice."""
-        return SimSettings(**{f: getattr(cfg, f) for f in SimSettings.fields()}, control_grid=control_grid)
+        return SimSettings(**{f: getattr(config, f) for f in SimSettings.fields()}, control_grid=control_grid)
 
 
 @dataclass(frozen=True)

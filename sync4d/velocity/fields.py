@@ -1,7 +1,7 @@
 """Delta-velocity fields (paper Sec. 3.4): ``dv = field(x, part)`` added to the reference velocities.
 
 Each field is a ``torch.nn.Module`` registered in the ``velocity`` group and built with
-``(cfg, num_parts=B, bounds=(lo, hi), seed=...)`` where ``bounds`` is the simulation box [m]. ``velocity_scale``
+``(config, num_parts=B, bounds=(lo, hi), seed=...)`` where ``bounds`` is the simulation box [m]. ``velocity_scale``
 multiplies the initial reference velocities (the paper's alpha in its no-optimisation ablation) and
 ``trainable`` says whether frame-pair training optimises it; the transfer stage owns the optimiser
 (``transfer.lr``, ``transfer.iterations``, ``transfer.patience``).
@@ -56,20 +56,20 @@ class TriplaneField(nn.Module):
 
     trainable = True
 
-    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
+    def __init__(self, config: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
         super().__init__()
-        self.cfg = cfg
-        self.velocity_scale = cfg.velocity_scale
+        self.config = config
+        self.velocity_scale = config.velocity_scale
         lo, hi = (torch.as_tensor(np.asarray(b, dtype=np.float32)) for b in bounds)
         self.register_buffer("lo", lo)
         self.register_buffer("hi", hi)
         generator = torch_generator(seed)
-        planes = torch.randn(3, cfg.features, cfg.resolution, cfg.resolution, generator=generator) * cfg.init_std
+        planes = torch.randn(3, config.features, config.resolution, config.resolution, generator=generator) * config.init_std
         self.planes = nn.Parameter(planes)
         self.mlp = nn.Sequential(
-            nn.Linear(3 * cfg.features, cfg.hidden), nn.SiLU(),
-            nn.Linear(cfg.hidden, cfg.hidden), nn.SiLU(),
-            nn.Linear(cfg.hidden, 3),
+            nn.Linear(3 * config.features, config.hidden), nn.SiLU(),
+            nn.Linear(config.hidden, config.hidden), nn.SiLU(),
+            nn.Linear(config.hidden, 3),
         )
         init_linear_layers(self.mlp, generator)
         last = self.mlp[-1]
@@ -84,14 +84,14 @@ class TriplaneField(nn.Module):
         pairs = (u[:, [0, 1]], u[:, [0, 2]], u[:, [1, 2]])
         feats = [
             F.grid_sample(self.planes[i : i + 1], uv.view(1, -1, 1, 2), align_corners=True, padding_mode="border")
-            .view(self.cfg.features, -1)
+            .view(self.config.features, -1)
             .T
             for i, uv in enumerate(pairs)
         ]
         return self.mlp(torch.cat(feats, dim=1))
 
     def regularizer(self) -> torch.Tensor:
-        return self.cfg.tv_weight * total_variation(self.planes)
+        return self.config.tv_weight * total_variation(self.planes)
 
 
 @register("velocity", "per_part")
@@ -104,10 +104,10 @@ class PerPartField(nn.Module):
 
     trainable = True
 
-    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
+    def __init__(self, config: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
         super().__init__()
-        self.cfg = cfg
-        self.velocity_scale = cfg.velocity_scale
+        self.config = config
+        self.velocity_scale = config.velocity_scale
         self.delta = nn.Parameter(torch.zeros(num_parts, 3))
 
     def forward(self, x: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
@@ -127,10 +127,10 @@ class NoField(nn.Module):
 
     trainable = False
 
-    def __init__(self, cfg: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
+    def __init__(self, config: Config, *, num_parts: int, bounds: tuple[np.ndarray, np.ndarray], seed: int = 0) -> None:
         super().__init__()
-        self.cfg = cfg
-        self.velocity_scale = cfg.alpha
+        self.config = config
+        self.velocity_scale = config.alpha
 
     def forward(self, x: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
         return torch.zeros_like(x)

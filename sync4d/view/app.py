@@ -87,23 +87,23 @@ class ObjectPanel:
 class RunRow:
     """The scene nodes of one run: video, reference and target panels, particles, part boxes."""
 
-    def __init__(self, server: Any, run: RunData, row: int, cfg: ViewerConfig) -> None:
-        self.server, self.run, self.cfg = server, run, cfg
+    def __init__(self, server: Any, run: RunData, row: int, config: ViewerConfig) -> None:
+        self.server, self.run, self.config = server, run, config
         y = -ROW_GAP * row
         columns = (["video"] if run.video is not None else []) + (["masks"] if run.masks is not None else []) \
             + (["reference"] if run.reference else []) + ["target"]
         offsets = {name: np.array([PANEL_GAP * k, y, 0.0]) for k, name in enumerate(columns)}
         self.panels: dict[str, ObjectPanel] = {}
-        rng = np.random.default_rng(cfg.seed)
+        rng = np.random.default_rng(config.seed)
         for name, source in (("reference", run.reference), ("target", run.target)):
             if source is None:
                 continue
-            subset = np.sort(rng.choice(source.num, cfg.max_gaussians, replace=False)) \
-                if source.num > cfg.max_gaussians else None
+            subset = np.sort(rng.choice(source.num, config.max_gaussians, replace=False)) \
+                if source.num > config.max_gaussians else None
             # Placement needs the extent and the plane of motion: a few thousand Gaussians tell both.
             probe = np.sort(rng.choice(source.num, PLACEMENT_PROBE, replace=False)) \
                 if source.num > PLACEMENT_PROBE else None
-            self.panels[name] = ObjectPanel(CachedFrames(source, cfg.cache_frames),
+            self.panels[name] = ObjectPanel(CachedFrames(source, config.cache_frames),
                                             place(source.all_means(probe), offsets[name], up=run.up),
                                             source.num_frames, subset)
         prefix = f"/run{row}"
@@ -179,7 +179,7 @@ class RunRow:
             # Drawn over the target's splats, darker, in the target's placement.
             self.particles = self.server.scene.add_point_cloud(
                 f"{self.prefix}/particles", points.astype(np.float32), (colors * 255).astype(np.uint8),
-                point_size=self.cfg.particle_size, point_shape="circle", precision="float32")
+                point_size=self.config.particle_size, point_shape="circle", precision="float32")
         self.particles.visible = visible
         if visible:
             self.particles.points = points.astype(np.float32)
@@ -194,20 +194,20 @@ def subset_frame(frame: SplatFrame, index: np.ndarray) -> SplatFrame:
 class Viewer:
     """A viser server showing ``runs`` (one row each), with play/pause, a frame slider and overlay toggles."""
 
-    def __init__(self, runs: list[RunData], cfg: ViewerConfig) -> None:
+    def __init__(self, runs: list[RunData], config: ViewerConfig) -> None:
         import viser
 
-        cfg.validate()
+        config.validate()
         if not runs:
             raise ConfigError("viewer: no run folders given")
-        self.cfg, self.runs = cfg, runs
+        self.config, self.runs = config, runs
         self.num_frames = max(r.num_frames for r in runs)
-        self.server = viser.ViserServer(host=cfg.host, port=cfg.port, label="sync4d", verbose=False)
+        self.server = viser.ViserServer(host=config.host, port=config.port, label="sync4d", verbose=False)
         self.server.gui.configure_theme(control_width="medium", show_share_button=False)
         self.server.gui.main_panel.dock_right()  # beside the scene, not over it
         self.server.scene.set_up_direction("+y")
         self.server.scene.world_axes.visible = False
-        self.rows = [RunRow(self.server, run, k, cfg) for k, run in enumerate(runs)]
+        self.rows = [RunRow(self.server, run, k, config) for k, run in enumerate(runs)]
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._build_gui()
@@ -228,9 +228,9 @@ class Viewer:
     def _build_gui(self) -> None:
         gui = self.server.gui
         self.slider = gui.add_slider("Frame", min=0, max=max(self.num_frames - 1, 1), step=1, initial_value=0)
-        self.playing = gui.add_checkbox("Play", initial_value=self.cfg.play)
+        self.playing = gui.add_checkbox("Play", initial_value=self.config.play)
         prev_button, next_button = gui.add_button("Previous frame"), gui.add_button("Next frame")
-        fps = self.cfg.fps or self._run_fps()
+        fps = self.config.fps or self._run_fps()
         self.fps = gui.add_number("FPS", initial_value=float(fps), min=0.5, max=120.0, step=0.5)
         self.part_colours = gui.add_checkbox("Part colours", initial_value=False)
         self.boxes = gui.add_checkbox("Matched part boxes", initial_value=False)

@@ -155,13 +155,13 @@ def _hinge_losses(x: torch.Tensor, min_cos: float) -> torch.Tensor:
     return loss
 
 
-def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig, fps: float = 10.0) -> HumanFit:
+def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: float = 10.0) -> HumanFit:
     """Fit the 17-joint skeleton to a :class:`PoseTrack` seen by a camera with intrinsics ``K``.
 
     Args:
         track: BlazePose output of T frames.
         K: (3, 3) intrinsics [px].
-        cfg: weights and schedule.
+        config: weights and schedule.
         fps: the video's frame rate [1/s]; the smoothness acts on accelerations.
     """
     world = gather_joints(track.world)
@@ -183,14 +183,14 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig, fps: float =
     seg_t, par_t, mir_t = (torch.tensor(a) for a in (seg, PARENTS[seg], mirror))
     focal = float(K[0, 0])
     flow = flow_targets(track, vis)
-    min_cos = float(np.cos(np.radians(cfg.min_hinge_deg)))
-    opt = torch.optim.LBFGS([x, log_len], lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe")
+    min_cos = float(np.cos(np.radians(config.min_hinge_deg)))
+    opt = torch.optim.LBFGS([x, log_len], lr=1.0, max_iter=config.iterations, line_search_fn="strong_wolfe")
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
         proj = _project(x, K_t)
         err = (proj - uv_t).norm(dim=-1) / focal
-        hub = cfg.huber_px / focal
+        hub = config.huber_px / focal
         l_rep = (_huber(err, hub) * vis_t).sum() / vis_t.sum().clamp_min(1.0)
         rel = x - x[:, :1]
         l_world = ((rel - world_t).pow(2).sum(-1) * (0.2 + vis_t)).mean()
@@ -202,12 +202,12 @@ def fit_human(track: PoseTrack, K: np.ndarray, cfg: HumanFitConfig, fps: float =
         l_limit = _hinge_losses(x, min_cos)
         l_flow = _flow_loss(proj, flow, focal, hub) if flow is not None else x.new_zeros(())
         loss = (
-            cfg.flow_weight * l_flow * 1e2
-            + cfg.reprojection_weight * l_rep * 1e2
-            + cfg.world_weight * l_world
-            + cfg.bone_weight * l_bone
-            + cfg.smooth_weight * l_smooth
-            + cfg.limit_weight * l_limit
+            config.flow_weight * l_flow * 1e2
+            + config.reprojection_weight * l_rep * 1e2
+            + config.world_weight * l_world
+            + config.bone_weight * l_bone
+            + config.smooth_weight * l_smooth
+            + config.limit_weight * l_limit
         )
         loss.backward()
         return loss

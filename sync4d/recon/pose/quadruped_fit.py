@@ -283,18 +283,18 @@ def relative_cameras(extrinsics: np.ndarray | None) -> np.ndarray | None:
 class QuadrupedProblem:
     """The tensors of one fit: coarse masks, distance fields, grid, cameras, template, flow, frame rate."""
 
-    def __init__(self, masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig, *,
+    def __init__(self, masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig, *,
                  frames: np.ndarray | None = None, extrinsics: np.ndarray | None = None,
                  fps: float = SMOOTH_FPS) -> None:
         self.box = mask_box(masks)
-        uv, self.gw, self.gh = grid_cells(self.box, cfg.grid)
+        uv, self.gw, self.gh = grid_cells(self.box, config.grid)
         coarse = coarse_masks(masks, self.box, self.gw, self.gh)
         self.target = torch.tensor(coarse.reshape(len(masks), -1), dtype=DTYPE)
         self.outside = torch.tensor(outside_distance(coarse), dtype=DTYPE)
         self.uv = torch.tensor(uv, dtype=DTYPE)
         self.K = torch.tensor(camera.K, dtype=DTYPE)
-        self.tau = max(self.box[2] - self.box[0], self.box[3] - self.box[1]) / cfg.grid * 0.5
-        self.tt = TemplateTensors(body_template(cfg.template))
+        self.tau = max(self.box[2] - self.box[0], self.box[3] - self.box[1]) / config.grid * 0.5
+        self.tt = TemplateTensors(body_template(config.template))
         self.camera = camera
         rel = relative_cameras(extrinsics)
         self.cams = None if rel is None else torch.tensor(rel, dtype=DTYPE)
@@ -331,7 +331,7 @@ def silhouette_terms(prob: QuadrupedProblem, frames: np.ndarray, joints: torch.T
     return bce, dist.pow(2).mean(), occ
 
 
-def shape_priors(prob: QuadrupedProblem, params: Params, cfg: QuadrupedFitConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def shape_priors(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """The unweighted bone length and girth prior and the joint-limit penalty of ``params``."""
     twin = prob.tt.twin
     lengths = params["log_len"].new_zeros(())
@@ -339,9 +339,9 @@ def shape_priors(prob: QuadrupedProblem, params: Params, cfg: QuadrupedFitConfig
         v = params[key]
         lengths = lengths + v.pow(2).mean() + (v - v[twin]).pow(2).mean()
     local = params["local"]
-    limit = torch.relu(local.norm(dim=-1) - math.radians(cfg.joint_limit_deg)).pow(2).mean()
+    limit = torch.relu(local.norm(dim=-1) - math.radians(config.joint_limit_deg)).pow(2).mean()
     off = local[:, prob.tt.leg_joints, :2].norm(dim=-1)  # legs swing about the lateral (z) axis
-    limit = limit + torch.relu(off - math.radians(cfg.leg_off_plane_deg)).pow(2).mean()
+    limit = limit + torch.relu(off - math.radians(config.leg_off_plane_deg)).pow(2).mean()
     return lengths, limit
 
 
@@ -357,7 +357,7 @@ def smoothness(prob: QuadrupedProblem, joints: torch.Tensor, scale: torch.Tensor
     return second.pow(2).sum(-1).mean()
 
 
-def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, cfg: QuadrupedFitConfig,
+def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config: QuadrupedFitConfig,
               history: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Total loss, joints (T, J, 3) and soft silhouettes (T, P) of ``params`` on ``frames``.
 
@@ -366,26 +366,26 @@ def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, cfg: Q
     """
     joints, verts = pose_body(prob.tt, params)
     bce, inside, occ = silhouette_terms(prob, frames, joints, verts, params["log_scale"].exp())
-    lengths, limit = shape_priors(prob, params, cfg)
-    total = (cfg.silhouette_weight * bce + cfg.inside_weight * inside + cfg.length_weight * lengths
-             + cfg.limit_weight * limit
-             + cfg.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
+    lengths, limit = shape_priors(prob, params, config)
+    total = (config.silhouette_weight * bce + config.inside_weight * inside + config.length_weight * lengths
+             + config.limit_weight * limit
+             + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
     return total, joints, occ
 
 
-def run_steps(prob: QuadrupedProblem, frames: np.ndarray, params: Params, cfg: QuadrupedFitConfig, steps: int, *,
+def run_steps(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config: QuadrupedFitConfig, steps: int, *,
               free: tuple[str, ...] | None = None, history: torch.Tensor | None = None
               ) -> tuple[float, np.ndarray, np.ndarray]:
     """``steps`` Adam steps on ``params`` (only the names in ``free``, default all); returns (loss, joints
     (T, J, 3), IoU (T,) on the grid)."""
-    opt = torch.optim.Adam([v for k, v in params.items() if free is None or k in free], lr=cfg.lr)
+    opt = torch.optim.Adam([v for k, v in params.items() if free is None or k in free], lr=config.lr)
     for _ in range(steps):
         opt.zero_grad()
-        loss, _, _ = clip_loss(prob, frames, params, cfg, history)
+        loss, _, _ = clip_loss(prob, frames, params, config, history)
         loss.backward()
         opt.step()
     with torch.no_grad():
-        loss, joints, occ = clip_loss(prob, frames, params, cfg, history)
+        loss, joints, occ = clip_loss(prob, frames, params, config, history)
     pred, tgt = occ > 0.5, prob.target[frames] > 0.5
     iou = ((pred & tgt).sum(1) / (pred | tgt).sum(1).clamp_min(1)).numpy()
     return float(loss), joints.numpy().astype(np.float64), iou
@@ -480,19 +480,19 @@ def frame_params(params: Params, t: int) -> Params:
             for k, v in params.items()}
 
 
-def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, cfg: QuadrupedFitConfig
+def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig
                        ) -> list[tuple[float, int, Params]]:
     """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints)."""
     tmpl = prob.tt.template
-    root0 = initial_root(mask, prob.camera, cfg.template_length, cfg.template_length * float(np.ptp(tmpl.vertices[:, 1])))
+    root0 = initial_root(mask, prob.camera, config.template_length, config.template_length * float(np.ptp(tmpl.vertices[:, 1])))
     starts = []
-    for k in range(cfg.starts):
-        params = start_params(prob, heading_rotation(up_cam, 2 * math.pi * k / cfg.starts), root0,
-                              cfg.template_length)
-        run_steps(prob, np.arange(1), params, cfg, cfg.start_iterations // 2, free=RIGID)
-        loss, _, iou = run_steps(prob, np.arange(1), params, cfg, cfg.start_iterations - cfg.start_iterations // 2)
-        log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f, IoU %.3f", k + 1, cfg.starts,
-                 360 * k / cfg.starts, loss, iou.mean())
+    for k in range(config.starts):
+        params = start_params(prob, heading_rotation(up_cam, 2 * math.pi * k / config.starts), root0,
+                              config.template_length)
+        run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
+        loss, _, iou = run_steps(prob, np.arange(1), params, config, config.start_iterations - config.start_iterations // 2)
+        log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f, IoU %.3f", k + 1, config.starts,
+                 360 * k / config.starts, loss, iou.mean())
         starts.append((loss, k, params))
     return starts
 
@@ -509,7 +509,7 @@ def history_of(prob: QuadrupedProblem, frames: list[Params]) -> torch.Tensor | N
     return torch.cat(past)
 
 
-def track(prob: QuadrupedProblem, start: Params, cfg: QuadrupedFitConfig, n: int) -> Params:
+def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: int) -> Params:
     """Clip parameters from a first-frame fit: every later frame warm-started from the previous one (root
     extrapolated at constant velocity), smoothed against the two frames before it."""
     frames = [start]
@@ -518,25 +518,25 @@ def track(prob: QuadrupedProblem, start: Params, cfg: QuadrupedFitConfig, n: int
         if t >= 2:
             with torch.no_grad():
                 cur["root_pos"] += frames[-1]["root_pos"].detach() - frames[-2]["root_pos"].detach()
-        run_steps(prob, np.array([t]), cur, cfg, cfg.frame_iterations, history=history_of(prob, frames))
+        run_steps(prob, np.array([t]), cur, config, config.frame_iterations, history=history_of(prob, frames))
         frames.append(cur)
     return {k: (torch.cat([p[k].detach() for p in frames]) if k not in CLIP else frames[-1][k].detach().clone()
                 ).requires_grad_(True) for k in frames[0]}
 
 
-def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], cfg: QuadrupedFitConfig,
+def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
                     n: int) -> Params:
     """The best of the ``tracks`` lowest-loss starts, tracked and refined on the clip, each with and without
     its fore and/or hind legs swapped: by the optical flow's agreement (the clip loss without video frames)."""
     best: tuple[float, Params] | None = None
     swaps = ((), ("f",), ("h",), ("f", "h")) if prob.flow is not None else ((),)
-    for _, k, params in sorted(starts, key=lambda x: x[0])[: cfg.tracks]:
-        full = track(prob, params, cfg, n)
-        loss, _, _ = run_steps(prob, np.arange(n), full, cfg, cfg.iterations)
+    for _, k, params in sorted(starts, key=lambda x: x[0])[: config.tracks]:
+        full = track(prob, params, config, n)
+        loss, _, _ = run_steps(prob, np.arange(n), full, config, config.iterations)
         for pairs in swaps:
             trial = {**full, "local": swap_legs(prob.tt, full["local"].detach(), pairs)}
             score = flow_error(prob, trial) if prob.flow is not None else loss
-            log.info("quadruped hypothesis heading %.0f deg, legs swapped: %s: %s %.4f", 360 * k / cfg.starts,
+            log.info("quadruped hypothesis heading %.0f deg, legs swapped: %s: %s %.4f", 360 * k / config.starts,
                      "+".join(pairs) or "none", "flow error" if prob.flow is not None else "loss", score)
             if best is None or score < best[0]:
                 best = (score, trial)
@@ -556,7 +556,7 @@ def check_masks(masks: np.ndarray, source: str, extrinsics: np.ndarray | None) -
                          f"got shape {np.shape(extrinsics)}")
 
 
-def fit_quadruped(masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig, *, source: str,
+def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig, *, source: str,
                   world_up: np.ndarray | None = None, frames: np.ndarray | None = None, fps: float = SMOOTH_FPS,
                   extrinsics: np.ndarray | None = None) -> QuadrupedFit:
     """Fit the body template to (T, H, W) bool masks.
@@ -571,7 +571,7 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig, *,
     Args:
         masks: (T, H, W) bool subject masks.
         camera: the camera (intrinsics; ``world_to_cam`` is frame 0's pose when ``extrinsics`` is given).
-        cfg: template, weights, schedule, starts.
+        config: template, weights, schedule, starts.
         source: the video's name, for messages.
         world_up: (3,) world up direction (orients the starts); None = the camera's -y.
         frames: (T, H, W, 3) uint8 video frames for the optical flow; None = no flow (the clip loss ranks).
@@ -586,12 +586,12 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, cfg: QuadrupedFitConfig, *,
     """
     check_masks(masks, source, extrinsics)
     n = len(masks)
-    prob = QuadrupedProblem(masks, camera, cfg, frames=frames, extrinsics=extrinsics, fps=fps)
+    prob = QuadrupedProblem(masks, camera, config, frames=frames, extrinsics=extrinsics, fps=fps)
     w2c0 = camera.world_to_cam if extrinsics is None else np.asarray(extrinsics[0], dtype=np.float64)
     up_cam = np.array([0.0, -1.0, 0.0]) if world_up is None else w2c0[:3, :3] @ np.asarray(world_up, dtype=np.float64)
-    starts = first_frame_starts(prob, masks[0], up_cam, cfg)
-    full = best_hypothesis(prob, starts, cfg, n)
-    loss, joints, iou = run_steps(prob, np.arange(n), full, cfg, cfg.swap_iterations if prob.flow is not None else 0)
+    starts = first_frame_starts(prob, masks[0], up_cam, config)
+    full = best_hypothesis(prob, starts, config, n)
+    loss, joints, iou = run_steps(prob, np.arange(n), full, config, config.swap_iterations if prob.flow is not None else 0)
     log.info("quadruped fit of %s: %d frames, silhouette IoU %.3f (min %.3f), loss %.4f", source, n, iou.mean(),
              iou.min(), loss)
     return finish_fit(prob, full, masks.shape[1:], joints, iou)

@@ -362,14 +362,14 @@ def neighbour_pairs(uv0: np.ndarray, labels: np.ndarray, stride: float) -> torch
     return torch.as_tensor(pairs if len(pairs) else np.zeros((1, 2), np.int64))
 
 
-def optimise(model: Articulation, cfg: FitConfig, steps: int, pairs: torch.Tensor, *, windows: int = 4,
+def optimise(model: Articulation, config: FitConfig, steps: int, pairs: torch.Tensor, *, windows: int = 4,
              verified_only: bool = True) -> float:
     """Adam over a growing window of frames, then all frames; returns the final data loss (tracks as in
     :func:`data_terms`)."""
     n_frames = model.values.shape[0] + 1
-    opt = torch.optim.Adam([{"params": [model.resid, model.axes, model.pivot_delta], "lr": cfg.lr},
-                            {"params": [model.plane], "lr": cfg.lr / model.scene.z_ref},
-                            {"params": [model.values], "lr": cfg.lr * 2}])
+    opt = torch.optim.Adam([{"params": [model.resid, model.axes, model.pivot_delta], "lr": config.lr},
+                            {"params": [model.plane], "lr": config.lr / model.scene.z_ref},
+                            {"params": [model.values], "lr": config.lr * 2}])
     ends = [max(2, int(np.ceil(n_frames * (k + 1) / windows))) for k in range(windows)] + [n_frames]
     per = max(1, steps // len(ends))
     last_end = 1
@@ -382,19 +382,19 @@ def optimise(model: Articulation, cfg: FitConfig, steps: int, pairs: torch.Tenso
         for _ in range(per):
             opt.zero_grad(set_to_none=True)
             track, inside, cover = data_terms(model, end, verified_only=verified_only)
-            data = track + cfg.inside_weight * inside + cfg.cover_weight * cover
-            loss = data + cfg.smooth_weight * prior_terms(model, pairs)
+            data = track + config.inside_weight * inside + config.cover_weight * cover
+            loss = data + config.smooth_weight * prior_terms(model, pairs)
             loss.backward()
             opt.step()
     return float(data.detach())
 
 
-def kind_loss(model: Articulation, cfg: FitConfig) -> float:
+def kind_loss(model: Articulation, config: FitConfig) -> float:
     """The data loss over all frames by which joint kinds are compared: without the flow term, which shapes
     the fit but lets a far-pivot hinge out-fit a slide on a plain sliding plate (docs/recon_suite.md)."""
     with torch.no_grad():
         track, inside, cover = data_terms(model, model.values.shape[0] + 1, with_flow=False, swept=("slide", "hinge"))
-        return float(track + cfg.inside_weight * inside + cfg.cover_weight * cover)
+        return float(track + config.inside_weight * inside + config.cover_weight * cover)
 
 
 def _start(scene: Scene, tracks: Tracks, labels: np.ndarray, root: int) -> tuple[np.ndarray, np.ndarray]:
@@ -453,7 +453,7 @@ def relabel(model: Articulation, tracks: Tracks, *, margin: float = 0.25) -> np.
     return out if all((out == b).sum() >= 3 for b in range(n_parts)) else labels
 
 
-def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> JointFit:
+def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) -> JointFit:
     """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms (the camera is
     the scene's)."""
     labels, root = init.labels.copy(), init.root
@@ -463,45 +463,45 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, cfg: FitConfig) -> 
     log_d = np.full(len(labels), np.log(scene.z_ref))
     kinds = ["root" if b == root else "hinge" for b in range(n_parts)]
     best, best_loss, history = None, np.inf, []
-    for s in range(max(1, min(cfg.axis_starts, len(AXIS_STARTS) + 1))):
+    for s in range(max(1, min(config.axis_starts, len(AXIS_STARTS) + 1))):
         axes = axis_start(s, border)
         model = Articulation(scene, labels, root, kinds, axes, pivots, np.zeros((n_frames, n_parts)), log_d)
         # the starts follow every consistent track: a sticking track under-reports its part's motion but
         # still points the way, and a start needs any cue to reach the right basin (the lever's starts all
         # ended at about 4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
-        loss = optimise(model, cfg, cfg.steps // 3, pairs, verified_only=False)
+        loss = optimise(model, config, config.steps // 3, pairs, verified_only=False)
         history.append(loss)
         log.info("recon=video: hinge start %d (axes %s): data loss %.4f", s, np.round(axes, 2).tolist(), loss)
         if loss < best_loss:
             best, best_loss = model, loss
     assert best is not None, "at least one hinge start runs"
-    best = choose_kinds(best, tracks, cfg, history)
+    best = choose_kinds(best, tracks, config, history)
     pairs = neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride)
-    best_loss = optimise(best, cfg, cfg.steps // 2, pairs, windows=1)
-    for _ in range(cfg.relabel_rounds):
-        best_loss = relabel_and_refine(best, tracks, cfg, cfg.steps // 2)
+    best_loss = optimise(best, config, config.steps // 2, pairs, windows=1)
+    for _ in range(config.relabel_rounds):
+        best_loss = relabel_and_refine(best, tracks, config, config.steps // 2)
     return joint_fit_of(best, best_loss, history)
 
 
-def relabel_and_refine(model: Articulation, tracks: Tracks, cfg: FitConfig, steps: int) -> float:
+def relabel_and_refine(model: Articulation, tracks: Tracks, config: FitConfig, steps: int) -> float:
     """Relabel the points under the model's motions, then refine it; returns the data loss."""
     new = relabel(model, tracks)
     log.info("recon=video: relabelled %d of %d points", int((new != model.labels.numpy()).sum()), len(new))
     model.labels = torch.as_tensor(new)
-    return optimise(model, cfg, steps, neighbour_pairs(tracks.uv0, new, tracks.stride), windows=1)
+    return optimise(model, config, steps, neighbour_pairs(tracks.uv0, new, tracks.stride), windows=1)
 
 
-def choose_kinds(hinge: Articulation, tracks: Tracks, cfg: FitConfig, history: list[float]) -> Articulation:
+def choose_kinds(hinge: Articulation, tracks: Tracks, config: FitConfig, history: list[float]) -> Articulation:
     """Each moving part as a hinge or a slide. Both readings are relabelled and refined the same way before
     their data terms are compared (labels a hinge absorbed should not decide against the slide); a hinge
     with a far pivot imitates a slide, so the slide, with fewer degrees of freedom, wins unless the hinge
     explains the images clearly better."""
-    relabel_and_refine(hinge, tracks, cfg, cfg.steps // 4)
-    best, best_kind = hinge, kind_loss(hinge, cfg)
+    relabel_and_refine(hinge, tracks, config, config.steps // 4)
+    best, best_kind = hinge, kind_loss(hinge, config)
     for b in [b for b in range(len(hinge.kinds)) if b != hinge.root]:
-        trial = slide_from(best, b, tracks, cfg)
-        history.append(relabel_and_refine(trial, tracks, cfg, cfg.steps // 4))
-        trial_kind = kind_loss(trial, cfg)
+        trial = slide_from(best, b, tracks, config)
+        history.append(relabel_and_refine(trial, tracks, config, config.steps // 4))
+        trial_kind = kind_loss(trial, config)
         log.info("recon=video: part %d as a slide: kind loss %.4f (as a %s %.4f)", b, trial_kind, best.kinds[b], best_kind)
         if trial_kind < best_kind * (1.0 + SLIDE_PREFERENCE):
             best, best_kind = trial, trial_kind
@@ -520,7 +520,7 @@ def copy_with(model: Articulation, kinds: list[str], axes: np.ndarray, values: n
     return out
 
 
-def slide_from(model: Articulation, b: int, tracks: Tracks, cfg: FitConfig) -> Articulation:
+def slide_from(model: Articulation, b: int, tracks: Tracks, config: FitConfig) -> Articulation:
     """Part ``b`` of ``model`` on a slide, searched over 3D directions: the direction of the part's 3D
     displacement under the current joint, its image-plane motion lifted into the image plane, that tilted
     towards and away from the camera by 45 degrees, and the view ray (a drawer pulled towards the camera);
@@ -541,10 +541,10 @@ def slide_from(model: Articulation, b: int, tracks: Tracks, cfg: FitConfig) -> A
         values = np.concatenate([np.zeros((1, len(kinds))), model.values.detach().numpy()], 0)
         values[:, b] = gauss_newton_travel(x0, direction, target, sc) / sc.width
         trial = copy_with(model, kinds, axes, values)
-        starts.append((kind_loss(trial, cfg), len(starts), trial))
+        starts.append((kind_loss(trial, config), len(starts), trial))
     starts.sort(key=lambda x: x[:2])
     pairs = neighbour_pairs(tracks.uv0, model.labels.numpy(), tracks.stride)
-    fitted = [(optimise(trial, cfg, cfg.steps // 8, pairs, windows=1), i, trial) for _, i, trial in starts[:2]]
+    fitted = [(optimise(trial, config, config.steps // 8, pairs, windows=1), i, trial) for _, i, trial in starts[:2]]
     return min(fitted, key=lambda x: x[:2])[2]
 
 

@@ -107,9 +107,9 @@ class VideoReconstructor:
             if not 0.0 < self.opacity < 1.0:
                 raise ConfigError(f"recon.opacity={self.opacity}: needs 0 < opacity < 1")
 
-    def __init__(self, cfg: Config, *, device: str = "cpu") -> None:
-        cfg.validate()
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str = "cpu") -> None:
+        config.validate()
+        self.config = config
         self.device = device  # the fit is sized for the CPU
 
     def reconstruct(self, source: ReferenceInput) -> Reference:
@@ -126,13 +126,13 @@ class VideoReconstructor:
         clip = source.video.validate()
         if clip.num_frames < 2:
             raise InputError(f"recon=video: '{clip.source}' has {clip.num_frames} frame; need at least 2")
-        cfg = self.cfg
+        config = self.config
         start, cpu_start = time.perf_counter(), time.process_time()
-        rng = np.random.default_rng(cfg.seed)
-        camera = source.camera if source.camera is not None else default_camera(clip, cfg.init.fov_deg)
-        masks = video_masks(clip, cfg.masks)
-        tracks = track_grid(clip.frames, masks, cfg.tracks)
-        init = init_parts(tracks, cfg.bones, cfg.init, static_px=cfg.fit.static_root_px)
+        rng = np.random.default_rng(config.seed)
+        camera = source.camera if source.camera is not None else default_camera(clip, config.init.fov_deg)
+        masks = video_masks(clip, config.masks)
+        tracks = track_grid(clip.frames, masks, config.tracks)
+        init = init_parts(tracks, config.bones, config.init, static_px=config.fit.static_root_px)
         log.info("recon=video: %d points (stride %d px), root part %d %s (median motion %s px)", len(tracks.uv0),
                  tracks.stride, init.root, "static" if init.root_static else "moving", np.round(init.motion_px, 2))
         z_ref = reference_depth(camera)
@@ -143,7 +143,7 @@ class VideoReconstructor:
         # CPU (measured 6.7 s vs 90 s for the same short fit on this machine under load)
         torch.set_num_threads(1)
         try:
-            joints = fit_joints(scene, tracks, init, cfg.fit)
+            joints = fit_joints(scene, tracks, init, config.fit)
         finally:
             torch.set_num_threads(threads)
         log.info("recon=video: joints %s, data loss %.4f", joints.kinds, joints.data_loss)
@@ -159,7 +159,7 @@ class VideoReconstructor:
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu_start
         log.info("recon=video: %d frames reconstructed in %.1f s (%.1f s CPU)", clip.num_frames, seconds, cpu)
         return VideoFit(reference=ref, camera=camera, masks=masks, tracks=tracks, init=init, joints=joints,
-                        means=means, sigma=sigma, opacity=np.full(len(means), cfg.opacity),
+                        means=means, sigma=sigma, opacity=np.full(len(means), config.opacity),
                         object_width=scene.width, seconds=seconds, cpu_seconds=cpu)
 
     @staticmethod

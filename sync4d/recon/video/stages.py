@@ -100,9 +100,9 @@ class PartInit:
     motion_px: np.ndarray
 
 
-def video_masks(clip: VideoClip, cfg: MaskConfig) -> np.ndarray:
+def video_masks(clip: VideoClip, config: MaskConfig) -> np.ndarray:
     """(T, H, W) bool masks: the input's or a median background model's (logged)."""
-    mode = cfg.source
+    mode = config.source
     if mode == "auto":
         mode = "input" if clip.masks.any() else "background"
     if mode == "input":
@@ -110,28 +110,28 @@ def video_masks(clip: VideoClip, cfg: MaskConfig) -> np.ndarray:
             raise InputError(f"recon.masks.source=input but the video '{clip.source}' has empty masks; supply masks")
         return clip.masks
     log.info("recon=video: masks from a median background model (static camera; threshold %.0f)",
-             cfg.background_threshold)
-    masks = background_masks(clip.frames, threshold=cfg.background_threshold)
+             config.background_threshold)
+    masks = background_masks(clip.frames, threshold=config.background_threshold)
     if not masks[0].any():
         raise InputError(f"recon=video: the background model finds no foreground in the first frame of "
                          f"'{clip.source}'; supply masks")
     return masks
 
 
-def track_grid(frames: np.ndarray, masks: np.ndarray, cfg: TrackConfig) -> Tracks:
-    """Track a regular grid of frame-0 mask pixels (about ``cfg.points``) through the dense flow."""
+def track_grid(frames: np.ndarray, masks: np.ndarray, config: TrackConfig) -> Tracks:
+    """Track a regular grid of frame-0 mask pixels (about ``config.points``) through the dense flow."""
     area = int(masks[0].sum())
     if area < 4:
         raise InputError(f"recon=video: the first mask has {area} pixels; the object must be visible in frame 0")
-    stride = max(1, int(np.round(np.sqrt(area / cfg.points))))
+    stride = max(1, int(np.round(np.sqrt(area / config.points))))
     vv, uu = np.nonzero(masks[0])
     keep = (vv % stride == 0) & (uu % stride == 0)
     uv0 = np.stack([uu[keep], vv[keep]], 1).astype(np.float64) + 0.5
-    fwd, bwd = optical_flow(frames, cfg.flow)
-    valid = flow_consistency(fwd, bwd, tol_px=cfg.check_px)
+    fwd, bwd = optical_flow(frames, config.flow)
+    valid = flow_consistency(fwd, bwd, tol_px=config.check_px)
     uv, ok = trusted_tracks(uv0, fwd, valid, masks)
     ncc, contrast = patch_agreement(frames, uv0, uv)
-    verified = ok & np.logical_and.accumulate((ncc >= cfg.patch_ncc) & (contrast >= MIN_PATCH_CONTRAST)[None], axis=0)
+    verified = ok & np.logical_and.accumulate((ncc >= config.patch_ncc) & (contrast >= MIN_PATCH_CONTRAST)[None], axis=0)
     verified[0] = True  # frame 0 is where the tracks start
     return Tracks(uv0=uv0, uv=uv, trusted=ok, verified=verified, stride=stride, flow=fwd, flow_ok=valid & masks[:-1])
 
@@ -172,7 +172,7 @@ def affine_labels(tracks: Tracks, labels: np.ndarray, *, iterations: int = 8) ->
     return labels
 
 
-def init_parts(tracks: Tracks, n_parts: int, cfg: InitConfig, *, static_px: float) -> PartInit:
+def init_parts(tracks: Tracks, n_parts: int, config: InitConfig, *, static_px: float) -> PartInit:
     """Part labels by k-means over image position and track displacement, refined by affine motion.
 
     The clustering uses the trusted tracks, not only the verified ones: on plain parts almost no track is
@@ -190,7 +190,7 @@ def init_parts(tracks: Tracks, n_parts: int, cfg: InitConfig, *, static_px: floa
     m_spread = float(np.sqrt(((motion - motion.mean(0)) ** 2).sum(1).mean()))
     p_spread = float(np.sqrt((pos**2).sum(1).mean())) + 1e-9
     if m_spread > 1e-9:  # scale-free: trajectories get motion_weight x the spread of the positions
-        motion = motion * (cfg.motion_weight * p_spread / m_spread)
+        motion = motion * (config.motion_weight * p_spread / m_spread)
     feats = np.concatenate([pos, motion], 1)
     labels = sk.kmeans(np.zeros((len(pos), 3)), n_parts, features=feats) if n_parts > 1 else np.zeros(len(pos), int)
     if n_parts > 1:

@@ -136,9 +136,9 @@ class MPMWarp:
     differentiable = True
     dtype = torch.float32  # Warp's kernels are single precision
 
-    def __init__(self, cfg: Config, *, device: str) -> None:
-        cfg.validate()
-        self.cfg = cfg
+    def __init__(self, config: Config, *, device: str) -> None:
+        config.validate()
+        self.config = config
         self.device = device
         self.wp_device = warp_device(device)
         self.torch_device = torch_device(device)
@@ -169,16 +169,16 @@ class MPMWarp:
         Returns:
             The immutable model.
         """
-        cfg = self.cfg
+        config = self.config
         pts = check_points(points)
-        grid = physics.fit_grid(pts, n_grid=cfg.n_grid, padding=cfg.grid_padding, wall=cfg.wall_cells)
+        grid = physics.fit_grid(pts, n_grid=config.n_grid, padding=config.grid_padding, wall=config.wall_cells)
         vols = particle_volumes(pts, grid.dx, volume, weights)
-        mu, lam = physics.lame_parameters(cfg.E, cfg.nu)
-        box = None if cfg.fixed_box is None else np.asarray(cfg.fixed_box, dtype=np.float64).reshape(2, 3)
+        mu, lam = physics.lame_parameters(config.E, config.nu)
+        box = None if config.fixed_box is None else np.asarray(config.fixed_box, dtype=np.float64).reshape(2, 3)
         return MPMModel(
-            grid=grid, rest_points=pts, mass=cfg.density * vols, volume=vols, E=cfg.E, nu=cfg.nu,
-            density=cfg.density, mu=mu, lam=lam, gravity=np.asarray(cfg.gravity, dtype=np.float64),
-            sticky=cfg.boundary == "sticky", fixed_box=box, device=self.wp_device,
+            grid=grid, rest_points=pts, mass=config.density * vols, volume=vols, E=config.E, nu=config.nu,
+            density=config.density, mu=mu, lam=lam, gravity=np.asarray(config.gravity, dtype=np.float64),
+            sticky=config.boundary == "sticky", fixed_box=box, device=self.wp_device,
         )  # fmt: skip
 
     def domain(self, model: MPMModel) -> tuple[np.ndarray, np.ndarray]:
@@ -201,23 +201,23 @@ class MPMWarp:
 
     def max_stable_dt(self, model: MPMModel, v_max: float = 0.0) -> float:
         """CFL bound cfl_safety dx / (c + v_max) [s] for this model."""
-        return budget.max_stable_dt(self.cfg, model, v_max)
+        return budget.max_stable_dt(self.config, model, v_max)
 
     def frame_time_for(self, fps: float | None) -> float:
         """Simulated time of one frame [s]: ``sim.frame_time``, or 1 / ``fps`` when it is null."""
-        return budget.frame_time_for(self.cfg, fps)
+        return budget.frame_time_for(self.config, fps)
 
     def substeps_for(self, model: MPMModel, v_max: float = 0.0, *, fps: float | None = None) -> tuple[int, float]:
         """Substeps N and dt [s] for one frame that respect the CFL bound (:func:`budget.substeps_for`)."""
-        return budget.substeps_for(self.cfg, model, v_max, fps)
+        return budget.substeps_for(self.config, model, v_max, fps)
 
     def checkpoint_interval(self, n_particles: int, substeps: int) -> int:
         """k: the backward pass stores every k-th substep state (:func:`budget.checkpoint_interval`)."""
-        return budget.checkpoint_interval(self.cfg, n_particles, substeps)
+        return budget.checkpoint_interval(self.config, n_particles, substeps)
 
     def threads_for(self, n_particles: int) -> int:
         """Threads a rollout of ``n_particles`` runs on (:func:`budget.threads_for`)."""
-        return budget.threads_for(self.cfg, self.wp_device, n_particles)
+        return budget.threads_for(self.config, self.wp_device, n_particles)
 
     # -- rollout -----------------------------------------------------------------------------------
 
@@ -260,7 +260,7 @@ class MPMWarp:
         v_max = check_rollout_input(model, x, v, F, C, substeps=substeps, dt=dt, frame_index=frame_index)
         substeps = int(substeps)
         if check_cfl:
-            substeps, dt = budget.split_for_cfl(self.cfg, model, substeps, dt, v_max, frame_index)
+            substeps, dt = budget.split_for_cfl(self.config, model, substeps, dt, v_max, frame_index)
         xn = x.detach().double().cpu().numpy()
         model = self.grid_for(model, xn, reach_of(model, v_max, substeps * dt), frame_index)
         order = self.particle_order(model, xn)
@@ -295,20 +295,20 @@ class MPMWarp:
         lo, hi = x.min(0) - reach, x.max(0) + reach
         if model.grid.contains(lo[None]) and model.grid.contains(hi[None]):
             return model
-        if not self.cfg.refit_grid:
+        if not self.config.refit_grid:
             log.warning("sim: frame %d: particles may reach the grid walls (sim.refit_grid=false)", frame_index)
             return model
         longest = max(float((x.max(0) - x.min(0)).max()), model.grid.dx)
         # capped: a particle that would fly further than the object's size is a blow-up to report
-        padding = min(max(self.cfg.grid_padding, reach / longest), max(self.cfg.grid_padding, 1.0))
-        grid = physics.fit_grid(x, n_grid=self.cfg.n_grid, padding=padding, wall=self.cfg.wall_cells,
+        padding = min(max(self.config.grid_padding, reach / longest), max(self.config.grid_padding, 1.0))
+        grid = physics.fit_grid(x, n_grid=self.config.n_grid, padding=padding, wall=self.config.wall_cells,
                                 dx=model.grid.dx, anchor=model.grid.origin)
         log.debug("sim: frame %d: grid re-fitted to %s nodes", frame_index, grid.dims)
         return model.with_grid(grid)
 
     def particle_order(self, model: MPMModel, x: np.ndarray) -> np.ndarray | None:
         """The particles sorted by grid cell (cache locality), or None when ``sort_particles`` is off."""
-        if not self.cfg.sort_particles or model.num_particles < 2:
+        if not self.config.sort_particles or model.num_particles < 2:
             return None
         g = model.grid
         cell = np.clip(np.floor((x - g.origin) / g.dx).astype(np.int64), 0, np.asarray(g.dims) - 1)
