@@ -87,7 +87,7 @@ def test_volume_points_fill_the_solid_and_the_skeleton_separates_the_limbs() -> 
 def test_solid_depth_and_the_trunk_core() -> None:
     """Depth: one voxel at the skin, half the thickness at the middle; the core sits in the trunk and the
     levels measured from it give every leg its own terminal branch holding most of the leg (levels from
-    the centre point also separate this long-legged box; on Spot they do not: docs/matching.md)."""
+    the centre point also separate this long-legged box; on Spot they do not: docs/results/matching.md)."""
     from sync4d.match.skeleton import fill_solid, trunk_core
 
     box = np.random.default_rng(0).random((20000, 3)) * [1.0, 0.4, 0.4]

@@ -11,7 +11,7 @@ Steps, each a small pure function:
    with ``prototypes`` other than 1 a part is represented by several prototype features (k-means
    within the part) or by all its vertices (nearest-neighbour feature matching), and its similarity
    is that of its most similar prototype (:func:`part_prototype_features`; not in the paper, whose
-   single mean loses to a compact neighbouring part at seams: measured in docs/results.md);
+   single mean loses to a compact neighbouring part at seams: measured in docs/results/matching.md);
 5. outliers are dropped: vertices farther from their part's centre than ``outlier_sigma`` robust
    spreads (:func:`remove_outliers`);
 6. a box per part around its kept vertices (:func:`part_boxes`), and every Gaussian is given the part

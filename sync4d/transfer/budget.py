@@ -64,7 +64,7 @@ BASE_MB = 450.0
 #: a rollout, the velocity field) [MB], and the bytes per Gaussian of the frame being carried and written
 #: (float64 positions, F Sigma F^T and its eigendecomposition, rotated SH, the .ply table: one frame in
 #: flight, ``outputs.FrameWriter``). Fitted to ``train.py``'s peak while simulating in
-#: ``benchmarks/scale.py`` at 50 k and 500 k Gaussians (828 MB and 1,436 MB; docs/scale.md).
+#: ``benchmarks/scale.py`` at 50 k and 500 k Gaussians (828 MB and 1,436 MB; docs/results/scale.md).
 SIM_WORKING_MB = 260.0
 CARRY_BYTES = 1400
 #: Headroom the transfer gives the reference speed for the optimised delta velocities (sync4d.transfer).

@@ -391,7 +391,7 @@ def optimise(model: Articulation, config: FitConfig, steps: int, pairs: torch.Te
 
 def kind_loss(model: Articulation, config: FitConfig) -> float:
     """The data loss over all frames by which joint kinds are compared: without the flow term, which shapes
-    the fit but lets a far-pivot hinge out-fit a slide on a plain sliding plate (docs/recon_suite.md)."""
+    the fit but lets a far-pivot hinge out-fit a slide on a plain sliding plate (docs/results/articulated.md)."""
     with torch.no_grad():
         track, inside, cover = data_terms(model, model.values.shape[0] + 1, with_flow=False, swept=("slide", "hinge"))
         return float(track + config.inside_weight * inside + config.cover_weight * cover)

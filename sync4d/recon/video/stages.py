@@ -177,7 +177,7 @@ def init_parts(tracks: Tracks, n_parts: int, config: InitConfig, *, static_px: f
 
     The clustering uses the trusted tracks, not only the verified ones: on plain parts almost no track is
     verified, and a sticking track's direction still separates the parts (clustering on verified tracks
-    alone: the closed laptops' label scores fell to 0.52 / 0.60, one lid bone lost; docs/recon_suite.md)."""
+    alone: the closed laptops' label scores fell to 0.52 / 0.60, one lid bone lost; docs/results/articulated.md)."""
     ok = tracks.trusted
     disp = np.where(ok[..., None], tracks.uv - tracks.uv[:1], 0.0)
     pos = tracks.uv0 - tracks.uv0.mean(0)
