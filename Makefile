@@ -43,7 +43,7 @@ $(STAMP): requirements.txt constraints.txt $(POSE_MODELS)
 train: $(STAMP)
 	$(PY) train.py $(ARGS)
 
-# The fast lane (4-6 minutes idle here, depending on the machine): lint, then every test not marked slow.
+# The fast lane (about 4 minutes idle here): lint, type check, then every test not marked slow.
 test: $(STAMP)
 	$(PY) -m ruff check sync4d sync4d_tools tests benchmarks plugins train.py
 	$(PY) -m mypy

@@ -3,16 +3,19 @@
 Warp runs CPU kernels serially (one thread, launch order), so the atomic adds of P2G scatter in a fixed
 order and the float32 sums are reproducible; torch's CPU ops used here are deterministic too. On CUDA,
 P2G atomics accumulate in a scheduling-dependent order, so results may differ in the last bits between
-runs and devices (documented in the README's "When things go wrong").
+runs and devices (documented in docs/guide/errors.md).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from _runs import assert_same_run, run_train, train_in_process
 
 
+@pytest.mark.slow  # two train.py processes
 def test_same_seed_same_run(tmp_path: Path) -> None:
     """Two smoke runs with seed 0: byte-identical frames and equal metrics.json values (timings aside)."""
     first, second = tmp_path / "first", tmp_path / "second"

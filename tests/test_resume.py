@@ -10,6 +10,7 @@ import signal
 import time
 from pathlib import Path
 
+import pytest
 import torch
 
 from sync4d.io.ply import read_gaussians_ply
@@ -37,6 +38,7 @@ def kill_after_frame(run_dir: Path, log: Path, timeout_s: float = 600.0) -> None
         proc.wait(timeout=60)
 
 
+@pytest.mark.slow  # three train.py processes, one killed mid-run
 def test_killed_run_resumes_to_the_same_result(tmp_path: Path) -> None:
     """Uninterrupted vs killed-after-frame-3-then-resumed: same frames (bytes) and metrics (timings aside)."""
     full, killed, resumed = tmp_path / "full", tmp_path / "killed", tmp_path / "resumed"
@@ -59,6 +61,7 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: Path) -> None:
     assert not (killed / "metrics.json").exists(), "the resumed run wrote into the interrupted run's folder"
 
 
+@pytest.mark.slow  # three train.py processes, one killed mid-run
 def test_resume_names_a_missing_frame_state(tmp_path: Path) -> None:
     """A checkpoint whose frame states were deleted: one clear line naming the missing file, exit 2."""
     full = tmp_path / "full"
@@ -70,6 +73,7 @@ def test_resume_names_a_missing_frame_state(tmp_path: Path) -> None:
     assert "000001.npz is missing or unreadable" in proc.stderr
 
 
+@pytest.mark.slow  # three train.py processes, one killed mid-run
 def test_resume_refuses_other_settings(tmp_path: Path) -> None:
     """Resuming with different settings names the first differing key; exit code 2."""
     killed = tmp_path / "killed"
