@@ -23,7 +23,10 @@ def _load(name: str) -> dict:
 
 
 def _minutes(seconds: float) -> str:
-    return f"{int(seconds // 60)} min {int(round(seconds % 60))} s" if seconds >= 60 else f"{seconds:.0f} s"
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    total = int(round(seconds))
+    return f"{total // 60} min {total % 60} s"
 
 
 def render_runs() -> str:
