@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -211,3 +212,11 @@ def long_functions(path: Path, limit: int) -> list[str]:
 def test_every_function_is_under_80_lines():
     found = [hit for path in LIBRARY.rglob("*.py") for hit in long_functions(path, 80)]
     assert not found, found
+
+
+def test_only_the_plan_reads_the_raw_config():
+    """``cfg`` names the raw Hydra config; attribute reads of it happen only where the run plan is built."""
+    reads = [f"{path.relative_to(LIBRARY.parent)}:{n}" for path in sorted(LIBRARY.rglob("*.py"))
+             for n, line in enumerate(path.read_text().splitlines(), 1)
+             if re.search(r"\bcfg\.", line) and path.relative_to(LIBRARY).as_posix() != "run/plan.py"]
+    assert not reads, reads
