@@ -269,20 +269,33 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def merged(paths: list[str], candidate: str) -> dict[str, Any]:
-    """Several saved results as one: rows joined per pair, truth and method (a later file's row wins), the
-    criteria computed again on the joined rows; the first file's settings."""
+def merge_rows(into: dict[str, Any], rows: dict[str, Any], depth: int) -> None:
+    """Join nested result rows: ``depth`` levels of keys (pair, truth, ...) above the method rows, a later row wins."""
+    if depth == 0:
+        into.update(rows)
+        return
+    for key, inner in rows.items():
+        merge_rows(into.setdefault(key, {}), inner, depth - 1)
+
+
+def joined(paths: list[str], rows_key: str, depth: int) -> dict[str, Any]:
+    """Several saved results as one: the rows under ``rows_key`` joined (:func:`merge_rows`), the methods merged,
+    the CPU seconds summed; the first file's settings."""
     out: dict[str, Any] = {}
     for path in paths:
         part = json.loads(Path(path).read_text())
         if not out:
             out = part
             continue
-        for pair, per_truth in part["pairs"].items():
-            for truth, rows in per_truth.items():
-                out["pairs"].setdefault(pair, {}).setdefault(truth, {}).update(rows)
+        merge_rows(out[rows_key], part[rows_key], depth)
         out["methods"].update(part["methods"])
         out["cpu_seconds"] = round(out["cpu_seconds"] + part["cpu_seconds"], 1)
+    return out
+
+
+def merged(paths: list[str], candidate: str) -> dict[str, Any]:
+    """Several saved results as one, rows joined per pair, truth and method, the criteria computed again."""
+    out = joined(paths, "pairs", 2)
     out["candidate"] = candidate
     out["criteria"] = {p: {t: criteria(rows, t, candidate) for t, rows in r.items()}
                        for p, r in out["pairs"].items() if all({candidate, "lbs_hard"} <= set(rows) for rows in r.values())}

@@ -35,7 +35,7 @@ import numpy as np
 
 from sync4d.errors import ConfigError
 from sync4d.types import DrivingMotion, PartMap, Reference, TargetGaussians, Trajectory
-from sync4d_tools.evaluate.transfer_gt import (BOUNDS, KEYS, METHODS, THRESHOLDS, Method, fewer_torn,
+from sync4d_tools.evaluate.transfer_gt import (BOUNDS, KEYS, METHODS, THRESHOLDS, Method, fewer_torn, joined,
                                                frozen_trajectory, method_key, resolve_methods, run_method)
 from sync4d_tools.truth.pairs import DEEPMIMIC_CLIPS
 
@@ -207,18 +207,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 def merged(paths: list[str], candidate: str) -> dict[str, Any]:
-    """Several saved results as one: rows joined per scene and method (a later file's row wins), the criteria
-    computed again; the first file's settings."""
-    out: dict[str, Any] = {}
-    for path in paths:
-        part = json.loads(Path(path).read_text())
-        if not out:
-            out = part
-            continue
-        for scene, rows in part["scenes"].items():
-            out["scenes"].setdefault(scene, {}).update(rows)
-        out["methods"].update(part["methods"])
-        out["cpu_seconds"] = round(out["cpu_seconds"] + part["cpu_seconds"], 1)
+    """Several saved results as one, rows joined per scene and method, the criteria computed again."""
+    out = joined(paths, "scenes", 1)
     out["candidate"] = candidate
     out["criteria"] = {s: {"none": paper_criteria(r, candidate)} for s, r in out["scenes"].items()
                        if {candidate, "lbs_hard"} <= set(r)}
