@@ -26,6 +26,7 @@ import torch
 from sync4d.errors import InputError
 from sync4d.geometry import rotation_vector_to_matrix_torch
 from sync4d.recon.pose.templates import BodyTemplate, body_template
+from sync4d.rng import deterministic_torch
 from sync4d.surface import area_samples
 from sync4d.types import Camera
 
@@ -379,11 +380,12 @@ def run_steps(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config
     """``steps`` Adam steps on ``params`` (only the names in ``free``, default all); returns (loss, joints
     (T, J, 3), IoU (T,) on the grid)."""
     opt = torch.optim.Adam([v for k, v in params.items() if free is None or k in free], lr=config.lr)
-    for _ in range(steps):
-        opt.zero_grad()
-        loss, _, _ = clip_loss(prob, frames, params, config, history)
-        loss.backward()
-        opt.step()
+    with deterministic_torch():  # a run is reproducible whatever torch's thread count
+        for _ in range(steps):
+            opt.zero_grad()
+            loss, _, _ = clip_loss(prob, frames, params, config, history)
+            loss.backward()
+            opt.step()
     with torch.no_grad():
         loss, joints, occ = clip_loss(prob, frames, params, config, history)
     pred, tgt = occ > 0.5, prob.target[frames] > 0.5
