@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from sync4d.interfaces import Simulator, VelocityField
+from sync4d.rng import deterministic_torch
 from sync4d.sim.control import ControlPoints, with_control
 from sync4d.transfer.config import TransferConfig
 from sync4d.transfer.loss import PartLoss, anchor_targets, anchor_weights, initial_velocity
@@ -173,7 +174,8 @@ def advance(transfer: Transfer, state: ParticleState, t: int) -> tuple[ParticleS
             return sim.rollout(transfer.model, state.x, v_init, state.F, C0_t * velocity.velocity_scale,
                                substeps=substeps, dt=dt, frame_index=t + 1, pose=pose)
 
-    losses = optimise_field(transfer, rollout, loss_fn) if transfer.trains else []
+    with deterministic_torch():  # the field's grid_sample backward accumulates from several threads
+        losses = optimise_field(transfer, rollout, loss_fn) if transfer.trains else []
     x1, _, F1, C1 = (a.detach() for a in rollout(False))
     final = float(loss_fn(x1))
     stats = {
