@@ -35,9 +35,9 @@ def deterministic_torch() -> Iterator[None]:
     """Torch's deterministic kernels inside the block, the caller's setting restored after.
 
     On the CPU some backward kernels (e.g. ``grid_sample``'s) accumulate from several threads in whatever order
-    they finish, so a fit of 40 Adam steps ended 0.015-0.022 of the body length from its start in repeated
-    runs with two threads; with deterministic kernels it ends at the one-thread result every time, at half
-    the one-thread wall time. Ops without a deterministic kernel warn instead of failing.
+    they finish, so repeated fits on two threads differ (docs/results/people_animals.md); with deterministic
+    kernels a fit ends at its one-thread result every time, still using both threads. Ops without a
+    deterministic kernel warn instead of failing.
     """
     enabled, warn_only = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
     torch.use_deterministic_algorithms(True, warn_only=True)

@@ -60,7 +60,7 @@ def surface_area(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 def winding_number(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Generalised winding number of each point w.r.t. a triangle mesh (Jacobson et al. 2013), exact (libigl's
-    solid-angle sum; 200x the NumPy version's speed on the default shell, the same values to 1e-13).
+    solid-angle sum; docs/results/house.md has its speed against the former NumPy sum).
 
     About 1 inside a closed surface and 0 outside, and still meaningful for meshes with small holes.
 
