@@ -60,35 +60,40 @@ def test_rigid_fit_recovers_a_known_motion():
 
 def test_a_target_moved_as_driven_follows_exactly(scene):
     rest, parts, transforms, driven, diagonal = scene
-    rot, trans = M.follow_error(rest, driven, parts, transforms, diagonal)
-    assert np.nanmax(rot) < 1e-5 and np.nanmax(trans) < 1e-9
-    summary = M.follow_summary(rot, trans)
+    follow = M.follow_error(rest, driven, parts, transforms, diagonal)
+    assert np.nanmax(follow.rotation_deg) < 1e-5 and np.nanmax(follow.translation_pct) < 1e-9
+    summary = M.follow_summary(follow)
     assert summary["follow_rotation_deg"] < 1e-5 and summary["follow_translation_max_pct"] < 1e-9
 
 
 def test_a_frozen_target_fails(scene):
     rest, parts, transforms, driven, diagonal = scene
     frozen = np.repeat(rest[None], len(driven), axis=0)
-    rot, trans = M.follow_error(rest, frozen, parts, transforms, diagonal)
+    follow = M.follow_error(rest, frozen, parts, transforms, diagonal)
+    rot, trans = follow.rotation_deg, follow.translation_pct
     # the arm's error is the swing itself, 8 deg per frame; the torso's is the walk, 2 cm per frame
     np.testing.assert_allclose(rot[:, 1], 8.0 * np.arange(len(driven)), atol=1e-6)
     np.testing.assert_allclose(trans[:, 0], 0.02 * np.arange(len(driven)) / diagonal * 100.0, atol=1e-9)
-    summary = M.follow_summary(rot, trans)
+    summary = M.follow_summary(follow)
     assert summary["follow_rotation_max_deg"] == pytest.approx(40.0)
-    assert summary["follow_rotation_deg"] > 5.0
+    # the mean weighs each part by its core: the torso (which needs no turn) outweighs the arm
+    arm_share = follow.weight[1] / follow.weight.sum()
+    assert 0.1 < arm_share < 0.34
+    assert summary["follow_rotation_deg"] == pytest.approx(arm_share * 8.0 * 3.0, rel=1e-6)
 
 
 def test_a_torn_target_fails(scene):
     rest, parts, transforms, driven, diagonal = scene
     detached = driven.copy()
     detached[1:, parts == 1] += [0.0, 0.0, 0.1]  # the arm flies 10 cm off its shoulder
-    _, trans = M.follow_error(rest, detached, parts, transforms, diagonal)
+    trans = M.follow_error(rest, detached, parts, transforms, diagonal).translation_pct
     np.testing.assert_allclose(trans[1:, 1], 0.1 / diagonal * 100.0, rtol=1e-9)
     split = driven.copy()
     arm = np.flatnonzero(parts == 1)
     far = arm[rest[arm, 0] > 0.175]
     split[1:, far] = rest[far]  # the arm's outer half stays behind: the arm is torn in two
-    rot, trans = M.follow_error(rest, split, parts, transforms, diagonal)
+    follow = M.follow_error(rest, split, parts, transforms, diagonal)
+    rot, trans = follow.rotation_deg, follow.translation_pct
     assert rot[-1, 1] > 10.0 and trans[-1, 1] > 3.0
     assert np.nanmax(rot[:, 0]) < 1e-5  # the torso still follows
 
@@ -100,5 +105,21 @@ def test_undetermined_parts_are_skipped(scene):
     assert not M.fit_is_determined(line) and not M.fit_is_determined(rest[:3])
     parts_with_empty = parts.copy()
     transforms3 = np.concatenate([transforms, transforms[:, :1]], axis=1)  # a third part with no points
-    rot, _ = M.follow_error(rest, driven, parts_with_empty, transforms3, diagonal)
-    assert np.isnan(rot[:, 2]).all() and np.isfinite(rot[:, :2]).all()
+    follow = M.follow_error(rest, driven, parts_with_empty, transforms3, diagonal)
+    assert np.isnan(follow.rotation_deg[:, 2]).all() and np.isfinite(follow.rotation_deg[:, :2]).all()
+    assert follow.weight[2] == 0
+
+
+def test_the_seam_band_is_left_out(scene):
+    """A joint's blend (arm points next to the torso dragged half-way) does not count against the arm: the
+    arm's core still moves exactly as driven."""
+    rest, parts, transforms, driven, diagonal = scene
+    blended = driven.copy()
+    core = M.part_cores(rest, parts, 2, M.SEAM_BAND_OF_DIAGONAL * diagonal)[1]
+    seam = (parts == 1) & ~np.isin(np.arange(len(rest)), core)
+    assert seam.sum() > 5 and rest[seam, 0].max() < 0.1 + M.SEAM_BAND_OF_DIAGONAL * diagonal
+    blended[:, seam] = 0.5 * (driven[:, seam] + rest[seam])
+    follow = M.follow_error(rest, blended, parts, transforms, diagonal)
+    assert np.nanmax(follow.rotation_deg) < 1e-5
+    whole = M.follow_error(rest, blended, parts, transforms, diagonal, band=0.0)
+    assert np.nanmax(whole.rotation_deg[:, 1]) > 0.5  # without the band the blend counts

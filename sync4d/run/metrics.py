@@ -398,53 +398,111 @@ def fit_is_determined(points: np.ndarray, *, min_points: int = 4) -> bool:
     return bool(s[1] > 1e-3 * s[0])
 
 
+#: The seam band a part's follow fit leaves out: points within this share of the target's diagonal of another
+#: part's points (a joint's blend belongs to neither part's rigid motion).
+SEAM_BAND_OF_DIAGONAL = 0.03
+
+
+@dataclass(frozen=True)
+class FollowError:
+    """Each part's follow error per frame, and how much each part weighs in the means.
+
+    Attributes:
+        rotation_deg: (T, B) angle of R_fit R_drive^T [deg] (NaN where the fit is undetermined).
+        translation_pct: (T, B) distance between where the fit and the drive take the core's rest centroid [% of
+            the diagonal] (NaN likewise).
+        weight: (B,) the points of each part's core (its mass share; 0 where undetermined).
+    """
+
+    rotation_deg: np.ndarray
+    translation_pct: np.ndarray
+    weight: np.ndarray
+
+    def frame_means(self) -> tuple[np.ndarray, np.ndarray]:
+        """(T,) weighted means over parts of the rotation [deg] and translation [%] errors (NaN when no part)."""
+        return weighted_nanmean(self.rotation_deg, self.weight), weighted_nanmean(self.translation_pct, self.weight)
+
+
+def weighted_nanmean(values: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """(T,) mean of (T, B) ``values`` over B, weighted by (B,) ``weight``, NaN entries left out."""
+    w = np.where(np.isfinite(values), weight[None], 0.0)
+    total = w.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(total > 0, (np.nan_to_num(values) * w).sum(axis=1) / total, np.nan)
+
+
+def part_cores(rest: np.ndarray, parts: np.ndarray, num_parts: int, band: float) -> list[np.ndarray]:
+    """Per part, the indices of its points farther than ``band`` [m] from every point of another part (all of
+    the part's points when fewer than 4 or a tenth of them would remain)."""
+    from scipy.spatial import cKDTree
+
+    cores = []
+    for b in range(num_parts):
+        idx = np.flatnonzero(parts == b)
+        others = rest[(parts != b) & (parts >= 0)]
+        if len(idx) == 0 or len(others) == 0 or band <= 0:
+            cores.append(idx)
+            continue
+        distance, _ = cKDTree(others).query(rest[idx], distance_upper_bound=band)
+        core = idx[~np.isfinite(distance)]
+        cores.append(core if len(core) >= max(4, len(idx) // 10) else idx)
+    return cores
+
+
 def follow_error(
-    rest: np.ndarray, x: np.ndarray, parts: np.ndarray, part_transforms: np.ndarray, diagonal: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each part's best rigid motion (rest -> frame t) against the driving motion it was given.
+    rest: np.ndarray, x: np.ndarray, parts: np.ndarray, part_transforms: np.ndarray, diagonal: float,
+    *, band: float | None = None,
+) -> FollowError:
+    """Each part's best rigid motion (rest -> frame t) on its core against the driving motion it was given.
 
     The driving motion of part b at frame t is ``part_transforms[t, b] @ inv(part_transforms[0, b])``
-    (frame 0 is the rest pose, as every simulator uses it). The rotation error is the angle of
-    ``R_fit R_drive^T``; the translation error is the distance between where the fit and the drive take the
-    part's rest centroid (origin-free), in % of ``diagonal``. A frozen part scores the drive's own rotation
-    and displacement; a torn or detached part scores the gap.
+    (frame 0 is the rest pose, as every simulator uses it). The fit uses the part's core only: the points
+    farther than ``band`` (default ``SEAM_BAND_OF_DIAGONAL`` of ``diagonal``) from any other part, since a joint's
+    blend moves with neither part rigidly. The rotation error is the angle of ``R_fit R_drive^T``; the
+    translation error is the distance between where the fit and the drive take the core's rest centroid, in %
+    of ``diagonal``. A frozen part scores the drive's own rotation and displacement; a torn or detached part
+    scores the gap. Means weigh each part by its core's points (:meth:`FollowError.frame_means`), so a part of
+    three Gaussians does not count as much as the torso.
 
     Args:
         rest: (N, 3) rest positions [m]; x: (T, N, 3) positions (before the global transform) [m].
         parts: (N,) part of each point; part_transforms: (T, B, 4, 4) DrivingMotion.part_transforms.
         diagonal: the target's bounding-box diagonal [m].
+        band: the seam band [m].
 
     Returns:
-        ((T, B) rotation error [deg], (T, B) translation error [% of diagonal]); NaN for parts whose fit is
-        undetermined (fewer than 4 points or all on a line).
+        The errors; NaN for parts whose fit is undetermined (fewer than 4 points or all on a line).
     """
     rest = np.asarray(rest, dtype=np.float64)
     T, B = len(x), part_transforms.shape[1]
-    rot_err, trans_err = np.full((T, B), np.nan), np.full((T, B), np.nan)
+    rot_err, trans_err, weight = np.full((T, B), np.nan), np.full((T, B), np.nan), np.zeros(B)
     drive = part_transforms[:T] @ np.linalg.inv(part_transforms[0])[None]
-    for b in range(B):
-        idx = np.flatnonzero(parts == b)
+    width = SEAM_BAND_OF_DIAGONAL * diagonal if band is None else band
+    for b, idx in enumerate(part_cores(rest, parts, B, width)):
         if not fit_is_determined(rest[idx]):
             continue
+        weight[b] = len(idx)
         centroid = rest[idx].mean(axis=0)
         for t in range(T):
             rot = rigid_fit(rest[idx], x[t][idx])[:3, :3]
             r_drive, t_drive = drive[t, b, :3, :3], drive[t, b, :3, 3]
             rot_err[t, b] = float(rotation_angle_deg(rot @ r_drive.T))
             trans_err[t, b] = np.linalg.norm(x[t][idx].mean(axis=0) - (r_drive @ centroid + t_drive))
-    return rot_err, trans_err / diagonal * 100.0
+    return FollowError(rot_err, trans_err / diagonal * 100.0, weight)
 
 
-def follow_summary(rotation_deg: np.ndarray, translation_pct: np.ndarray) -> dict[str, float | None]:
-    """``follow_rotation_deg`` / ``follow_translation_pct`` (mean over frames 1..T and measured parts) and
-    their worst (``..._max_...``); None when no part could be measured."""
-    rot, trans = rotation_deg[1:], translation_pct[1:]
+def follow_summary(follow: FollowError) -> dict[str, float | None]:
+    """``follow_rotation_deg`` / ``follow_translation_pct`` (frames 1..T, each frame's parts weighted by their
+    cores' points) and the worst part-frame (``..._max_...``); None when no part could be measured."""
+    rot, trans = follow.rotation_deg[1:], follow.translation_pct[1:]
     if rot.size == 0 or not np.isfinite(rot).any():
         return {"follow_rotation_deg": None, "follow_rotation_max_deg": None,
                 "follow_translation_pct": None, "follow_translation_max_pct": None}
+    mean_rot, mean_trans = (m[1:] for m in follow.frame_means())
     return {
-        "follow_rotation_deg": float(np.nanmean(rot)),
+        "follow_rotation_deg": float(np.nanmean(mean_rot)),
         "follow_rotation_max_deg": float(np.nanmax(rot)),
-        "follow_translation_pct": float(np.nanmean(trans)),
+        "follow_translation_pct": float(np.nanmean(mean_trans)),
         "follow_translation_max_pct": float(np.nanmax(trans)),
     }
+

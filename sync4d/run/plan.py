@@ -41,7 +41,8 @@ class RunPlan:
         name: the run's name (its folder under ``outputs/``); seed: seeds python, numpy, torch and every
             stage's generators; device: ``cpu`` or ``cuda[:N]``.
         frames: output frames T; loop_reference: loop the reference when T exceeds it.
-        pivot: ``part_centroid`` (each target part turns about its own centroid) or ``bone``.
+        pivot: ``joint`` (each target part turns about its joint with its parent part, carried by it, the root
+            about its own centroid), ``part_centroid`` (each target part turns about its own centroid) or ``bone``.
         budget: ``off`` or ``auto`` (size the simulation from the scene).
         resume: the folder of an interrupted run to continue, or None.
         cache: reuse cached reconstructions and matches; cache_root: where they live.
@@ -60,7 +61,7 @@ class RunPlan:
     device: str
     frames: int
     loop_reference: bool
-    pivot: Literal["part_centroid", "bone"]
+    pivot: Literal["joint", "part_centroid", "bone"]
     budget: Literal["off", "auto"]
     resume: str | None
     cache: bool
@@ -83,7 +84,7 @@ class RunPlan:
 
 
 #: Top-level run options whose value must be one of a fixed set.
-RUN_CHOICES = {"pivot": ("part_centroid", "bone"), "budget": ("off", "auto")}
+RUN_CHOICES = {"pivot": ("joint", "part_centroid", "bone"), "budget": ("off", "auto")}
 
 
 def build_plan(cfg: DictConfig, *, explicit: set[str] | None = None) -> RunPlan:

@@ -386,7 +386,8 @@ def compute_metrics(
     integrity = M.integrity_model(x[0], parts, B, gap=fragment_gap(x[0], dx), truth=truth)
     true_volumes = [None] * T if truth is None else [M.part_volumes(truth[t], parts, B) for t in range(T)]
     frames = [M.integrity_frame(integrity, x[t], true_volume=true_volumes[t]) for t in range(T)]
-    follow_rot, follow_trans = M.follow_error(x[0], x, parts, motion.part_transforms, diagonal)
+    follow = M.follow_error(x[0], x, parts, motion.part_transforms, diagonal)
+    follow_rot, follow_trans = follow.frame_means()
 
     per_frame = []
     for t in range(T):
@@ -402,8 +403,8 @@ def compute_metrics(
             "strain_p99_pct": frames[t].strain_p99_pct,
             "volume_change_pct": frames[t].body_volume_change_pct,
             "fragments": float(frames[t].fragments),
-            "follow_rotation_deg": None if t == 0 else nan_mean(follow_rot[t]),
-            "follow_translation_pct": None if t == 0 else nan_mean(follow_trans[t]),
+            "follow_rotation_deg": None if t == 0 else finite_or_none(follow_rot[t]),
+            "follow_translation_pct": None if t == 0 else finite_or_none(follow_trans[t]),
             "seconds": frame_seconds[t] if t < len(frame_seconds) else None,
         })
 
@@ -417,7 +418,7 @@ def compute_metrics(
         "det_f_deviation": mean_after_rest(per_frame, "det_f_deviation"),
         **M.integrity_summary(frames),
         "tear_curve": M.tear_curve(x[0], x, integrity.gap, truth=truth),
-        **M.follow_summary(follow_rot, follow_trans),
+        **M.follow_summary(follow),
         "jitter_ratio": jitter_of(x, truth, reference, motion),
         "seconds_per_frame": float(np.mean(frame_seconds[1:])) if len(frame_seconds) > 1 else float(np.mean(frame_seconds or [0.0])),
         "peak_memory_mb": M.peak_memory_mb(),
@@ -441,7 +442,6 @@ def jitter_of(x: np.ndarray, truth: np.ndarray | None, reference: Reference, mot
     return M.jitter_ratio(x, ref_seq, motion.coverage_ratio)
 
 
-def nan_mean(values: np.ndarray) -> float | None:
-    """Mean of the finite entries, None when there are none."""
-    finite = values[np.isfinite(values)]
-    return float(finite.mean()) if len(finite) else None
+def finite_or_none(value: float) -> float | None:
+    """``value`` as a float, None when it is NaN or inf."""
+    return float(value) if np.isfinite(value) else None

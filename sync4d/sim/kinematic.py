@@ -20,9 +20,10 @@ from sync4d.types import FramePose
 
 @dataclass(frozen=True)
 class KinematicModel:
-    """Rest particles (P, 3) [m]."""
+    """Rest particles (P, 3) [m] and their parts (P,), or None."""
 
     rest_points: np.ndarray
+    part: np.ndarray | None = None
 
 
 @register("sim", "kinematic")
@@ -41,8 +42,8 @@ class Kinematic:
 
     def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None,
                 part: np.ndarray | None = None) -> KinematicModel:
-        """The particles as given (volumes play no part in free flight)."""
-        return KinematicModel(np.asarray(points, dtype=np.float64))
+        """The particles as given, with their parts (volumes play no part)."""
+        return KinematicModel(np.asarray(points, dtype=np.float64), None if part is None else np.asarray(part))
 
     def domain(self, model: KinematicModel) -> tuple[np.ndarray, np.ndarray]:
         return padded_box(model.rest_points)
@@ -58,11 +59,16 @@ class Kinematic:
         self, model: KinematicModel, x: torch.Tensor, v: torch.Tensor, F: torch.Tensor, C: torch.Tensor, *,
         substeps: int, dt: float, frame_index: int = 0, pose: FramePose | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Free flight for ``substeps * dt``: x + T v, F <- (I + T C) F."""
+        """Each particle on its part's rigid step of ``pose``; without a pose or parts, free flight for
+        ``substeps * dt``: x + T v, F <- (I + T C) F."""
         horizon = float(substeps) * float(dt)
-        x1 = x + horizon * v
-        F1 = (torch.eye(3, dtype=F.dtype) + horizon * C) @ F
-        return x1, v, F1, C
+        if pose is None or model.part is None:
+            x1 = x + horizon * v
+            return x1, v, (torch.eye(3, dtype=F.dtype) + horizon * C) @ F, C
+        step = torch.as_tensor(pose.end @ np.linalg.inv(pose.start), dtype=x.dtype)[torch.as_tensor(model.part)]
+        rot = step[:, :3, :3]
+        x1 = torch.einsum("pij,pj->pi", rot, x) + step[:, :3, 3]
+        return x1, (x1 - x) / horizon, rot @ F, C
 
 
 def padded_box(points: np.ndarray, padding: float = 0.25) -> tuple[np.ndarray, np.ndarray]:

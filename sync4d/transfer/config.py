@@ -18,7 +18,8 @@ class TransferConfig:
             41 for millions of Gaussians), or null to simulate every Gaussian: 40 against the MPM's default
             48-node grid (27 cells across the object) is 1.5 lattice cells per grid cell. Cells that
             straddle a part boundary are split per part, so a particle never mixes parts.
-        init: initial velocities: ``rigid`` (each particle on its bone's rigid velocity field
+        init: initial velocities: ``drive`` (each part's rigid step as a screw: its centroid's velocity plus a constant
+            angular velocity, with C = [w]x; what the simulator's held drive follows through the frame), ``rigid`` (each particle on its bone's rigid velocity field
             (T_rel x - x) / (N dt), with the matching APIC matrix), ``pose`` (towards where its part's pose at t+1
             puts its rest position, (P_{t+1} P_0^-1 X - x) / (N dt): the rigid step plus the particle's offset from
             its pose, so drift is closed every frame) or ``centroid`` (the paper: one velocity per part from its
@@ -35,7 +36,7 @@ class TransferConfig:
     """
 
     control_grid: int | None = 40
-    init: Literal["rigid", "pose", "centroid"] = "pose"
+    init: Literal["drive", "rigid", "pose", "centroid"] = "drive"
     loss_points: Literal["particles", "anchors", "centroid"] = "particles"
     target_mode: Literal["absolute", "relative"] = "absolute"
     lr: float = 1e-2

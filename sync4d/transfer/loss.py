@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from sync4d.geometry import apply_rigid
+from sync4d.geometry import apply_rigid, matrix_to_rotation_vector, nearest_rotation, part_centroids
 
 
 def anchor_weights(x: np.ndarray, part: np.ndarray, num_parts: int, mode: str) -> list[np.ndarray | None]:
@@ -75,13 +75,17 @@ def initial_velocity(
         relative: (B, 4, 4) the reference's rigid step P_{t+1} P_t^{-1} per part (target space).
         displacement: (B, 3) the scaled bone-centre displacement (s_t/s_o)(b_{t+1} - b_t) [m].
         frame_time: N dt [s].
-        mode: ``centroid`` (paper: one velocity per part), ``rigid`` (the bone's rigid velocity field applied to
-            where the particle is) or ``pose`` (towards where the part's pose at t+1 puts the particle's rest
+        mode: ``centroid`` (paper: one velocity per part), ``drive`` (the rig's velocity at the frame's start:
+            each part's centroid on its straight line, turning at a constant angular velocity, as the simulator
+            holds it through the frame), ``rigid`` (the bone's rigid step applied to where the particle is, a
+            chord) or ``pose`` (towards where the part's pose at t+1 puts the particle's rest
             position: the same field plus the particle's offset from its pose, closed in one frame).
         rest: (P, 3) rest positions [m] and pose: (B, 4, 4) rest -> t+1 part transforms (``pose`` only).
     """
     if mode == "centroid":
         return displacement[part] / frame_time, np.zeros((len(x), 3, 3))
+    if mode == "drive":
+        return drive_velocity(x, part, relative, frame_time)
     rot = relative[part, :3, :3]
     if mode == "pose":
         assert rest is not None and pose is not None
@@ -89,3 +93,19 @@ def initial_velocity(
         return (aimed - x) / frame_time, (rot - np.eye(3)) / frame_time
     moved = np.einsum("pij,pj->pi", rot, x) + relative[part, :3, 3]
     return (moved - x) / frame_time, (rot - np.eye(3)) / frame_time
+
+
+def drive_velocity(x: np.ndarray, part: np.ndarray, relative: np.ndarray, frame_time: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Velocities (P, 3) [m/s] and APIC matrices (P, 3, 3) [1/s] of each part's rigid step as a screw: the part's
+    centroid c moves to ``relative[b]`` c in a straight line and the part turns at the constant angular velocity
+    w = log(R_b) / frame_time about it: v = (T c - c) / frame_time + w x (x - c), C = [w]x (no chord shrinkage)."""
+    num_parts = relative.shape[0]
+    centre = part_centroids(x, part, num_parts)
+    centre = np.where(np.isfinite(centre), centre, 0.0)
+    moved = np.einsum("bij,bj->bi", relative[:, :3, :3], centre) + relative[:, :3, 3]
+    spin = matrix_to_rotation_vector(nearest_rotation(relative[:, :3, :3])) / frame_time  # (B, 3)
+    velocity = (moved - centre)[part] / frame_time + np.cross(spin[part], x - centre[part])
+    skew = np.zeros((num_parts, 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -spin[:, 2], spin[:, 1], -spin[:, 0]
+    return velocity, (skew - np.swapaxes(skew, 1, 2))[part]

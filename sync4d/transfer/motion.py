@@ -14,8 +14,11 @@ tessellated.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from sync4d.geometry import part_centroids
 from sync4d.surface import area_points
 from sync4d.types import DrivingMotion, Reference
 
@@ -62,6 +65,7 @@ def driving_motion(
     loop: bool = True,
     rotation: np.ndarray | None = None,
     part_centroids: np.ndarray | None = None,
+    skeleton: PartSkeleton | None = None,
 ) -> DrivingMotion:
     """Express the reference's part motion in the target's space.
 
@@ -75,6 +79,10 @@ def driving_motion(
             its own centroid (by its bone's rotation) and its centroid moves by the scaled bone-centre
             displacement, so the part's motion is anchored on the target's own geometry (see
             :func:`recentre_on_parts`); None keeps the bone transforms as mapped into target space.
+        skeleton: the target's parts as a tree (:func:`part_skeleton`). When given (with ``part_centroids``),
+            every part but each tree's root turns about its joint with its parent and is carried by the parent
+            (:func:`articulate`), so neighbours agree where they meet; the part transforms are then given rest
+            -> t (frame 0 the identity).
 
     Returns:
         A validated :class:`DrivingMotion` whose displacements are (s_t / s_o) R (b_{t+1} - b_t).
@@ -92,6 +100,8 @@ def driving_motion(
     if part_centroids is not None:
         mapped_centers = reference.bone_centers @ (ratio * rot).T + sim[:3, 3]
         bones = recentre_on_parts(bones, mapped_centers, np.asarray(part_centroids, dtype=np.float64))
+        if skeleton is not None:
+            bones = articulate(bones @ np.linalg.inv(bones[0])[None], skeleton)
     # The global transform moves the whole object; in target space its translation scales like the rest.
     glob = conjugate(reference.global_transforms[frame_index], sim)
     centers_ref = reference.bone_centers_at()[frame_index]  # (T, B, 3)
@@ -133,6 +143,83 @@ def recentre_on_parts(transforms: np.ndarray, bone_centers: np.ndarray, part_cen
     shift = moved - bone_centers
     g = np.where(np.isfinite(part_centroids), part_centroids, bone_centers)
     out[..., :3, 3] = g - np.einsum("tbij,bj->tbi", rot, g) + shift
+    return out
+
+
+@dataclass(frozen=True)
+class PartSkeleton:
+    """The target's parts as a forest: which part each hangs from, and where.
+
+    Attributes:
+        parent: (B,) the part each part is joined to (-1 for the root of a tree: the heaviest part of each
+            group of touching parts, and parts that touch nothing).
+        joint: (B, 3) rest position of each part's joint with its parent [m] (the mean of the midpoints of the
+            neighbour pairs that join them; the part's centroid for a root).
+        order: (B,) the parts, every parent before its children.
+    """
+
+    parent: np.ndarray
+    joint: np.ndarray
+    order: np.ndarray
+
+
+def part_skeleton(points: np.ndarray, parts: np.ndarray, num_parts: int, *, neighbours: int = 8) -> PartSkeleton:
+    """The maximum-contact spanning forest of the parts of rest ``points`` (N, 3) [m] labelled ``parts`` (N,).
+
+    Two parts touch through the pairs of points that are among each other's ``neighbours`` nearest and no
+    farther apart than twice the median nearest-neighbour spacing; the tree keeps, from each group's heaviest
+    part outwards, the joins with the most such pairs (Prim's algorithm on the contact counts).
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64)
+    parts = np.asarray(parts, dtype=np.int64)
+    k = min(neighbours + 1, len(points))
+    distance, index = cKDTree(points).query(points, k=k)
+    reach = 2.0 * float(np.median(distance[:, 1])) if k > 1 else 0.0
+    i = np.repeat(np.arange(len(points)), k - 1)
+    j, d = index[:, 1:].ravel(), distance[:, 1:].ravel()
+    cross = (parts[i] != parts[j]) & (d <= reach) & (parts[i] >= 0) & (parts[j] >= 0)
+    a, b = parts[i[cross]], parts[j[cross]]
+    contact = np.zeros((num_parts, num_parts))
+    np.add.at(contact, (a, b), 1.0)
+    midpoint = np.zeros((num_parts, num_parts, 3))
+    np.add.at(midpoint, (a, b), 0.5 * (points[i[cross]] + points[j[cross]]))
+    contact_sym = contact + contact.T
+    joint_sum = midpoint + np.swapaxes(midpoint, 0, 1)
+    size = np.bincount(np.where(parts >= 0, parts, 0), weights=(parts >= 0).astype(float), minlength=num_parts)
+    centroid = np.nan_to_num(part_centroids(points, np.where(parts >= 0, parts, 0), num_parts))
+    parent = np.full(num_parts, -1)
+    joint = centroid.copy()
+    placed = np.zeros(num_parts, dtype=bool)
+    order: list[int] = []
+    for root in np.argsort(-size, kind="stable"):
+        if placed[root]:
+            continue
+        placed[root] = True
+        order.append(int(root))
+        while True:  # Prim: the strongest join from the tree to a part not yet in it
+            gain = np.where(placed[:, None] & ~placed[None, :], contact_sym, 0.0)
+            if gain.max() <= 0:
+                break
+            p, c = np.unravel_index(int(np.argmax(gain)), gain.shape)
+            parent[c], joint[c] = p, joint_sum[p, c] / contact_sym[p, c]
+            placed[c] = True
+            order.append(int(c))
+    return PartSkeleton(parent, joint, np.asarray(order))
+
+
+def articulate(relative: np.ndarray, skeleton: PartSkeleton) -> np.ndarray:
+    """(T, B, 4, 4) rest -> t part motions in which each child keeps its own rotation but turns about its joint,
+    carried where its parent takes that joint: A_c = [R_c | A_p j - R_c j]. Roots keep ``relative``."""
+    out = relative.copy()
+    for c in skeleton.order:
+        p = skeleton.parent[c]
+        if p < 0:
+            continue
+        j = skeleton.joint[c]
+        carried = np.einsum("tij,j->ti", out[:, p, :3, :3], j) + out[:, p, :3, 3]
+        out[:, c, :3, 3] = carried - np.einsum("tij,j->ti", relative[:, c, :3, :3], j)
     return out
 
 

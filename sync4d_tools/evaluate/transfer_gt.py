@@ -40,7 +40,7 @@ from sync4d.geometry import part_centroids, rigid_fit
 from sync4d.registry import build, component, make_config
 from sync4d.run.writer import compute_metrics
 from sync4d.transfer import PAPER, TransferConfig, run_transfer
-from sync4d.transfer.motion import driving_motion
+from sync4d.transfer.motion import driving_motion, part_skeleton
 from sync4d.types import DrivingMotion, PartMap, TargetGaussians, Trajectory
 from sync4d_tools.truth.pairs import PAIRS, TRUTHS, GTPair, load_pair
 
@@ -63,10 +63,11 @@ class Method:
 METHODS: dict[str, Method | None] = {
     "default": None,
     "mpm_none": Method({"type": "mpm_warp"}),
-    # the former default, untrained: each particle launched on its bone's relative step, E = 1e4 Pa, 32 nodes
-    "mpm_relative": Method({"type": "mpm_warp", "E": 1e4, "n_grid": 32}, transfer={"init": "rigid"}),
+    # the former default: launched once a frame towards its pose, then free through the frame (no held drive)
+    "mpm_launch": Method({"type": "mpm_warp", "drive": "launch"}, transfer={"init": "pose"}),
     "mpm_triplane": Method({"type": "mpm_warp"}, {"type": "triplane"}),
-    "paper": Method({"type": "mpm_warp"}, {"type": "triplane"}, dataclasses.asdict(PAPER)),
+    # the paper's form: launched once per frame, a trained triplane, centroid loss, relative targets
+    "paper": Method({"type": "mpm_warp", "drive": "launch"}, {"type": "triplane"}, dataclasses.asdict(PAPER)),
     # point-wise deformation of every Gaussian (no control points), as the paper's baseline
     "lbs_hard": Method({"type": "lbs", "neighbours": 1}, transfer={"control_grid": None}),
     "lbs_smooth": Method({"type": "lbs", "neighbours": 16}, transfer={"control_grid": None}),
@@ -119,11 +120,12 @@ def method_key(method: Method) -> str:
 
 
 def pair_motion(pair: GTPair, num_frames: int) -> DrivingMotion:
-    """The driving motion of a pair (what every method is given), pivoted on the target's part centroids."""
+    """The driving motion of a pair (what every method is given), as ``python train.py`` builds it: each target
+    part turns about its joint with its parent part (``pivot=joint``)."""
+    means, parts, B = pair.target.means.astype(np.float64), pair.part_map.tgt_part, pair.part_map.num_parts
     return driving_motion(
         pair.reference, target_points=pair.target_vertices, target_faces=pair.target_faces, num_frames=num_frames,
-        loop=False, part_centroids=part_centroids(pair.target.means.astype(np.float64), pair.part_map.tgt_part,
-                                                  pair.part_map.num_parts),
+        loop=False, part_centroids=part_centroids(means, parts, B), skeleton=part_skeleton(means, parts, B),
     )
 
 

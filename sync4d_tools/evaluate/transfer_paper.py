@@ -54,7 +54,7 @@ class PaperScene:
     Attributes:
         name: ``<experiment>`` or ``<experiment>/<clip>``.
         reference: the driving reference; target: the target's rest Gaussians.
-        part_map: the pipeline's matching; motion: the driving motion (pivot on the target's part centroids).
+        part_map: the pipeline's matching; motion: the driving motion (as `python train.py` builds it: each part turns about its joint with its parent).
     """
 
     name: str

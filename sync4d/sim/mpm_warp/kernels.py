@@ -666,8 +666,119 @@ def kirchhoff_stress_adjoint(
     adj_F[p] = kirchhoff_adjoint(F[p], rotation_part(F[p]), mu, lam, adj_tau[p])
 
 
+# ----------------------------------------------------------------------------------------------------
+# The drive held through the frame (complementary dynamics, Zhang et al. 2020, in velocity and position
+# form): after every G2P, each part's rigid (6-DOF, mass-weighted) deviation from its drive is removed from
+# the particles' positions and velocities; what the rig does not control stays with the physics.
+# Adjoints: Warp's generated ones, launched with ``adjoint=True`` by the solver.
+# ----------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def skew(w: wp.vec3) -> wp.mat33:
+    """[w]x: the matrix with [w]x a = w x a."""
+    return wp.mat33(0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0)
+
+
+@wp.func
+def rotation_from_vector(w: wp.vec3) -> wp.mat33:
+    """exp([w]x) by Rodrigues' formula (a series near zero, where its adjoint stays finite)."""
+    K = skew(w)
+    t2 = wp.dot(w, w)
+    if t2 < 1.0e-10:
+        return wp.identity(n=3, dtype=float) + K + 0.5 * K * K
+    t = wp.sqrt(t2)
+    return wp.identity(n=3, dtype=float) + (wp.sin(t) / t) * K + ((1.0 - wp.cos(t)) / t2) * K * K
+
+
 @wp.kernel
-def grid_totals(grid: wp.array3d(dtype=wp.vec4), total: wp.array(dtype=wp.vec4)):
-    """Sum of vec4(m v, m) over the grid (diagnostics: mass and momentum conservation of P2G)."""
-    i, j, k = wp.tid()
-    wp.atomic_add(total, 0, grid[i, j, k])
+def drive_sums(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    offset: wp.array(dtype=wp.vec3),
+    part: wp.array(dtype=wp.int32),
+    mass: wp.array(dtype=float),
+    turn: wp.array(dtype=wp.mat33),
+    centre: wp.array(dtype=wp.vec3),
+    linear: wp.array(dtype=wp.vec3),
+    angular: wp.array(dtype=wp.vec3),
+    sums: wp.array2d(dtype=wp.vec3),
+):
+    """Per part b, the mass-weighted rigid moments of the particles' deviation from their drive.
+
+    Args:
+        x, v: (P,) positions [m] and velocities [m/s] after G2P.
+        offset: (P,) rest position minus the part's rest mass centroid [m]; part: (P,) part (< 0: free).
+        mass: (P,) [kg]. turn: (B,) the drive's rest -> now rotation; centre: (B,) the driven centroid [m];
+        linear, angular: (B,) the drive's centroid velocity [m/s] and angular velocity [rad/s].
+        sums: (B, 4) accumulates sum m u, sum m r x u, sum m w, sum m r x w, with r = turn offset, u = x - (centre
+            + r) and w = v - (linear + angular x r) (must be zeroed).
+    """
+    p = wp.tid()
+    b = part[p]
+    if b >= 0:
+        r = turn[b] * offset[p]
+        m = mass[p]
+        u = x[p] - (centre[b] + r)
+        w = v[p] - (linear[b] + wp.cross(angular[b], r))
+        wp.atomic_add(sums, b, 0, m * u)
+        wp.atomic_add(sums, b, 1, m * wp.cross(r, u))
+        wp.atomic_add(sums, b, 2, m * w)
+        wp.atomic_add(sums, b, 3, m * wp.cross(r, w))
+
+
+@wp.kernel
+def sum_slices(parts: wp.array3d(dtype=wp.vec3), total: wp.array2d(dtype=wp.vec3)):
+    """total[b, k] = sum over t of parts[t, b, k] (the threads' partial sums)."""
+    b, k = wp.tid()
+    s = wp.vec3(0.0)
+    for t in range(parts.shape[0]):
+        s = s + parts[t, b, k]
+    total[b, k] = s
+
+
+@wp.kernel
+def drive_apply(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    offset: wp.array(dtype=wp.vec3),
+    part: wp.array(dtype=wp.int32),
+    turn: wp.array(dtype=wp.mat33),
+    inertia_inv: wp.array(dtype=wp.mat33),
+    inv_part_mass: wp.array(dtype=float),
+    sums: wp.array2d(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+):
+    """Remove each part's rigid deviation (from :func:`drive_sums`'s totals): the M-orthogonal projection.
+
+    The translation t = sum m u / M and the rotation vector w = I^-1 sum m r x u (I the part's driven inertia
+    about its centroid) are taken off every particle of the part as t + w x r; likewise for the velocity, whose
+    angular part also leaves the affine matrix C; F turns with the positions' rotation.
+
+    Args:
+        x, v, C, F: (P,) the state after G2P; offset, part, turn: as in :func:`drive_sums`.
+        inertia_inv: (B,) inverse (pseudo-inverse) inertia of each driven part [1/(kg m^2)];
+        inv_part_mass: (B,) 1 / M_b [1/kg]; sums: (B, 4) totals of :func:`drive_sums`.
+        x_out, v_out, C_out, F_out: (P,) the corrected state (never the input arrays).
+    """
+    p = wp.tid()
+    b = part[p]
+    if b < 0:
+        x_out[p] = x[p]
+        v_out[p] = v[p]
+        C_out[p] = C[p]
+        F_out[p] = F[p]
+        return
+    r = turn[b] * offset[p]
+    im = inv_part_mass[b]
+    w_x = inertia_inv[b] * sums[b, 1]
+    w_v = inertia_inv[b] * sums[b, 3]
+    x_out[p] = x[p] - (im * sums[b, 0] + wp.cross(w_x, r))
+    v_out[p] = v[p] - (im * sums[b, 2] + wp.cross(w_v, r))
+    C_out[p] = C[p] - skew(w_v)
+    F_out[p] = rotation_from_vector(-w_x) * F[p]

@@ -15,6 +15,7 @@ import torch
 import warp as wp
 
 from sync4d.sim import physics
+from sync4d.sim.mpm_warp.drive import PartRig
 
 #: The status record's value when no substep failed (a failing substep writes its index with atomic_min).
 STATUS_OK = 2147483647
@@ -38,6 +39,8 @@ class MPMModel:
         sticky: walls stop every velocity component (True) or only the outward one (False, slip).
         fixed_box: (2, 3) world box [m] whose grid nodes are held still, or None.
         device: Warp device name.
+        rig: the parts' rest centroids, inertias and masses (:mod:`drive`), or None when no parts were given
+            (the drive is then off).
     """
 
     grid: physics.GridSpec
@@ -53,6 +56,7 @@ class MPMModel:
     sticky: bool
     fixed_box: np.ndarray | None
     device: str
+    rig: PartRig | None = None
 
     @property
     def num_particles(self) -> int:
@@ -167,6 +171,24 @@ class Workspace:
         self.adj_a: WarpState | None = None
         self.adj_b: WarpState | None = None
         self.segment: list[WarpState] = []
+        self.drive_parts = -1  # the part count the drive's scratch is allocated for (none yet)
+
+    def ensure_drive(self, num_parts: int) -> None:
+        """Allocate the drive's scratch for ``num_parts`` parts (once per part count): the state after G2P
+        and its adjoint, the threads' partial moments (T, B, 4) and their totals (B, 4), forward and adjoint."""
+        if self.drive_parts == num_parts:
+            return
+        self.drive_parts = num_parts
+        shape = (self.threads, num_parts, 4)
+        self.drive_mid = WarpState.empty(self.n, self.device)
+        self.adj_drive_mid = WarpState.empty(self.n, self.device)
+        self.drive_scratch = WarpState.empty(self.n, self.device)
+        self.drive_sums_all = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+        self.adj_drive_sums_all = wp.zeros(shape, dtype=wp.vec3, device=self.device)
+        self.drive_sums_of = [self.drive_sums_all[t] for t in range(self.threads)]
+        self.adj_drive_sums_of = [self.adj_drive_sums_all[t] for t in range(self.threads)]
+        self.drive_total = wp.zeros(shape[1:], dtype=wp.vec3, device=self.device)
+        self.adj_drive_total = wp.zeros(shape[1:], dtype=wp.vec3, device=self.device)
 
     def ensure_backward(self, k: int) -> None:
         """Allocate the adjoint buffers and ``k`` segment states (once)."""

@@ -29,6 +29,7 @@ from sync4d.registry import register
 from sync4d.sim import physics
 from sync4d.sim.mpm_warp import budget
 from sync4d.sim.mpm_warp.bridge import run_rollout
+from sync4d.sim.mpm_warp.drive import DriveArrays, part_rig, substep_drive
 from sync4d.sim.mpm_warp.model import STATUS_OK, MPMModel, WarpState, Workspace
 from sync4d.sim.mpm_warp.solver import Launch, RolloutPlan
 from sync4d.types import FramePose, validate_material
@@ -70,6 +71,12 @@ class MPMWarp:
                 results beyond float rounding).
             refit_grid: when particles come near the walls, re-centre and grow the grid (same dx) before
                 a rollout instead of letting the walls act on them.
+            drive: how the parts' driving motion acts during a frame. ``complementary`` (the default): after every
+                substep each part's rigid (6-DOF, mass-weighted) deviation from its drive, interpolated to that
+                substep, is removed from the particles' positions and velocities (complementary dynamics, Zhang
+                et al. 2020): the parts follow their drive by construction and the material is free only in what
+                the rig does not control (closing the seams). ``launch`` (the paper's form): the material starts
+                each frame with the velocities it is given and flies freely through the frame.
             cpu_threads: threads of a rollout on the CPU (each launch split into particle chunks that
                 scatter into their own grids; equal to one thread up to float rounding); null = the usable
                 cores, one per 8192 particles at most. Ignored on CUDA.
@@ -93,6 +100,7 @@ class MPMWarp:
         checkpoint_budget_mb: float = 512.0
         sort_particles: bool = True
         refit_grid: bool = True
+        drive: Literal["complementary", "launch"] = "complementary"
         cpu_threads: int | None = None
 
         def validate(self) -> None:
@@ -164,7 +172,8 @@ class MPMWarp:
                 [m^3], or None to estimate the total from the points' voxel occupancy (cells of side
                 max(dx, (8 bbox volume / P)^(1/3)), i.e. ~8 points per cell for a filled box).
             weights: (P,) shares of the total volume (e.g. Gaussians per control point); uniform if None.
-            part: (P,) part of each particle (unused: the material is one continuum, whatever the parts).
+            part: (P,) part of each particle (-1: not driven), or None: the parts the drive holds (``drive``);
+                the material is one continuum, whatever the parts.
 
         Returns:
             The immutable model.
@@ -175,10 +184,17 @@ class MPMWarp:
         vols = particle_volumes(pts, grid.dx, volume, weights)
         mu, lam = physics.lame_parameters(config.E, config.nu)
         box = None if config.fixed_box is None else np.asarray(config.fixed_box, dtype=np.float64).reshape(2, 3)
+        mass = config.density * vols
+        rig = None
+        if part is not None and config.drive == "complementary":
+            labels = np.asarray(part, dtype=np.int64)
+            if labels.shape != (len(pts),):
+                raise InputError(f"sim.prepare: part must have shape ({len(pts)},), got {labels.shape}")
+            rig = part_rig(pts, labels, mass, int(labels.max()) + 1 if len(labels) else 0)
         return MPMModel(
-            grid=grid, rest_points=pts, mass=config.density * vols, volume=vols, E=config.E, nu=config.nu,
+            grid=grid, rest_points=pts, mass=mass, volume=vols, E=config.E, nu=config.nu,
             density=config.density, mu=mu, lam=lam, gravity=np.asarray(config.gravity, dtype=np.float64),
-            sticky=config.boundary == "sticky", fixed_box=box, device=self.wp_device,
+            sticky=config.boundary == "sticky", fixed_box=box, device=self.wp_device, rig=rig,
         )  # fmt: skip
 
     def domain(self, model: MPMModel) -> tuple[np.ndarray, np.ndarray]:
@@ -245,8 +261,8 @@ class MPMWarp:
             substeps: number of substeps N >= 1.
             dt: substep [s] > 0.
             frame_index: the output frame this rollout produces (for error messages).
-            pose: the parts' poses at the start and end of the rollout (unused: the material follows the
-                initial velocities it is given).
+            pose: the parts' poses at the start and end of the rollout: held through every substep with
+                ``drive=complementary`` (when the model has parts), else unused.
             check_cfl: apply the CFL guard (auto sub-stepping or SimulationUnstable); False only for tests.
             timers: accumulate per-kernel wall time [s] (forward only, no gradients; profiling).
 
@@ -267,7 +283,7 @@ class MPMWarp:
         perm = None if order is None else torch.as_tensor(order, device=x.device)
         if perm is not None:
             x, v, F, C = x[perm], v[perm], F[perm], C[perm]
-        plan = self.plan(model, order, substeps=substeps, dt=dt, frame_index=frame_index)
+        plan = self.plan(model, order, substeps=substeps, dt=dt, frame_index=frame_index, pose=pose)
         out = run_rollout(plan, x, v, F, C, self.check_status, timers=timers)
         if perm is not None:
             inv = torch.empty_like(perm)
@@ -276,15 +292,23 @@ class MPMWarp:
         return out
 
     def plan(self, model: MPMModel, order: np.ndarray | None, *, substeps: int, dt: float,
-             frame_index: int) -> RolloutPlan:
-        """The rollout's kernels' constants in particle ``order`` (None = as given)."""
+             frame_index: int, pose: FramePose | None = None) -> RolloutPlan:
+        """The rollout's kernels' constants in particle ``order`` (None = as given), with the drive of ``pose``
+        when the model has parts."""
         n = model.num_particles
         mass, volume = (model.mass, model.volume) if order is None else (model.mass[order], model.volume[order])
+        drive = None
+        if pose is not None and model.rig is not None:
+            if pose.num_parts < len(model.rig.mass):
+                raise InputError(f"sim.rollout: the pose has {pose.num_parts} parts, the particles' labels "
+                                 f"name {len(model.rig.mass)}")
+            held = substep_drive(model.rig, pose, substeps=substeps, frame_time=substeps * dt)
+            drive = DriveArrays.of(model.rig, held, order, self.wp_device)
         launch = Launch(
             model=model, ws=self.workspace_for(n, model.grid.dims),
             mass=wp.array(mass.astype(np.float32), dtype=float, device=self.wp_device),
             volume=wp.array(volume.astype(np.float32), dtype=float, device=self.wp_device),
-            dt=float(dt), mass_eps=float(1e-9 * mass.min()),
+            dt=float(dt), mass_eps=float(1e-9 * mass.min()), drive=drive,
         )  # fmt: skip
         return RolloutPlan(launch=launch, substeps=substeps, checkpoint_every=self.checkpoint_interval(n, substeps),
                            frame_index=frame_index)

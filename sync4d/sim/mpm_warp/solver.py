@@ -26,6 +26,7 @@ import warp as wp
 
 from sync4d.errors import SimulationDiverged
 from sync4d.sim.mpm_warp import kernels as K
+from sync4d.sim.mpm_warp.drive import DriveArrays
 from sync4d.sim.mpm_warp.model import STATUS_OK, MPMModel, WarpState, Workspace
 
 
@@ -39,14 +40,22 @@ class Launch:
     volume: wp.array
     dt: float
     mass_eps: float
+    drive: DriveArrays | None = None
     mass_of: list[wp.array] = field(default_factory=list, repr=False)
     volume_of: list[wp.array] = field(default_factory=list, repr=False)
+    offset_of: list[wp.array] = field(default_factory=list, repr=False)
+    part_of: list[wp.array] = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         bounds = self.ws.bounds
         one = self.ws.threads == 1
         self.mass_of = [self.mass] if one else [self.mass[lo:hi] for lo, hi in bounds]
         self.volume_of = [self.volume] if one else [self.volume[lo:hi] for lo, hi in bounds]
+        if self.drive is not None:
+            d = self.drive
+            self.offset_of = [d.offset] if one else [d.offset[lo:hi] for lo, hi in bounds]
+            self.part_of = [d.part] if one else [d.part[lo:hi] for lo, hi in bounds]
+            self.ws.ensure_drive(d.num_parts)
 
     def p2g_args(
         self, s: WarpState, substep: int, *, store_rotation: bool = False, t: int = 0
@@ -101,6 +110,74 @@ class Launch:
         i, o = self.g2p_args(s.parts(ws.bounds)[t], out.parts(ws.bounds)[t], substep, t)
         wp.launch(K.g2p, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
 
+    # -- the drive held through the frame (sync4d.sim.mpm_warp.drive) --------------------------------------
+
+    def drive_sums_args(self, s: WarpState, substep: int, t: int) -> tuple[list[Any], list[Any]]:
+        d = self.drive
+        assert d is not None
+        inputs = [s.x, s.v, self.offset_of[t], self.part_of[t], self.mass_of[t], d.turn[substep], d.centre[substep],
+                  d.linear, d.angular]
+        return inputs, [self.ws.drive_sums_of[t]]
+
+    def drive_apply_args(self, s: WarpState, out: WarpState, substep: int, t: int) -> tuple[list[Any], list[Any]]:
+        d = self.drive
+        assert d is not None
+        inputs = [s.x, s.v, s.C, s.F, self.offset_of[t], self.part_of[t], d.turn[substep], d.inertia_inv[substep],
+                  d.inv_part_mass, self.ws.drive_total]
+        return inputs, [out.x, out.v, out.C, out.F]
+
+    def drive_sums(self, s: WarpState, substep: int, t: int) -> None:
+        """Thread t's share of every part's rigid deviation moments (``s`` is the whole state)."""
+        ws = self.ws
+        ws.drive_sums_of[t].zero_()
+        i, o = self.drive_sums_args(s.parts(ws.bounds)[t], substep, t)
+        wp.launch(K.drive_sums, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
+
+    def g2p_and_sums(self, s: WarpState, mid: WarpState, substep: int, t: int) -> None:
+        """Thread t's G2P of ``s`` into ``mid`` and its share of the drive's moments of ``mid``."""
+        self.g2p(s, mid, substep, t)
+        self.drive_sums(mid, substep, t)
+
+    def drive_total(self) -> None:
+        """The threads' partial moments summed (``ws.drive_total``)."""
+        ws = self.ws
+        wp.launch(K.sum_slices, dim=ws.drive_total.shape, inputs=[ws.drive_sums_all], outputs=[ws.drive_total],
+                  device=ws.device)
+
+    def drive_apply(self, s: WarpState, out: WarpState, substep: int, t: int) -> None:
+        """Thread t's particles with their part's rigid deviation removed: ``s`` -> ``out``."""
+        ws = self.ws
+        i, o = self.drive_apply_args(s.parts(ws.bounds)[t], out.parts(ws.bounds)[t], substep, t)
+        wp.launch(K.drive_apply, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
+
+    def drive_adjoint(self, s: WarpState, adj_out: WarpState, adj_mid: WarpState, substep: int) -> None:
+        """dL/d(state after G2P) into ``adj_mid`` from dL/d(state after the drive) ``adj_out``: Warp's generated
+        adjoints of :func:`K.drive_apply`, then of :func:`K.drive_sums` (``s`` is the state after G2P and the
+        moments ``ws.drive_total`` are its own)."""
+        ws = self.ws
+        sp, op, mp = s.parts(ws.bounds), adj_out.parts(ws.bounds), adj_mid.parts(ws.bounds)
+        scratch = ws.drive_scratch.parts(ws.bounds)
+
+        def apply_adjoint(t: int) -> None:
+            for a in mp[t].arrays():
+                a.zero_()
+            ws.adj_drive_sums_of[t].zero_()
+            i, o = self.drive_apply_args(sp[t], scratch[t], substep, t)
+            adj_i = [*mp[t].arrays(), None, None, None, None, None, ws.adj_drive_sums_of[t]]
+            wp.launch(K.drive_apply, dim=self.count(t), inputs=i, outputs=o, adj_inputs=adj_i,
+                      adj_outputs=list(op[t].arrays()), adjoint=True, device=ws.device)
+
+        def sums_adjoint(t: int) -> None:
+            i, o = self.drive_sums_args(sp[t], substep, t)
+            adj_i = [mp[t].x, mp[t].v, None, None, None, None, None, None, None]
+            wp.launch(K.drive_sums, dim=self.count(t), inputs=i, outputs=o, adj_inputs=adj_i,
+                      adj_outputs=[ws.adj_drive_total], adjoint=True, device=ws.device)
+
+        ws.run(apply_adjoint)
+        wp.launch(K.sum_slices, dim=ws.adj_drive_total.shape, inputs=[ws.adj_drive_sums_all],
+                  outputs=[ws.adj_drive_total], device=ws.device)
+        ws.run(sums_adjoint)
+
 def step(
     launch: Launch,
     state_in: WarpState,
@@ -123,7 +200,7 @@ def step(
         prefetch: also run the next substep's P2G of ``state_out`` (each thread right after its own G2P,
             whose chunk it reads: one hand-over between threads fewer per substep).
         prefetch_rotation: the prefetched P2G stores the polar rotations (for the backward pass).
-        timers: when given, accumulates wall time [s] per kernel under 'p2g', 'grid', 'g2p' (synchronises
+        timers: when given, accumulates wall time [s] per kernel under 'p2g', 'grid', 'g2p', 'drive' (synchronises
             after each launch, so only for profiling; no prefetching then).
     """
     ws, dev = launch.ws, launch.ws.device
@@ -143,15 +220,29 @@ def step(
     ws.run(launch.grid_update)
     mark()
 
-    def g2p(t: int) -> None:
-        launch.g2p(state_in, state_out, substep, t)
+    def next_p2g(t: int) -> None:
         if prefetch:
             launch.p2g(state_out, substep + 1, t, store_rotation=prefetch_rotation)
 
-    ws.run(g2p)
-    mark()
+    def g2p(t: int) -> None:
+        launch.g2p(state_in, state_out, substep, t)
+        next_p2g(t)
+
+    def held(t: int) -> None:
+        launch.drive_apply(ws.drive_mid, state_out, substep, t)
+        next_p2g(t)
+
+    if launch.drive is None:
+        ws.run(g2p)
+        mark()
+    else:  # G2P into the scratch state, then each part's rigid deviation from its drive taken off
+        ws.run(lambda t: launch.g2p_and_sums(state_in, ws.drive_mid, substep, t))
+        mark()
+        launch.drive_total()
+        ws.run(held)
+        mark()
     if timers is not None:
-        for name, lo, hi in zip(("p2g", "grid", "g2p"), marks, marks[1:]):
+        for name, lo, hi in zip(("p2g", "grid", "g2p", "drive"), marks, marks[1:]):
             timers[name] = timers.get(name, 0.0) + (hi - lo)
 
 
@@ -171,8 +262,9 @@ def step_adjoint(
     state of the substep reversed next, whose P2G (with rotations) each thread runs right after its P2G
     adjoint.
 
-    Rebuilds the substep's grid from ``s`` (P2G + grid update), then runs the adjoints in reverse order:
-    G2P, grid update, and P2G fused with the fixed-corotated stress, all by hand-written kernels (checked
+    Rebuilds the substep's grid from ``s`` (P2G + grid update), then runs the adjoints in reverse order: the
+    drive (after a G2P that recovers the state it corrected), G2P, grid update, and P2G fused with the
+    fixed-corotated stress, all by hand-written kernels (checked
     against finite differences and against Warp's generated adjoints in the tests). The grid mass is
     differentiated like every other input.
     """
@@ -211,6 +303,11 @@ def step_adjoint(
         if prefetch is not None:  # after this thread's adjoint has read its chunk's rotations
             launch.p2g(prefetch, substep - 1, t, store_rotation=True)
 
+    if launch.drive is not None:  # the drive's adjoint first: adj_out then stands for the state after G2P
+        ws.run(lambda t: launch.g2p_and_sums(s, ws.drive_mid, substep, t))
+        launch.drive_total()
+        launch.drive_adjoint(ws.drive_mid, adj_out, ws.adj_drive_mid, substep)
+        op = ws.adj_drive_mid.parts(ws.bounds)
     ws.run(g2p_adjoint)
     ws.run(grid_update_adjoint)
     ws.run(p2g_adjoint)
