@@ -62,8 +62,10 @@ class Simulator(Protocol):
     differentiable: bool
     dtype: torch.dtype
 
-    def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None, part: np.ndarray | None = None) -> Any:
-        """The model of (P, 3) rest particles [m] with (P,) volumes [m^3] and parts."""
+    def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None, part: np.ndarray | None = None,
+                parent: np.ndarray | None = None) -> Any:
+        """The model of (P, 3) rest particles [m] with (P,) volumes [m^3] and parts, and the (B,) part each part
+        is joined to (-1 for a root; None: no joints known)."""
         ...
 
     def domain(self, model: Any) -> tuple[np.ndarray, np.ndarray]:

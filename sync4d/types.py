@@ -352,6 +352,8 @@ class DrivingMotion:
         global_transforms: (T, 4, 4) G_t in target space, applied to the output after simulation.
         coverage_ratio: s_t / s_o, the target's size over the reference's (dimensionless).
         fps: frames per second [1/s].
+        part_parent: (B,) the part each part is joined to by the drive (-1 for a root), or None when the
+            parts are driven independently (``pivot`` other than ``joint``).
     """
 
     part_transforms: np.ndarray
@@ -359,6 +361,7 @@ class DrivingMotion:
     global_transforms: np.ndarray
     coverage_ratio: float
     fps: float
+    part_parent: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -376,6 +379,11 @@ class DrivingMotion:
         _require(
             np.isfinite(self.coverage_ratio) and self.coverage_ratio > 0,
             f"DrivingMotion.coverage_ratio: must be > 0, got {self.coverage_ratio}",
+        )
+        _require(
+            self.part_parent is None or (self.part_parent.shape == (dims["B"],)
+                                         and bool(np.all(self.part_parent < dims["B"]))),
+            f"DrivingMotion.part_parent: expected ({dims['B']},) parts or -1",
         )
         return self
 

@@ -53,3 +53,23 @@ def test_articulated_neighbours_agree_at_their_joints():
         assert gap_before > 0.02 and gap_after < 1e-12
         np.testing.assert_allclose(out[:, child, :3, :3], relative[:, child, :3, :3])  # its own rotation kept
     np.testing.assert_allclose(out[:, [1, 3]], relative[:, [1, 3]])  # roots unchanged
+
+
+def test_touching_parts_that_swing_apart_are_not_joined():
+    """Two thighs touching along their length hang from the pelvis they swing about, not from each other, when
+    the driving motion is known (by contact alone they would join each other: they touch the most)."""
+    g = np.stack(np.meshgrid(*[np.arange(0, 1, 0.05)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    pelvis = g * [0.6, 0.15, 0.02] + [-0.15, 0.478, 0.04]  # a thin plate on the thighs' tops (ties in weight)
+    left = g * [0.1, 0.5, 0.1] + [0.048, 0.0, 0.0]
+    right = g * [0.1, 0.5, 0.1] + [0.151, 0.0, 0.0]
+    points = np.concatenate([pelvis, left, right])
+    parts = np.repeat([0, 1, 2], [len(pelvis), len(left), len(right)])
+    assert part_skeleton(points, parts, 3).parent.tolist() == [-1, 2, 0]  # contact alone chains the thighs
+    T = 6
+    motion = np.tile(np.eye(4), (T, 3, 1, 1))
+    for t in range(T):
+        for b, sign, hip in ((1, 1.0, [0.1, 0.5, 0.05]), (2, -1.0, [0.2, 0.5, 0.05])):
+            rot = rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.array([sign * np.deg2rad(6.0 * t)]))[0]
+            motion[t, b, :3, :3], motion[t, b, :3, 3] = rot, np.asarray(hip) - rot @ hip
+    skeleton = part_skeleton(points, parts, 3, motion=motion)
+    assert skeleton.parent.tolist() == [-1, 0, 0]

@@ -38,7 +38,7 @@ from sync4d.scenes.targets import check_target_extent
 from sync4d.surface import target_surface
 from sync4d.transfer.budget import check_run_cost, choose_budget
 from sync4d.transfer.loop import run_transfer
-from sync4d.transfer.motion import driving_motion, part_skeleton
+from sync4d.transfer.motion import driving_motion
 from sync4d.types import DrivingMotion, PartMap, Reference, ReferenceInput, TargetGaussians, Trajectory
 
 log = logging.getLogger("sync4d")
@@ -192,9 +192,9 @@ def stage_motion(plan: RunPlan, reference: Reference, target: TargetGaussians, p
     """The reference's motion in the target's frame, part by part (paper: matched parts inherit the motion)."""
     means = target.means.astype(np.float64)
     anchor = part_centroids(means, part_map.tgt_part, part_map.num_parts) if plan.pivot != "bone" else None
-    skeleton = part_skeleton(means, part_map.tgt_part, part_map.num_parts) if plan.pivot == "joint" else None
+    joints_of = (means, part_map.tgt_part) if plan.pivot == "joint" else None
     motion = driving_motion(reference, target_points=surface[0], target_faces=surface[1], num_frames=plan.frames,
-                            loop=plan.loop_reference, part_centroids=anchor, skeleton=skeleton,
+                            loop=plan.loop_reference, part_centroids=anchor, joints_of=joints_of,
                             rotation=reference_to_target_rotation(part_map))
     log.info("driving motion: %d frames, coverage ratio s_t/s_o = %.4f", motion.num_frames, motion.coverage_ratio)
     return motion

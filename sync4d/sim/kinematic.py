@@ -41,7 +41,7 @@ class Kinematic:
         self.config = config
 
     def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None,
-                part: np.ndarray | None = None) -> KinematicModel:
+                part: np.ndarray | None = None, parent: np.ndarray | None = None) -> KinematicModel:
         """The particles as given, with their parts (volumes play no part)."""
         return KinematicModel(np.asarray(points, dtype=np.float64), None if part is None else np.asarray(part))
 

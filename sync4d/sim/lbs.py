@@ -58,7 +58,7 @@ class LinearBlendSkinning:
         self.config = config
 
     def prepare(self, points: np.ndarray, *, volume: np.ndarray | None = None,
-                part: np.ndarray | None = None) -> SkinningModel:
+                part: np.ndarray | None = None, parent: np.ndarray | None = None) -> SkinningModel:
         """Blend weights of the rest particles from their parts (``part`` is required)."""
         if part is None:
             raise InputError("sim=lbs: prepare needs the particles' parts")

@@ -79,7 +79,8 @@ def setup_transfer(simulator: Simulator, make_field: FieldFactory, options: Tran
     """The particles (control points split by part), the simulator's model, the velocity field over the
     simulated box and its optimiser."""
     particles = make_particles(target, part_map, options.control_grid)
-    model = simulator.prepare(particles.points, volume=particles.volume, part=particles.part)
+    model = simulator.prepare(particles.points, volume=particles.volume, part=particles.part,
+                              parent=motion.part_parent)
     num_parts = part_map.num_parts
     velocity = make_field(num_parts=num_parts, bounds=simulator.domain(model), seed=seed)
     trains = velocity.trainable and options.iterations > 0

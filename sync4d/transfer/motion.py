@@ -65,7 +65,7 @@ def driving_motion(
     loop: bool = True,
     rotation: np.ndarray | None = None,
     part_centroids: np.ndarray | None = None,
-    skeleton: PartSkeleton | None = None,
+    joints_of: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> DrivingMotion:
     """Express the reference's part motion in the target's space.
 
@@ -79,10 +79,11 @@ def driving_motion(
             its own centroid (by its bone's rotation) and its centroid moves by the scaled bone-centre
             displacement, so the part's motion is anchored on the target's own geometry (see
             :func:`recentre_on_parts`); None keeps the bone transforms as mapped into target space.
-        skeleton: the target's parts as a tree (:func:`part_skeleton`). When given (with ``part_centroids``),
-            every part but each tree's root turns about its joint with its parent and is carried by the parent
+        joints_of: the target's (N, 3) points [m] and (N,) parts. When given (with ``part_centroids``), the parts
+            are hung on a tree (:func:`part_skeleton`, joins chosen where the reference's own bones agree) and every
+            part but each tree's root turns about its joint with its parent, carried by the parent
             (:func:`articulate`), so neighbours agree where they meet; the part transforms are then given rest
-            -> t (frame 0 the identity).
+            -> t (frame 0 the identity) and ``part_parent`` holds the tree.
 
     Returns:
         A validated :class:`DrivingMotion` whose displacements are (s_t / s_o) R (b_{t+1} - b_t).
@@ -97,6 +98,10 @@ def driving_motion(
 
     frame_index = frame_indices(reference.num_frames, num_frames, loop=loop)
     bones = conjugate(reference.bone_transforms[frame_index], sim)
+    skeleton = None
+    if joints_of is not None:
+        skeleton = part_skeleton(joints_of[0], joints_of[1], bones.shape[1],
+                                 motion=bones @ np.linalg.inv(bones[0])[None])
     if part_centroids is not None:
         mapped_centers = reference.bone_centers @ (ratio * rot).T + sim[:3, 3]
         bones = recentre_on_parts(bones, mapped_centers, np.asarray(part_centroids, dtype=np.float64))
@@ -120,6 +125,7 @@ def driving_motion(
         global_transforms=glob,
         coverage_ratio=float(ratio),
         fps=reference.fps,
+        part_parent=None if skeleton is None else skeleton.parent.copy(),
     ).validate()
 
 
@@ -163,12 +169,15 @@ class PartSkeleton:
     order: np.ndarray
 
 
-def part_skeleton(points: np.ndarray, parts: np.ndarray, num_parts: int, *, neighbours: int = 8) -> PartSkeleton:
-    """The maximum-contact spanning forest of the parts of rest ``points`` (N, 3) [m] labelled ``parts`` (N,).
+def part_skeleton(points: np.ndarray, parts: np.ndarray, num_parts: int, *, motion: np.ndarray | None = None,
+                  neighbours: int = 8) -> PartSkeleton:
+    """A spanning forest of the touching parts of rest ``points`` (N, 3) [m] labelled ``parts`` (N,).
 
     Two parts touch through the pairs of points that are among each other's ``neighbours`` nearest and no
-    farther apart than twice the median nearest-neighbour spacing; the tree keeps, from each group's heaviest
-    part outwards, the joins with the most such pairs (Prim's algorithm on the contact counts).
+    farther apart than twice the median nearest-neighbour spacing. Of the touching pairs the tree keeps, from each
+    group's heaviest part outwards (Prim's algorithm), the joins whose parts' driving ``motion`` (T, B, 4, 4),
+    rest -> t, agrees best at a common pivot (:func:`pivot_residuals`: thighs that touch but swing apart are not
+    joined), ties broken by the most contact; without a motion, the most contact.
     """
     from scipy.spatial import cKDTree
 
@@ -187,6 +196,13 @@ def part_skeleton(points: np.ndarray, parts: np.ndarray, num_parts: int, *, neig
     np.add.at(midpoint, (a, b), 0.5 * (points[i[cross]] + points[j[cross]]))
     contact_sym = contact + contact.T
     joint_sum = midpoint + np.swapaxes(midpoint, 0, 1)
+    touching = contact_sym > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        joint_mid = joint_sum / contact_sym[..., None]
+    residual = np.zeros((num_parts, num_parts)) if motion is None else pivot_residuals(motion, joint_mid, touching)
+    scale = float(np.ptp(points, axis=0).max()) or 1.0
+    # lower is better: the pivot mismatch in object sizes, then the share of contact
+    cost = residual / scale - 1e-6 * contact_sym / max(float(contact_sym.max()), 1.0)
     size = np.bincount(np.where(parts >= 0, parts, 0), weights=(parts >= 0).astype(float), minlength=num_parts)
     centroid = np.nan_to_num(part_centroids(points, np.where(parts >= 0, parts, 0), num_parts))
     parent = np.full(num_parts, -1)
@@ -198,15 +214,34 @@ def part_skeleton(points: np.ndarray, parts: np.ndarray, num_parts: int, *, neig
             continue
         placed[root] = True
         order.append(int(root))
-        while True:  # Prim: the strongest join from the tree to a part not yet in it
-            gain = np.where(placed[:, None] & ~placed[None, :], contact_sym, 0.0)
-            if gain.max() <= 0:
+        while True:  # Prim: the best join from the tree to a touching part not yet in it
+            open_join = placed[:, None] & ~placed[None, :] & touching
+            if not open_join.any():
                 break
-            p, c = np.unravel_index(int(np.argmax(gain)), gain.shape)
-            parent[c], joint[c] = p, joint_sum[p, c] / contact_sym[p, c]
+            p, c = np.unravel_index(int(np.argmin(np.where(open_join, cost, np.inf))), cost.shape)
+            parent[c], joint[c] = p, joint_mid[p, c]
             placed[c] = True
             order.append(int(c))
     return PartSkeleton(parent, joint, np.asarray(order))
+
+
+def pivot_residuals(motion: np.ndarray, near: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(B, B) RMS over frames of how far apart two parts' motions take their best common pivot [m].
+
+    For each pair (p, c) in ``pairs`` (B, B) bool, the point y minimising sum_t |D_p(t) y - D_c(t) y|^2 (plus a
+    small pull towards ``near[p, c]``, which fixes y along a hinge's axis) is the joint the two motions share;
+    parts joined in the reference agree there at every frame (residual ~0), parts that merely touch do not.
+    """
+    B = motion.shape[1]
+    out = np.full((B, B), np.inf)
+    rot, shift = motion[..., :3, :3], motion[..., :3, 3]
+    for p, c in zip(*np.nonzero(np.triu(pairs, 1))):
+        a, b = rot[:, p] - rot[:, c], shift[:, p] - shift[:, c]  # (T, 3, 3), (T, 3)
+        pull = 1e-3 * len(a)
+        lhs = np.einsum("tji,tjk->ik", a, a) + pull * np.eye(3)
+        y = np.linalg.solve(lhs, pull * near[p, c] - np.einsum("tji,tj->i", a, b))
+        out[p, c] = out[c, p] = float(np.sqrt(np.mean(np.sum((np.einsum("tij,j->ti", a, y) + b) ** 2, axis=1))))
+    return out
 
 
 def articulate(relative: np.ndarray, skeleton: PartSkeleton) -> np.ndarray:

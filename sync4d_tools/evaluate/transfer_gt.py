@@ -40,7 +40,7 @@ from sync4d.geometry import part_centroids, rigid_fit
 from sync4d.registry import build, component, make_config
 from sync4d.run.writer import compute_metrics
 from sync4d.transfer import PAPER, TransferConfig, run_transfer
-from sync4d.transfer.motion import driving_motion, part_skeleton
+from sync4d.transfer.motion import driving_motion
 from sync4d.types import DrivingMotion, PartMap, TargetGaussians, Trajectory
 from sync4d_tools.truth.pairs import PAIRS, TRUTHS, GTPair, load_pair
 
@@ -125,7 +125,7 @@ def pair_motion(pair: GTPair, num_frames: int) -> DrivingMotion:
     means, parts, B = pair.target.means.astype(np.float64), pair.part_map.tgt_part, pair.part_map.num_parts
     return driving_motion(
         pair.reference, target_points=pair.target_vertices, target_faces=pair.target_faces, num_frames=num_frames,
-        loop=False, part_centroids=part_centroids(means, parts, B), skeleton=part_skeleton(means, parts, B),
+        loop=False, part_centroids=part_centroids(means, parts, B), joints_of=(means, parts),
     )
 
 

@@ -163,6 +163,7 @@ class MPMWarp:
         volume: float | np.ndarray | None = None,
         weights: np.ndarray | None = None,
         part: np.ndarray | None = None,
+        parent: np.ndarray | None = None,
     ) -> MPMModel:
         """Build the model of a particle set: fitted grid, masses and volumes, material.
 
@@ -174,6 +175,7 @@ class MPMWarp:
             weights: (P,) shares of the total volume (e.g. Gaussians per control point); uniform if None.
             part: (P,) part of each particle (-1: not driven), or None: the parts the drive holds (``drive``);
                 the material is one continuum, whatever the parts.
+            parent: (B,) the part each part is joined to (-1 for a root), or None (unused for now).
 
         Returns:
             The immutable model.
