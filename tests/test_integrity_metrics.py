@@ -133,3 +133,15 @@ def test_tear_curve_moves_with_the_threshold(body):
     # the same stretch done by the truth: nothing left to count
     truth = np.stack([rest, x, x])
     assert all(v == 0 for v in M.tear_curve(rest, truth, 0.02, truth=truth)["torn_pairs_pct"].values())
+
+
+def test_fragment_gap_without_a_grid_is_two_cells_of_the_default_mpm_grid():
+    """``sim=lbs`` and ``sim=kinematic`` runs are judged with the cell the default ``sim=mpm_warp`` would use on the
+    same shape (not a stale constant of a former default)."""
+    from sync4d.run.writer import fragment_gap
+    from sync4d.sim.mpm_warp import MPMWarp
+
+    rest = np.random.default_rng(0).uniform(0.0, 1.0, (500, 3)) * [0.8, 0.4, 0.2]
+    model = MPMWarp(MPMWarp.Config(), device="cpu").prepare(rest, volume=0.01)
+    assert fragment_gap(rest, None) == 2.0 * model.grid.dx
+    assert fragment_gap(rest, 0.01) == 0.02

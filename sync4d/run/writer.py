@@ -29,6 +29,8 @@ import numpy as np
 from sync4d.geometry import bbox_diagonal, skinned_positions
 from sync4d.run import metrics as M
 from sync4d.sim.deform import deform_gaussians
+from sync4d.sim.mpm_warp import MPMWarp
+from sync4d.sim.physics import fit_grid
 from sync4d.errors import ConfigError
 from sync4d.io.atomic import atomic_save_npz, atomic_write_bytes, atomic_write_json
 from sync4d.io.ply import write_gaussians_ply
@@ -316,17 +318,14 @@ def check_same_config(saved: dict[str, Any] | None, current: dict[str, Any] | No
         raise ConfigError(f"resume={resume}: that run used {shown}{more}; resume with the same overrides")
 
 
-#: Runs without a grid are judged with the cell of the default MPM grid fitted to the same rest shape: 32
-#: nodes over the longest extent padded by a quarter on each side, less 2 x 3 wall nodes and 2 (= 1.5 / 24).
-DEFAULT_CELL_OF_LONGEST = 1.5 / 24.0
-
-
 def fragment_gap(rest: np.ndarray, dx: float | None) -> float:
     """Distance [m] beyond which a piece counts as detached: two cells of the run's grid (``dx`` [m]), or
-    without one (``sim=lbs``, ``sim=kinematic``) of the default grid's, so every method is judged alike."""
+    without one (``sim=lbs``, ``sim=kinematic``) of the grid the default ``sim=mpm_warp`` fits to the same rest
+    shape (its Config's ``n_grid``, ``grid_padding`` and ``wall_cells``), so every method is judged alike."""
     if dx is None:
-        longest = float(np.ptp(np.asarray(rest, dtype=np.float64), axis=0).max())
-        dx = DEFAULT_CELL_OF_LONGEST * (longest if longest > 0 else 1e-3)
+        defaults = MPMWarp.Config()
+        dx = fit_grid(np.asarray(rest, dtype=np.float64), n_grid=defaults.n_grid, padding=defaults.grid_padding,
+                      wall=defaults.wall_cells).dx
     return 2.0 * float(dx)
 
 
