@@ -13,6 +13,9 @@ plus the slowest thread of every parallel section, :class:`_CriticalPath`; for t
 its CPU time), and the ratio of those estimates is printed beside the measured one.
 Also prints the per-substep split P2G / grid / G2P (kernels timed one by one with a device
 synchronisation; the stress is fused into P2G, so it is timed separately with a stress-only kernel).
+The held drive (``sim.drive=complementary``, issue 39) is measured on the same cube cut into 8 octant parts, each
+driven to turn 5 deg about its centroid and shift 1 cm over the rollout: its cost is the ratio of that run to the
+same run without a pose (the drive off), forward and forward+backward, and its kernels' share of a substep.
 
 Usage:
     python benchmarks/mpm.py [--quick] [--json PATH]
@@ -98,32 +101,46 @@ class _CriticalPath:
         Workspace.run = run
 
 
-def _scene(n_particles: int, n_grid: int, checkpoint_every: int | None = None, threads: int | None = None):
+def _scene(n_particles: int, n_grid: int, checkpoint_every: int | None = None, threads: int | None = None,
+           held: bool = False):
+    """The cube; with ``held``, cut into 8 octant parts and the pose that drives them (else None)."""
     import numpy as np
     import torch
 
+    from sync4d.geometry import rotation_about_axis
     from sync4d.sim.mpm_warp import MPMWarp
+    from sync4d.types import FramePose
 
     cfg = MPMWarp.Config(
         E=1e4, nu=0.3, density=1000.0, n_grid=n_grid, checkpoint_every=checkpoint_every, cpu_threads=threads
     )
     sim = MPMWarp(cfg, device="cpu")
     pts = np.random.default_rng(0).uniform(0.0, 0.3, (n_particles, 3))
-    model = sim.prepare(pts, volume=0.3**3)
+    part = ((pts > 0.15).astype(int) * [1, 2, 4]).sum(1)
+    model = sim.prepare(pts, volume=0.3**3, part=part if held else None)
     st = sim.initial_state(model)
     v0 = torch.tensor([1.0, 0.5, 0.0]).repeat(n_particles, 1)
-    return sim, model, st, v0
+    pose = None
+    if held:
+        end = np.tile(np.eye(4), (8, 1, 1))
+        for b in range(8):
+            rot = rotation_about_axis(np.array([0.0, 0.3, 1.0]) / np.hypot(0.3, 1.0), np.array([np.deg2rad(5.0)]))[0]
+            c = pts[part == b].mean(0)
+            end[b, :3, :3], end[b, :3, 3] = rot, c - rot @ c + [0.01, 0.0, 0.0]
+        pose = FramePose(np.tile(np.eye(4), (8, 1, 1)), end)
+    return sim, model, st, v0, pose
 
 
-def run_case(n_particles: int, n_grid: int, mode: str, threads: int | None = None) -> dict:
-    """Time one case in this process; returns one JSON record (``threads`` None: the simulator's default)."""
+def run_case(n_particles: int, n_grid: int, mode: str, threads: int | None = None, held: bool = False) -> dict:
+    """Time one case in this process; returns one JSON record (``threads`` None: the simulator's default;
+    ``held``: the octant parts held to their drive)."""
     import torch
 
     torch.set_num_threads(1)
-    sim, model, st, v0 = _scene(n_particles, n_grid, threads=threads)
+    sim, model, st, v0, pose = _scene(n_particles, n_grid, threads=threads, held=held)
     # warm-up: kernel load and workspace allocation (not timed)
     v = v0.clone().requires_grad_(mode == "fwdbwd")
-    x, *_ = sim.rollout(model, st["x"], v, st["F"], st["C"], substeps=2, dt=DT)
+    x, *_ = sim.rollout(model, st["x"], v, st["F"], st["C"], substeps=2, dt=DT, pose=pose)
     if mode == "fwdbwd":
         x.sum().backward()
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -133,7 +150,7 @@ def run_case(n_particles: int, n_grid: int, mode: str, threads: int | None = Non
     m0 = time.thread_time()
     t0 = time.perf_counter()
     c0 = time.process_time()
-    x, vo, F, C = sim.rollout(model, st["x"], v, st["F"], st["C"], substeps=SUBSTEPS, dt=DT)
+    x, vo, F, C = sim.rollout(model, st["x"], v, st["F"], st["C"], substeps=SUBSTEPS, dt=DT, pose=pose)
     t1 = time.perf_counter()
     if mode == "fwdbwd":
         # a centroid-displacement loss of one half of the cube plus a term on F (all outputs used)
@@ -149,7 +166,7 @@ def run_case(n_particles: int, n_grid: int, mode: str, threads: int | None = Non
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     per_thread = sorted((tc2[t] - tc0.get(t, 0.0) for t in tc2), reverse=True)
     return {
-        "solver": "mpm_warp",
+        "solver": "mpm_warp_held" if held else "mpm_warp",
         "threads": sim.threads_for(n_particles),
         "n_particles": n_particles,
         "n_grid": n_grid,
@@ -172,17 +189,18 @@ def run_case(n_particles: int, n_grid: int, mode: str, threads: int | None = Non
     }
 
 
-def run_split(n_particles: int, n_grid: int) -> dict:
-    """Per-substep kernel times [s] (synchronised after each launch): p2g (incl. stress), grid, g2p, stress."""
+def run_split(n_particles: int, n_grid: int, held: bool = False) -> dict:
+    """Per-substep kernel times [s] (synchronised after each launch): p2g (incl. stress), grid, g2p (with
+    ``held``: G2P and the drive's moments), drive (the correction), stress."""
     import numpy as np
     import warp as wp
 
     from sync4d.sim.mpm_warp import kernels as K
 
-    sim, model, st, v0 = _scene(n_particles, n_grid)
-    sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=2, dt=DT)
+    sim, model, st, v0, pose = _scene(n_particles, n_grid, held=held)
+    sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=2, dt=DT, pose=pose)
     timers: dict[str, float] = {}
-    sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=SUBSTEPS, dt=DT, timers=timers)
+    sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=SUBSTEPS, dt=DT, timers=timers, pose=pose)
     # the stress alone on the same deformation gradients (fused into P2G in the real substep)
     rng = np.random.default_rng(1)
     F = np.eye(3)[None] + 0.05 * rng.normal(size=(n_particles, 3, 3))
@@ -211,16 +229,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="only 50k particles on 64^3, with the reference")
     parser.add_argument("--json", type=Path, help="write the records to this JSON file")
-    parser.add_argument("--case", nargs=4, metavar=("P", "G", "MODE", "THREADS"), help=argparse.SUPPRESS)
-    parser.add_argument("--split", nargs=2, metavar=("P", "G"), help=argparse.SUPPRESS)
+    parser.add_argument("--case", nargs="+", metavar="P G MODE THREADS [held]", help=argparse.SUPPRESS)
+    parser.add_argument("--split", nargs="+", metavar="P G [held]", help=argparse.SUPPRESS)
     args = parser.parse_args()
 
     if args.case:
         threads = None if args.case[3] == "auto" else int(args.case[3])
-        print(json.dumps(run_case(int(args.case[0]), int(args.case[1]), args.case[2], threads)))
+        held = args.case[4:] == ["held"]
+        print(json.dumps(run_case(int(args.case[0]), int(args.case[1]), args.case[2], threads, held)))
         return
     if args.split:
-        print(json.dumps(run_split(int(args.split[0]), int(args.split[1]))))
+        print(json.dumps(run_split(int(args.split[0]), int(args.split[1]), args.split[2:] == ["held"])))
         return
 
     reference = ROOT / "benchmarks" / "mpm_reference.py"
@@ -230,7 +249,8 @@ def main() -> None:
         if solver == "reference":
             rec = _subprocess(["--case", str(n), str(g), mode], script=reference)
         else:
-            rec = _subprocess(["--case", str(n), str(g), mode, threads])
+            held = ["held"] if solver == "mpm_warp_held" else []
+            rec = _subprocess(["--case", str(n), str(g), mode, threads, *held])
         records.append(rec)
         print(
             f"  ran {solver} ({rec['threads']} thr) {n} particles, {g}^3, {mode}: {rec['seconds']:.2f} s wall, "
@@ -244,6 +264,7 @@ def main() -> None:
             if (n, g) == MAIN:
                 run(n, g, mode, "reference")
                 run(n, g, mode, "mpm_warp", "1")
+                run(n, g, mode, "mpm_warp_held")
 
     print(
         f"\nMLS-MPM (Warp {_warp_version()}, cpu, {len(os.sched_getaffinity(0))} cores usable, load average "
@@ -267,8 +288,10 @@ def main() -> None:
         pick = {
             (r["solver"], r["threads"] == 1): r
             for r in records
-            if (r["n_particles"], r["n_grid"]) == MAIN and r["mode"] == mode
+            if (r["n_particles"], r["n_grid"]) == MAIN and r["mode"] == mode and r["solver"] != "mpm_warp_held"
         }
+        held = next(r for r in records if (r["n_particles"], r["n_grid"]) == MAIN and r["mode"] == mode
+                    and r["solver"] == "mpm_warp_held")
         ref, ours, one = pick[("reference", True)], pick.get(("mpm_warp", False)), pick[("mpm_warp", True)]
         ours = ours or one  # a one-core machine: the default is one thread
         wall = ref["seconds"] / ours["seconds"]
@@ -276,6 +299,8 @@ def main() -> None:
         one_wall = ref["seconds"] / one["seconds"]
         idle = _idle(ref) / _idle(ours)
         summary[mode] = {
+            "held_drive_cost_ratio": held["seconds"] / ours["seconds"],
+            "held_drive_cpu_ratio": held["cpu_seconds"] / ours["cpu_seconds"],
             "wall_ratio": wall,
             "cpu_ratio": cpu,
             "one_thread_wall_ratio": one_wall,
@@ -298,6 +323,10 @@ def main() -> None:
             f"          vs issue 4's absolute goal {GOAL[mode] / 1e6:.1f} M/s: "
             f"{ours['particle_substeps_per_s'] / GOAL[mode]:.2f}"
         )
+        print(
+            f"          held drive (8 parts): {held['seconds'] / ours['seconds']:.3f}x the wall time without it, "
+            f"{held['cpu_seconds'] / ours['cpu_seconds']:.3f}x the CPU time (goal <= 1.25x)"
+        )
 
     split = _subprocess(["--split", "50000", "64"])
     total = split["p2g"] + split["grid"] + split["g2p"]
@@ -308,6 +337,12 @@ def main() -> None:
     )
     print(f"  grid update      {1e3 * split['grid']:.2f} ms ({100 * split['grid'] / total:.0f}%)")
     print(f"  G2P              {1e3 * split['g2p']:.2f} ms ({100 * split['g2p'] / total:.0f}%)")
+    held_split = _subprocess(["--split", "50000", "64", "held"])
+    held_total = sum(held_split[k] for k in ("p2g", "grid", "g2p", "drive"))
+    print(
+        f"  with the held drive (8 parts): G2P + moments {1e3 * held_split['g2p']:.2f} ms, correction "
+        f"{1e3 * held_split['drive']:.2f} ms; substep {1e3 * held_total:.2f} ms, {held_total / total:.3f}x"
+    )
 
     if not args.quick:
         agree = _subprocess(["--agree", "10000", "32"], script=reference)
@@ -320,7 +355,9 @@ def main() -> None:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         split_ms = {k: 1e3 * v for k, v in split.items()}
-        out = {"records": records, "split_ms": split_ms, "summary": summary, "load_average": os.getloadavg()[0]}
+        held_ms = {k: 1e3 * v for k, v in held_split.items()}
+        out = {"records": records, "split_ms": split_ms, "held_split_ms": held_ms, "summary": summary,
+               "load_average": os.getloadavg()[0]}
         args.json.write_text(json.dumps(out, indent=2))
         print(f"\nwrote {args.json}")
 
