@@ -36,10 +36,12 @@ def test_cross_driven_by_a_run_fails_frozen_and_torn_targets():
     rows["detached"] = TP.score(scene, G.Trajectory(x=x, F=None, frame_dt=hard.frame_dt), [0.0] * 4)
     shredded = hard.x + np.random.default_rng(0).normal(scale=0.02, size=hard.x.shape) * (np.arange(4) > 0)[:, None, None]
     rows["shredded"] = TP.score(scene, G.Trajectory(x=shredded, F=None, frame_dt=hard.frame_dt), [0.0] * 4)
-    assert not TP.paper_criteria(rows, "frozen")["follow_within_2deg_of_lbs_hard"]
-    assert not TP.paper_criteria(rows, "frozen")["passed"]
+    frozen = TP.paper_criteria(rows, "frozen")
+    assert not frozen["follow_mean_within_3deg"] or not frozen["follow_worst_within_15deg"]
+    assert not frozen["passed"]
     detached = TP.paper_criteria(rows, "detached")
     assert not detached["passed"] and not detached["fragments_zero"]
     shredded = TP.paper_criteria(rows, "shredded")
-    assert not shredded["passed"] and not shredded["strain_below_lbs_hard"]
-    assert not shredded["torn_below_lbs_hard_at_10"] and not shredded["torn_below_lbs_hard_at_30"]
+    assert not shredded["passed"] and not shredded["torn_below_lbs_hard_at_10"]
+    assert rows["lbs_hard"]["strain_p99_max_pct"] <= 5.0 or not shredded["strain_half_of_lbs_hard"]
+    assert TP.paper_criteria(rows, "lbs_hard")["follow_mean_within_3deg"]  # the follow bars can be met

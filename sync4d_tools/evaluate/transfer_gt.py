@@ -306,10 +306,13 @@ def merged(paths: list[str], candidate: str) -> dict[str, Any]:
 
 def write_outputs(out: dict[str, Any], args: argparse.Namespace) -> None:
     """The charts, tables and JSON a run was asked for."""
-    from sync4d_tools.truth.report import markdown_tables, write_charts
+    from sync4d_tools.truth.report import follow_strain_chart, markdown_tables, write_charts
 
     if args.charts:
         out["charts"] = write_charts(out["pairs"], Path(args.charts), prefix="physics_")
+        skinning = {p: r["skinning"] for p, r in out["pairs"].items() if "skinning" in r}
+        out["charts"].append(follow_strain_chart(skinning, Path(args.charts) / "physics_gt_follow_strain.png",
+                                                 "the pairs with a truth (strain against the skinning truth)"))
     if args.table:
         Path(args.table).parent.mkdir(parents=True, exist_ok=True)
         Path(args.table).write_text(markdown_tables(out))

@@ -135,3 +135,40 @@ def write_charts(results: dict[str, dict[str, dict[str, dict[str, Any]]]], folde
     fig.savefig(written[-1], dpi=80)
     plt.close(fig)
     return written
+
+
+def follow_strain_chart(rows: dict[str, dict[str, dict[str, Any]]], path: Path, what: str) -> str:
+    """One panel per scene: follow error (mean, deg) against worst-frame p99 strain (%), a point per method.
+
+    ``rows``: scene -> method -> row (``follow_rotation_deg``, ``strain_p99_max_pct``). The lower left corner is
+    where a method both moves as driven and keeps the shape; the bars of issue 39 are drawn as dashed lines.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(rows)
+    methods = list(dict.fromkeys(m for r in rows.values() for m in r))
+    fig, axes = pair_axes(len(scenes), f"follow error against worst-frame strain: {what}")
+    for ax, scene in zip(axes, scenes):
+        for method, r in rows[scene].items():
+            if r.get("same_as") or r.get("follow_rotation_deg") is None:
+                continue
+            j = methods.index(method)
+            ax.scatter(r["follow_rotation_deg"], r["strain_p99_max_pct"], s=40, color=f"C{j % 10}", alpha=0.85,
+                       edgecolors="k", label=method, marker="os^Dv<>ph*"[j % 10])
+        ax.axvline(3.0, color="0.5", lw=0.8, ls="--")
+        ax.set_title(scene, fontsize=9)
+        ax.set_xlabel("follow error, mean [deg]", fontsize=8)
+        ax.set_ylabel("p99 strain, worst frame [%]", fontsize=8)
+        ax.set_xscale("symlog", linthresh=1)
+        ax.set_yscale("symlog", linthresh=10)
+        ax.grid(alpha=0.3)
+    handles = {h.get_label(): h for ax in axes for h in ax.collections}
+    fig.legend(list(handles.values()), list(handles), fontsize=7, loc="lower right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return str(path)
