@@ -169,7 +169,7 @@ def test_the_drive_removes_the_rigid_part_of_the_velocity_gradient():
 
 def test_with_almost_no_material_the_held_drive_reproduces_sim_kinematic():
     """E -> 0 (1 Pa): the laptop pair moves as ``sim=kinematic`` moves it (each part on its drive's rigid step);
-    what remains is the shared grid at the hinge."""
+    what remains is the shared grid at the hinge (and the motion it starts, which nothing restores at 1 Pa)."""
     from sync4d.geometry import bbox_diagonal
     from sync4d_tools.evaluate import transfer_gt as G
     from sync4d_tools.truth import pairs as P
@@ -179,4 +179,110 @@ def test_with_almost_no_material_the_held_drive_reproduces_sim_kinematic():
     kinematic, _ = G.run_method(pair.target, pair.part_map, G.Method({"type": "kinematic"}), motion, 6)
     soft, _ = G.run_method(pair.target, pair.part_map, G.Method({"type": "mpm_warp", "E": 1.0}), motion, 6)
     gap = np.linalg.norm(soft.x - kinematic.x, axis=-1) / bbox_diagonal(pair.target.means) * 100.0
-    assert gap.mean() < 0.1 and gap.max() < 1.0, (gap.mean(), gap.max())
+    assert gap.mean() < 0.1 and np.percentile(gap, 99) < 1.0, (gap.mean(), np.percentile(gap, 99))
+
+
+# --------------------------------------------------------------------------------------------------
+# the launch that goes with the held drive (transfer.init=drive) and what carries across frames
+# --------------------------------------------------------------------------------------------------
+
+
+def test_drive_launch_apic_matrix_is_its_velocity_gradient():
+    """init=drive: C0 = [w]x is exactly the gradient of the launch velocity field; init=pose's C0 is not when the
+    part lags its pose (the velocity also closes the offset, C0 does not know it)."""
+    from sync4d.transfer.loss import initial_velocity
+
+    rng = np.random.default_rng(0)
+    rest = rng.normal(size=(40, 3)) * 0.1
+    part = np.zeros(40, dtype=int)
+    step = turn_about(rest.mean(0), 25.0, (0.2, 1.0, 0.1))
+    lagging = rest @ turn_about(np.zeros(3), 7.0)[:3, :3].T  # the part trails its pose by 7 deg
+    for mode, consistent in (("drive", True), ("pose", False)):
+        v, C = initial_velocity(lagging, part, step[None], np.zeros((1, 3)), 0.04, mode, rest=rest, pose=step[None])
+        gradient = np.linalg.lstsq(np.c_[lagging, np.ones(40)], v, rcond=None)[0][:3].T  # v is affine in x
+        assert np.allclose(C, gradient[None], atol=1e-6) == consistent, mode
+
+
+def test_screw_launch_strains_less_than_a_chord_launch():
+    """A block turning 30 deg in a frame: launched on the chord (init=rigid) it carries a contraction the drive
+    does not remove; launched as a screw (init=drive) it does not: its end-of-frame strain is about half."""
+    from sync4d.transfer.loss import initial_velocity
+
+    sim = make_sim(E=3e4, n_grid=24)
+    pts = box(1500, 0.0, 0.1)
+    part = np.zeros(1500, dtype=int)
+    model = sim.prepare(pts, volume=1e-3, part=part)
+    end = turn_about(pts.mean(0), 30.0)
+    substeps, dt = sim.substeps_for(model, 3.0, fps=30.0)
+    strain = {}
+    for mode in ("rigid", "drive"):
+        v, C = initial_velocity(pts, part, end[None], np.zeros((1, 3)), substeps * dt, mode)
+        st = sim.initial_state(model)
+        _, _, F, _ = sim.rollout(model, st["x"], torch.tensor(v, dtype=torch.float32), st["F"],
+                                 torch.tensor(C, dtype=torch.float32), substeps=substeps, dt=dt,
+                                 pose=FramePose(np.eye(4)[None], end[None]))
+        strain[mode] = float(np.median(np.abs(np.linalg.svd(F.double().numpy(), compute_uv=False) - 1.0)))
+    assert strain["drive"] < 0.7 * strain["rigid"], strain
+
+
+def test_complementary_motion_keeps_what_the_rig_does_not_control():
+    from sync4d.transfer.loop import complementary_motion
+
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(200, 3))
+    part = (x[:, 0] > 0).astype(int)
+    rigid = np.where(part[:, None] == 0, [0.3, 0.0, -0.1] + np.cross([0.0, 2.0, 0.5], x),
+                     [0.0, 1.0, 0.0] + np.cross([1.0, 0.0, 0.0], x))
+    spin = np.zeros((200, 3, 3))
+    spin[part == 0] = np.array([[0.0, -0.5, 2.0], [0.5, 0.0, 0.0], [-2.0, 0.0, 0.0]])
+    dv, dC = complementary_motion(x, rigid, spin, part, 2)
+    assert np.abs(dv).max() < 1e-9 and np.abs(dC[part == 0]).max() < 1e-9
+    wave = 0.2 * np.sin(3.0 * x[:, :1]) * [0.0, 1.0, 0.0]  # a bending wave: not rigid, kept (less its rigid part)
+    dv, _ = complementary_motion(x, rigid + wave, spin, part, 2)
+    assert np.abs(dv).max() > 0.05
+    again, _ = complementary_motion(x, dv, np.zeros_like(spin), part, 2)
+    np.testing.assert_allclose(again, dv, atol=1e-9)  # a projection: applying it twice changes nothing
+
+
+def test_the_elastic_motion_carries_into_the_next_frame():
+    """With init=drive the second frame starts with the first frame's complementary velocity (it was thrown away
+    every frame before)."""
+    from sync4d.sim.kinematic import Kinematic
+    from sync4d.transfer.loop import ParticleState, Transfer, advance
+    from sync4d.transfer.particles import Particles
+    from sync4d.transfer.config import TransferConfig
+    from sync4d.types import DrivingMotion
+
+    seen = []
+
+    class Recording(Kinematic):
+        def rollout(self, model, x, v, F, C, **kw):
+            seen.append(v.clone())
+            return super().rollout(model, x, v, F, C, **kw)
+
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(60, 3)) * 0.1
+    part = np.zeros(60, dtype=int)
+    sim = Recording(Recording.Config())
+    model = sim.prepare(pts, part=part)
+    motion = DrivingMotion(np.tile(np.eye(4), (3, 1, 1, 1)), np.zeros((2, 1, 3)), np.tile(np.eye(4), (3, 1, 1)),
+                           1.0, 30.0)
+    particles = Particles(points=pts, part=part, volume=np.full(60, 1e-6), gaussian_to_point=np.arange(60),
+                          counts=np.ones(60, dtype=int))
+
+    class NoField:
+        trainable, velocity_scale = False, 1.0
+
+        def __call__(self, x, part):
+            return torch.zeros_like(x)
+
+    transfer = Transfer(sim, model, particles, NoField(), None, TransferConfig(init="drive"), motion, None)  # type: ignore[arg-type]
+    wave = torch.tensor(0.2 * np.sin(30.0 * pts[:, :1]) * [0.0, 1.0, 0.0])
+    state = ParticleState(torch.tensor(pts), torch.eye(3).repeat(60, 1, 1).double(), torch.zeros(60, 3, 3).double(),
+                          wave)
+    advance(transfer, state, 0)
+    from sync4d.transfer.loop import complementary_motion
+
+    kept, _ = complementary_motion(pts, wave.numpy(), np.zeros((60, 3, 3)), part, 1)
+    np.testing.assert_allclose(seen[0].numpy(), kept, atol=1e-9)  # the drive is still: only the carried motion
+    assert np.abs(kept).max() > 0.05

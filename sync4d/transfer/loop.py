@@ -43,11 +43,13 @@ FieldFactory = Callable[..., VelocityField]
 
 @dataclass
 class ParticleState:
-    """The simulated particles between frame pairs (float32): x (P, 3) [m], F (P, 3, 3), C (P, 3, 3) [1/s]."""
+    """The simulated particles between frame pairs (float32): x (P, 3) [m], F (P, 3, 3), C (P, 3, 3) [1/s], and the
+    velocities v (P, 3) [m/s] the last frame ended with (None at rest)."""
 
     x: torch.Tensor
     F: torch.Tensor
     C: torch.Tensor
+    v: torch.Tensor | None = None
 
 
 @dataclass
@@ -158,6 +160,11 @@ def advance(transfer: Transfer, state: ParticleState, t: int) -> tuple[ParticleS
     v0, C0 = initial_velocity(x_np, particles.part, P[t + 1] @ np.linalg.inv(P[t]), motion.part_displacements[t],
                               frame_time, transfer.options.init, rest=particles.points,
                               pose=P[t + 1] @ np.linalg.inv(P[0]))
+    if transfer.options.init == "drive" and state.v is not None:
+        # the drive sets each part's rigid motion anew; what the material was doing besides carries on
+        dv, dC = complementary_motion(x_np, state.v.double().numpy(), state.C.double().numpy(), particles.part,
+                                      transfer.num_parts)
+        v0, C0 = v0 + dv, C0 + dC
     dtype = sim.dtype
     v0_t, C0_t = torch.as_tensor(v0, dtype=dtype), torch.as_tensor(C0, dtype=dtype)
     part_t = torch.as_tensor(particles.part)
@@ -177,7 +184,7 @@ def advance(transfer: Transfer, state: ParticleState, t: int) -> tuple[ParticleS
 
     with deterministic_torch():  # the field's grid_sample backward accumulates from several threads
         losses = optimise_field(transfer, rollout, loss_fn) if transfer.trains else []
-    x1, _, F1, C1 = (a.detach() for a in rollout(False))
+    x1, v1, F1, C1 = (a.detach() for a in rollout(False))
     final = float(loss_fn(x1))
     stats = {
         "loss/displacement": final, "loss/initial": losses[0] if losses else final,
@@ -187,13 +194,35 @@ def advance(transfer: Transfer, state: ParticleState, t: int) -> tuple[ParticleS
     }  # fmt: skip
     log.info("frame %d/%d: loss %.3e -> %.3e in %d iterations, %d substeps, %.1f s", t + 1,
              motion.num_frames - 1, stats["loss/initial"], final, len(losses), substeps, stats["time/frame_s"])
-    return ParticleState(x1, F1, C1), stats
+    return ParticleState(x1, F1, C1, v1), stats
+
+
+def complementary_motion(x: np.ndarray, v: np.ndarray, C: np.ndarray, part: np.ndarray, num_parts: int
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """What (P, 3) velocities [m/s] and (P, 3, 3) APIC matrices [1/s] hold besides each part's rigid motion.
+
+    Per part, the least-squares rigid velocity field a + w x (x - c) (c the part's centroid) is taken off ``v``
+    and its spin [w]x off ``C``: the elastic motion the drive does not control, which carries into the next frame.
+    """
+    dv, dC = v.copy(), C.copy()
+    for b in range(num_parts):
+        idx = np.flatnonzero(part == b)
+        if len(idx) == 0:
+            continue
+        r = x[idx] - x[idx].mean(axis=0)
+        a = v[idx].mean(axis=0)
+        inertia = np.eye(3) * (r * r).sum() - r.T @ r
+        w = np.linalg.lstsq(inertia, np.cross(r, v[idx] - a).sum(axis=0), rcond=1e-9)[0]
+        dv[idx] -= a + np.cross(w, r)
+        dC[idx] -= np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    return dv, dC
 
 
 def checkpoint_of(transfer: Transfer, state: ParticleState) -> dict[str, Any]:
     """Everything a resume needs after a frame: the particles, the field and its optimiser, the RNG states."""
     return {
         "x": state.x.numpy().copy(), "F": state.F.numpy().copy(), "C": state.C.numpy().copy(),
+        "v": None if state.v is None else state.v.numpy().copy(),
         "field": {k: v.clone() for k, v in transfer.velocity_field.state_dict().items()},
         "optimizer": None if transfer.optimizer is None else transfer.optimizer.state_dict(),
         "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
@@ -203,13 +232,14 @@ def checkpoint_of(transfer: Transfer, state: ParticleState) -> dict[str, Any]:
 def restore(transfer: Transfer, saved: dict[str, Any]) -> ParticleState:
     """The state, field, optimiser and RNG states of a checkpoint (:func:`checkpoint_of`)."""
     x, F, C = (torch.as_tensor(saved[k]) for k in ("x", "F", "C"))
+    v = None if saved.get("v") is None else torch.as_tensor(saved["v"])
     transfer.velocity_field.load_state_dict(saved["field"])
     if transfer.optimizer is not None and saved.get("optimizer") is not None:
         transfer.optimizer.load_state_dict(saved["optimizer"])
     torch.set_rng_state(saved["rng"]["torch"])
     np.random.set_state(saved["rng"]["numpy"])
     random.setstate(saved["rng"]["python"])
-    return ParticleState(x, F, C)
+    return ParticleState(x, F, C, v)
 
 
 def run_transfer(
