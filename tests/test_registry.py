@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
 from sync4d import plugins, registry
 from sync4d.errors import ConfigError, PluginImportError, RegistryError
 from sync4d.registry import available, build, register, unregister
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
@@ -78,9 +81,14 @@ def test_failing_plugin_stops_with_its_name(tmp_path):
         plugins.load_plugin_dir(tmp_path)
 
 
-def test_plugin_dir_registers_components(tmp_path):
+def test_plugin_dir_registers_components_and_their_options(tmp_path):
+    """A package in the plugin folder registers its component, and its conf/<group>/<name>.yaml is the option."""
+    from hydra import compose, initialize_config_dir
+
+    from sync4d.config_schemas import register_schemas
+
     good = tmp_path / "good_plugin"
-    good.mkdir()
+    (good / "conf" / "logger").mkdir(parents=True)
     (good / "__init__.py").write_text(
         "from dataclasses import dataclass\n"
         "from sync4d.registry import register\n"
@@ -88,10 +96,17 @@ def test_plugin_dir_registers_components(tmp_path):
         "class L:\n"
         "    @dataclass\n"
         "    class Config:\n"
-        "        pass\n"
+        "        level: int = 1\n"
+        "        name: str = 'plain'\n"
     )
+    (good / "conf" / "logger" / "_from_plugin_dir.yaml").write_text(
+        "defaults:\n  - schema__from_plugin_dir\n  - _self_\ntype: _from_plugin_dir\nlevel: 2\n")
     try:
         assert plugins.load_plugin_dir(tmp_path) == ["good_plugin"]
         assert "_from_plugin_dir" in available("logger")
+        register_schemas()
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            logger = compose(config_name="config", overrides=["logger=_from_plugin_dir", "logger.name=x"]).logger
+        assert (logger.type, logger.level, logger.name) == ("_from_plugin_dir", 2, "x")
     finally:
         unregister("logger", "_from_plugin_dir")
