@@ -110,3 +110,15 @@ def test_plugin_dir_registers_components_and_their_options(tmp_path):
         assert (logger.type, logger.level, logger.name) == ("_from_plugin_dir", 2, "x")
     finally:
         unregister("logger", "_from_plugin_dir")
+
+
+def test_optional_capabilities_are_declared_by_the_builtins():
+    """The capability Protocols of sync4d/interfaces.py say what each built-in can do."""
+    from sync4d.interfaces import BoundedFrames, CheckedTarget, TargetWithSurface, VideoLogger
+    from sync4d.registry import lookup
+
+    assert issubclass(lookup("target", "ply"), CheckedTarget) and not issubclass(lookup("target", "ply"), TargetWithSurface)
+    assert all(issubclass(lookup("target", name), TargetWithSurface) for name in ("shell", "laptop", "cross", "mesh"))
+    assert issubclass(lookup("logger", "tensorboard"), VideoLogger) and not issubclass(lookup("logger", "none"), VideoLogger)
+    assert isinstance(lookup("reference", "video").Config(), BoundedFrames)
+    assert not isinstance(lookup("reference", "laptop").Config(), BoundedFrames)

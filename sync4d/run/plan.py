@@ -21,6 +21,7 @@ from typing import Any, Literal
 from omegaconf import DictConfig, OmegaConf
 
 from sync4d.errors import ConfigError
+from sync4d.interfaces import BoundedFrames
 from sync4d.match import MatchConfig
 from sync4d.registry import GROUPS, Component, available, component, lookup, plain_dict, typed_config
 from sync4d.transfer.config import TransferConfig
@@ -152,7 +153,7 @@ def check_device(device: str) -> None:
 def bound_reference_frames(reference: Component, frames: int) -> Component:
     """A reference that reads frames from a file (``max_frames`` 0 = all) reads, and so reconstructs, only the
     ``frames`` the run uses; a ``max_frames`` the user set wins. The log says which key bounds it."""
-    if getattr(reference.config, "max_frames", None) != 0:
+    if not isinstance(reference.config, BoundedFrames) or reference.config.max_frames != 0:
         return reference
     log.info("reference=%s: reconstructing the first %d frames, the ones the run uses (frames=%d); set "
              "reference.max_frames to reconstruct more", reference.name, frames, frames)

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from sync4d.errors import ConfigError, DataMissingError, InputError
-from sync4d.scenes.floaters import FloaterConfig, FloaterReport, remove_floaters
+from sync4d.scenes.floaters import FloaterConfig, remove_floaters
 from sync4d.io.mesh import load_mesh, mesh_to_gaussians
 from sync4d.io.ply import read_gaussians_ply
 from sync4d.registry import register
 from sync4d.scenes.laptop import laptop_mesh
-from sync4d.types import TargetGaussians
+from sync4d.types import FloaterReport, TargetGaussians
 
 
 #: Fewest Gaussians a target can have: matching aligns shapes by their principal axes and the simulation
@@ -126,7 +126,7 @@ class MeshTarget:
 class PlyTarget:
     """A trained or generated 3D Gaussian Splatting ``.ply`` (Inria layout), floaters removed.
 
-    :meth:`load_checked` also returns what floater removal did (:class:`sync4d.scenes.floaters.FloaterReport`),
+    :meth:`load_checked` also returns what floater removal did (:class:`sync4d.types.FloaterReport`),
     for the run's log and metrics.
     """
 
@@ -139,9 +139,6 @@ class PlyTarget:
     def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
         self.config, self.seed = config, seed
         config.floaters.validate()
-
-    def surface(self) -> None:
-        return None
 
     def load_checked(self) -> tuple[TargetGaussians, FloaterReport | None]:
         """The splat without its floaters, and the removal's report (None when removal is off)."""
