@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from sync4d.geometry import SH_C0, quat_to_matrix
+from sync4d.geometry import SH_C0, gaussian_covariances
 
 from sync4d.errors import InputError
 
@@ -264,9 +264,7 @@ class TargetGaussians:
 
     def covariances(self) -> np.ndarray:
         """(N, 3, 3) world covariances R S S R^T [m^2]."""
-        rot = quat_to_matrix(self.quats)
-        scaled = rot * self.scales[:, None, :]
-        return scaled @ np.swapaxes(scaled, 1, 2)
+        return gaussian_covariances(self.scales, self.quats)
 
     def colors(self) -> np.ndarray:
         """(N, 3) view-independent RGB in [0, 1] from the DC term."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -11,6 +11,7 @@ from sync4d.errors import ConfigError, DataMissingError, InputError
 from sync4d.scenes.floaters import FloaterConfig, remove_floaters
 from sync4d.io.mesh import load_mesh, mesh_to_gaussians
 from sync4d.io.ply import read_gaussians_ply
+from sync4d.paths import resolve_path
 from sync4d.registry import register
 from sync4d.scenes.laptop import laptop_mesh
 from sync4d.types import FloaterReport, TargetGaussians
@@ -33,16 +34,7 @@ def check_target_extent(means: np.ndarray, label: str) -> None:
                          "a target needs a surface or a volume")
 
 
-def resolve_data_path(path: str) -> Path:
-    """Resolve a data path relative to the current folder or the project root (Hydra keeps cwd)."""
-    candidate = Path(path).expanduser()
-    if candidate.exists() or candidate.is_absolute():
-        return candidate
-    root = Path(__file__).resolve().parents[2]
-    return root / candidate
-
-
-def fit_to_size(vertices: np.ndarray, size: float | None, up_axis: str) -> np.ndarray:
+def fit_to_size(vertices: np.ndarray, size: float | None, up_axis: Literal["y", "z"]) -> np.ndarray:
     """Re-orient a mesh to Y-up, centre its footprint at the origin with its bottom at y = 0, and scale
     its bounding-box diagonal to ``size`` [m] (None keeps the file's units)."""
     v = np.asarray(vertices, dtype=np.float64)
@@ -98,16 +90,16 @@ class MeshTarget:
     class Config:
         path: str = "???"              # mesh file
         size: float | None = 0.4       # bounding-box diagonal after loading [m]; null keeps file units
-        up_axis: str = "y"             # the file's up axis: y or z
+        up_axis: Literal["y", "z"] = "y"  # the file's up axis
         num_surface: int = 3000
         num_interior: int = 1500
         color: list[float] = field(default_factory=lambda: [0.75, 0.7, 0.65])
 
     def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
         self.config, self.seed = config, seed
-        path = resolve_data_path(config.path)
+        path = resolve_path(config.path, what="target.path: mesh file")
         if not path.is_file():
-            raise DataMissingError(f"target.path={config.path}: mesh file not found (looked at {path})")
+            raise DataMissingError(f"target.path={config.path}: {path} is not a mesh file")
         vertices, self.faces, self.colors = load_mesh(path)
         self.vertices = fit_to_size(vertices, config.size, config.up_axis)
         self.name = path.stem
@@ -142,9 +134,9 @@ class PlyTarget:
 
     def load_checked(self) -> tuple[TargetGaussians, FloaterReport | None]:
         """The splat without its floaters, and the removal's report (None when removal is off)."""
-        path = resolve_data_path(self.config.path)
+        path = resolve_path(self.config.path, what="target.path: .ply file")
         if not path.is_file():
-            raise DataMissingError(f"target.path={self.config.path}: .ply file not found (looked at {path})")
+            raise DataMissingError(f"target.path={self.config.path}: {path} is not a .ply file")
         gaussians = read_gaussians_ply(path)
         check_target_extent(gaussians.means, str(path))
         keep, report = remove_floaters(gaussians.means, self.config.floaters, source=str(path))
