@@ -82,7 +82,8 @@ def test_failing_plugin_stops_with_its_name(tmp_path):
 
 
 def test_plugin_dir_registers_components_and_their_options(tmp_path):
-    """A package in the plugin folder registers its component, and its conf/<group>/<name>.yaml is the option."""
+    """A package in the plugin folder registers its components; its conf/<group>/<name>.yaml is an option, and a
+    component without one is selectable as its schema."""
     from hydra import compose, initialize_config_dir
 
     from sync4d.config_schemas import register_schemas
@@ -98,6 +99,11 @@ def test_plugin_dir_registers_components_and_their_options(tmp_path):
         "    class Config:\n"
         "        level: int = 1\n"
         "        name: str = 'plain'\n"
+        "@register('logger', '_without_yaml')\n"
+        "class Bare:\n"
+        "    @dataclass\n"
+        "    class Config:\n"
+        "        level: int = 1\n"
     )
     (good / "conf" / "logger" / "_from_plugin_dir.yaml").write_text(
         "defaults:\n  - schema__from_plugin_dir\n  - _self_\ntype: _from_plugin_dir\nlevel: 2\n")
@@ -107,9 +113,12 @@ def test_plugin_dir_registers_components_and_their_options(tmp_path):
         register_schemas()
         with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
             logger = compose(config_name="config", overrides=["logger=_from_plugin_dir", "logger.name=x"]).logger
+            bare = compose(config_name="config", overrides=["logger=_without_yaml"]).logger  # its schema alone
         assert (logger.type, logger.level, logger.name) == ("_from_plugin_dir", 2, "x")
+        assert (bare.type, bare.level) == ("_without_yaml", 1)
     finally:
         unregister("logger", "_from_plugin_dir")
+        unregister("logger", "_without_yaml")
 
 
 def test_optional_capabilities_are_declared_by_the_builtins():
