@@ -7,7 +7,7 @@ import re
 import sys
 from pathlib import Path
 
-from sync4d.registry import GROUPS
+from sync4d.registry import GROUPS, available
 
 CONFIG_GROUPS = (*GROUPS, "experiment", "debug")
 
@@ -16,6 +16,13 @@ def group_options(conf_dir: Path, group: str) -> list[str]:
     """Names of the YAML options of a config group folder."""
     folder = conf_dir / group
     return sorted(p.stem for p in folder.glob("*.yaml")) if folder.is_dir() else []
+
+
+def choices(conf_dir: Path, group: str) -> list[str]:
+    """What ``group=<name>`` may select: the group's YAML options and, for a registry group, every registered
+    component (a plugin's options come with it: :mod:`sync4d.config_schemas`)."""
+    registered = available(group) if group in GROUPS else []
+    return sorted({*group_options(conf_dir, group), *registered})
 
 
 def check_group_choices(argv: list[str], conf_dir: Path) -> None:
@@ -31,7 +38,7 @@ def check_group_choices(argv: list[str], conf_dir: Path) -> None:
         group = key.lstrip("+~")
         if group not in CONFIG_GROUPS or value in ("", "null"):
             continue
-        options = group_options(conf_dir, group)
+        options = choices(conf_dir, group)
         for choice in value.split(","):
             if choice not in options:
                 print(f"sync4d: unknown {group} '{choice}'; available: {', '.join(options)}", file=sys.stderr)

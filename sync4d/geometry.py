@@ -40,6 +40,12 @@ def quat_to_matrix(quats: np.ndarray) -> np.ndarray:
     )
 
 
+def gaussian_covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) covariances Sigma = R S S R^T [m^2] from per-axis scales (N, 3) [m] and wxyz quaternions (N, 4)."""
+    scaled = quat_to_matrix(quats) * np.asarray(scales, dtype=np.float64)[:, None, :]
+    return scaled @ np.swapaxes(scaled, 1, 2)
+
+
 def matrix_to_quat(mats: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotation matrices -> (N, 4) wxyz unit quaternions with w >= 0 (float64)."""
     m = np.asarray(mats, dtype=np.float64)

@@ -3,18 +3,24 @@
 Every component is built as ``cls(config, **deps)`` by :func:`sync4d.registry.build`; the keyword
 dependencies each group receives are listed below. ``device`` is always the config's ``device`` value
 (``cpu``, ``cuda``); map it with :mod:`sync4d.device`.
+
+An optional capability is a Protocol of its own, checked with ``isinstance`` where it is used (a target with
+a surface mesh, a target that checks what it loads, a logger that takes videos, a reference read from a file
+with a frame bound), never by probing for an attribute's name.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Any, Protocol
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
 from sync4d.types import (
     Camera,
+    FloaterReport,
     FramePose,
     Reference,
     ReferenceInput,
@@ -28,6 +34,13 @@ class ReferenceSource(Protocol):
     def load(self) -> ReferenceInput: ...
 
 
+@runtime_checkable
+class BoundedFrames(Protocol):
+    """Capability of a ``reference`` Config that reads frames from a file: ``max_frames`` of them (0 = all)."""
+
+    max_frames: int
+
+
 class Reconstructor(Protocol):
     """Group ``recon``: built with ``(config, device=...)``; turns the input into an articulated reference."""
 
@@ -38,6 +51,25 @@ class TargetSource(Protocol):
     """Group ``target``: built with ``(config, device=..., seed=...)``; loads or makes the static target."""
 
     def load(self) -> TargetGaussians: ...
+
+
+@runtime_checkable
+class TargetWithSurface(Protocol):
+    """Capability of a target made from a mesh: matching and motion use the mesh instead of a sample of the
+    Gaussians' centres (:func:`sync4d.surface.target_surface`)."""
+
+    def surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """(V, 3) vertices [m] and (F, 3) triangle faces."""
+        ...
+
+
+@runtime_checkable
+class CheckedTarget(Protocol):
+    """Capability of a target that checks what it loads (a splat's floaters removed) and reports it."""
+
+    def load_checked(self) -> tuple[TargetGaussians, FloaterReport | None]:
+        """The Gaussians, and what the check removed (None when the check is off)."""
+        ...
 
 
 class FeatureExtractor(Protocol):
@@ -121,6 +153,15 @@ class Logger(Protocol):
     def hparams(self, params: dict[str, Any], metrics: dict[str, float]) -> None: ...
 
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class VideoLogger(Protocol):
+    """Capability of a logger that shows clips (TensorBoard: the animated GIF as an image)."""
+
+    def video(self, tag: str, frames: np.ndarray, fps: float, step: int = 0, *, gif_path: Path | None = None) -> None:
+        """Log (T, H, W, 3) uint8 ``frames`` shown at ``fps`` [1/s]; also write them as a GIF to ``gif_path``."""
+        ...
 
 
 class Renderer(Protocol):

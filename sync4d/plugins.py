@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from sync4d.errors import PluginImportError
+from sync4d.paths import PROJECT_ROOT
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +30,7 @@ BUILTIN_PACKAGES: tuple[str, ...] = (
     "sync4d.loggers",
 )
 ENTRY_POINT_GROUP = "sync4d.plugins"
-PLUGINS_DIR = Path(__file__).resolve().parent.parent / "plugins"
+PLUGINS_DIR = PROJECT_ROOT / "plugins"
 
 
 def _import_package_tree(package_name: str) -> None:

@@ -21,7 +21,7 @@ import types
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, Protocol, TypeVar, runtime_checkable
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, OmegaConfBaseException, ValidationError
@@ -33,6 +33,13 @@ GROUPS: tuple[str, ...] = ("reference", "recon", "features", "target", "sim", "v
 _REGISTRY: dict[str, dict[str, type]] = {group: {} for group in GROUPS}
 
 T = TypeVar("T", bound=type)
+
+
+@runtime_checkable
+class CheckedConfig(Protocol):
+    """Capability of a ``Config`` that checks its values beyond their types (raises ConfigError naming the key)."""
+
+    def validate(self) -> None: ...
 
 
 def register(group: str, name: str) -> Callable[[T], T]:
@@ -98,9 +105,8 @@ def make_config(group: str, cfg: Mapping[str, Any] | DictConfig) -> tuple[type, 
         raise ConfigError(f"{group}: config has no 'type' key; set {group}=<one of {', '.join(available(group))}>")
     cls = lookup(group, str(name))
     typed = typed_config(cls.Config, values, where=f"{group}", label=f"{group}={name}")  # type: ignore[attr-defined]
-    check = getattr(typed, "validate", None)
-    if callable(check):
-        check()
+    if isinstance(typed, CheckedConfig):
+        typed.validate()
     return cls, typed
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sync4d.interfaces import TargetWithSurface
 from sync4d.types import TargetGaussians
 
 #: Surface points handed to matching for a target without a mesh (``match_parts``'s own bound).
@@ -107,8 +108,6 @@ def target_surface(target: TargetGaussians, source: object) -> tuple[np.ndarray,
     """The target's surface for matching and motion: its source's mesh (vertices (V, 3) [m], faces (F, 3))
     when it has one, else a bounded, evenly spread sample of its opaque Gaussian centres (at most
     ``SURFACE_POINTS``, however many Gaussians) and no faces."""
-    surface = getattr(source, "surface", None)
-    mesh = surface() if callable(surface) else None
-    if mesh is None:
-        return splat_surface(target.means, target.opacities), None
-    return mesh
+    if isinstance(source, TargetWithSurface):
+        return source.surface()
+    return splat_surface(target.means, target.opacities), None

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from sync4d.geometry import SH_C0, quat_to_matrix
+from sync4d.geometry import SH_C0, gaussian_covariances
 
 from sync4d.errors import InputError
 
@@ -264,9 +264,7 @@ class TargetGaussians:
 
     def covariances(self) -> np.ndarray:
         """(N, 3, 3) world covariances R S S R^T [m^2]."""
-        rot = quat_to_matrix(self.quats)
-        scaled = rot * self.scales[:, None, :]
-        return scaled @ np.swapaxes(scaled, 1, 2)
+        return gaussian_covariances(self.scales, self.quats)
 
     def colors(self) -> np.ndarray:
         """(N, 3) view-independent RGB in [0, 1] from the DC term."""
@@ -516,3 +514,39 @@ class FramePose:
         check_array("FramePose", "start", self.start, ("B", 4, 4), dims)
         check_array("FramePose", "end", self.end, ("B", 4, 4), dims)
         return self
+
+
+@dataclass(frozen=True)
+class FloaterReport:
+    """What floater removal did (logged and written to the run's metrics).
+
+    Attributes:
+        total: Gaussians given.
+        removed_far: removed by the distance test.
+        removed_sparse: removed by the density test.
+        removed_clusters: removed as small disconnected pieces.
+        cell: voxel side of the density and connectivity tests [m].
+        kept_box: (2, 3) bounding box of the kept centres [m] (the robust extent).
+        removed_box: (2, 3) bounding box of the removed centres [m], or None when none was removed.
+    """
+
+    total: int
+    removed_far: int
+    removed_sparse: int
+    removed_clusters: int
+    cell: float
+    kept_box: np.ndarray
+    removed_box: np.ndarray | None
+
+    @property
+    def removed(self) -> int:
+        return self.removed_far + self.removed_sparse + self.removed_clusters
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready summary."""
+        return {
+            "total": self.total, "removed": self.removed, "removed_far": self.removed_far,
+            "removed_sparse": self.removed_sparse, "removed_clusters": self.removed_clusters, "cell_m": self.cell,
+            "kept_box_m": self.kept_box.tolist(),
+            "removed_box_m": None if self.removed_box is None else self.removed_box.tolist(),
+        }  # fmt: skip

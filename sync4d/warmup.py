@@ -11,10 +11,10 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from pathlib import Path
 from typing import Sequence
 
-ROOT = Path(__file__).resolve().parent.parent
+from sync4d.paths import PROJECT_ROOT
+
 KERNEL_MODULES: tuple[str, ...] = ("sync4d.sim.mpm_warp.kernels",)
 
 
@@ -24,7 +24,7 @@ def warm(device: str = "cpu", modules: Sequence[str] = KERNEL_MODULES) -> float:
     Returns:
         wall time [s] (seconds on a cold cache, well under one on a warm one).
     """
-    os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".warp_cache"))
+    os.environ.setdefault("WARP_CACHE_PATH", str(PROJECT_ROOT / ".warp_cache"))
     import importlib
 
     from sync4d.device import warp_device

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sync4d.errors import InputError
-from sync4d.scenes.floaters import FloaterConfig, find_floaters, remove_floaters
+from sync4d.sources.floaters import FloaterConfig, find_floaters, remove_floaters
 
 
 def shell(n: int, seed: int = 0) -> np.ndarray:
@@ -59,7 +59,7 @@ def test_almost_nothing_left_is_a_one_line_error():
 
 def test_ply_target_removes_floaters_and_reports(tmp_path):
     from sync4d.io.ply import write_gaussians_ply
-    from sync4d.scenes.targets import PlyTarget
+    from sync4d.sources.targets import PlyTarget
     from sync4d.types import TargetGaussians
 
     pts = np.concatenate([shell(2000), [[1e4, 0.0, 0.0]]]).astype(np.float32)

@@ -220,3 +220,43 @@ def test_only_the_plan_reads_the_raw_config():
              for n, line in enumerate(path.read_text().splitlines(), 1)
              if re.search(r"\bcfg\.", line) and path.relative_to(LIBRARY).as_posix() != "run/plan.py"]
     assert not reads, reads
+
+
+# ---------------------------------------------------------------------------------------------- capabilities
+
+#: Files being rewritten (issue 43); their probes go with the rewrite. Paths under sync4d/, a folder ends in /.
+PROBES_PENDING = ("sim/", "transfer/", "run/metrics.py", "run/writer.py", "run/pipeline.py")
+#: The registry checks that what it registers has a ``Config``: the one requirement it enforces by name.
+PROBES_ALLOWED = {("registry.py", "Config")}
+
+
+def capability_probes(path: Path) -> list[tuple[str, int, str]]:
+    """Probes in one file, as (path, line, the name asked for): every ``hasattr``, every ``getattr`` with a
+    default, and ``getattr`` of a literal name (``getattr(config, field.name)`` over a dataclass's fields is
+    reading, not probing)."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and len(node.args) >= 2):
+            continue
+        name = node.args[1].value if isinstance(node.args[1], ast.Constant) else ast.unparse(node.args[1])
+        if node.func.id == "hasattr" or (node.func.id == "getattr" and (
+                len(node.args) == 3 or isinstance(node.args[1], ast.Constant))):
+            found.append((path.relative_to(LIBRARY).as_posix(), node.lineno, str(name)))
+    return found
+
+
+def test_capabilities_are_declared_not_probed():
+    """An optional capability is a Protocol in sync4d/interfaces.py checked with ``isinstance``; asking an object
+    whether it has an attribute of some name (``hasattr``, ``getattr`` with a default) is not how the library
+    finds out what a component can do. A value's kind is asked with ``isinstance`` too."""
+    probes = [f"{file}:{line} {kind}" for path in sorted(LIBRARY.rglob("*.py"))
+              for file, line, kind in capability_probes(path)
+              if not file.startswith(PROBES_PENDING) and (file, kind) not in PROBES_ALLOWED]
+    assert not probes, f"probes of a capability by name (declare a Protocol in sync4d/interfaces.py): {probes}"
+
+
+def test_the_pending_probes_are_listed():
+    """What the rewrite of the files in PROBES_PENDING still has to replace (printed with ``pytest -s``)."""
+    pending = [f"{file}:{line} {kind}" for path in sorted(LIBRARY.rglob("*.py"))
+               for file, line, kind in capability_probes(path) if file.startswith(PROBES_PENDING)]
+    print("probes left in files being rewritten:", *pending, sep="\n  ")

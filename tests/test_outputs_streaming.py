@@ -23,7 +23,8 @@ from sync4d.transfer.motion import driving_motion
 from sync4d.run.writer import FrameWriter, compute_metrics
 from sync4d.run.exports import sequence_gaussians
 from sync4d.scenes.laptop import laptop_mesh, laptop_reference
-from sync4d.sim.control import carry_gaussians, control_of, gaussian_covariances, gaussian_trajectory
+from sync4d.geometry import gaussian_covariances
+from sync4d.sim.control import carry_gaussians, control_of, gaussian_trajectory
 from sync4d.registry import component
 from sync4d.sim.mpm_warp import MPMWarp
 from sync4d.transfer import TransferConfig, run_transfer

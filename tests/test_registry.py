@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
 from sync4d import plugins, registry
 from sync4d.errors import ConfigError, PluginImportError, RegistryError
 from sync4d.registry import available, build, register, unregister
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
@@ -78,9 +81,15 @@ def test_failing_plugin_stops_with_its_name(tmp_path):
         plugins.load_plugin_dir(tmp_path)
 
 
-def test_plugin_dir_registers_components(tmp_path):
+def test_plugin_dir_registers_components_and_their_options(tmp_path):
+    """A package in the plugin folder registers its components; its conf/<group>/<name>.yaml is an option, and a
+    component without one is selectable as its schema."""
+    from hydra import compose, initialize_config_dir
+
+    from sync4d.config_schemas import register_schemas
+
     good = tmp_path / "good_plugin"
-    good.mkdir()
+    (good / "conf" / "logger").mkdir(parents=True)
     (good / "__init__.py").write_text(
         "from dataclasses import dataclass\n"
         "from sync4d.registry import register\n"
@@ -88,10 +97,37 @@ def test_plugin_dir_registers_components(tmp_path):
         "class L:\n"
         "    @dataclass\n"
         "    class Config:\n"
-        "        pass\n"
+        "        level: int = 1\n"
+        "        name: str = 'plain'\n"
+        "@register('logger', '_without_yaml')\n"
+        "class Bare:\n"
+        "    @dataclass\n"
+        "    class Config:\n"
+        "        level: int = 1\n"
     )
+    (good / "conf" / "logger" / "_from_plugin_dir.yaml").write_text(
+        "defaults:\n  - schema__from_plugin_dir\n  - _self_\ntype: _from_plugin_dir\nlevel: 2\n")
     try:
         assert plugins.load_plugin_dir(tmp_path) == ["good_plugin"]
         assert "_from_plugin_dir" in available("logger")
+        register_schemas()
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            logger = compose(config_name="config", overrides=["logger=_from_plugin_dir", "logger.name=x"]).logger
+            bare = compose(config_name="config", overrides=["logger=_without_yaml"]).logger  # its schema alone
+        assert (logger.type, logger.level, logger.name) == ("_from_plugin_dir", 2, "x")
+        assert (bare.type, bare.level) == ("_without_yaml", 1)
     finally:
         unregister("logger", "_from_plugin_dir")
+        unregister("logger", "_without_yaml")
+
+
+def test_optional_capabilities_are_declared_by_the_builtins():
+    """The capability Protocols of sync4d/interfaces.py say what each built-in can do."""
+    from sync4d.interfaces import BoundedFrames, CheckedTarget, TargetWithSurface, VideoLogger
+    from sync4d.registry import lookup
+
+    assert issubclass(lookup("target", "ply"), CheckedTarget) and not issubclass(lookup("target", "ply"), TargetWithSurface)
+    assert all(issubclass(lookup("target", name), TargetWithSurface) for name in ("shell", "laptop", "cross", "mesh"))
+    assert issubclass(lookup("logger", "tensorboard"), VideoLogger) and not issubclass(lookup("logger", "none"), VideoLogger)
+    assert isinstance(lookup("reference", "video").Config(), BoundedFrames)
+    assert not isinstance(lookup("reference", "laptop").Config(), BoundedFrames)

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from sync4d.errors import ConfigError
-from sync4d.sim.control import carry_gaussians, gaussian_covariances, make_control_points
+from sync4d.geometry import gaussian_covariances
+from sync4d.sim.control import carry_gaussians, make_control_points
 from sync4d.transfer.particles import make_particles
 from sync4d.types import PartMap
 

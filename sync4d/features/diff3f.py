@@ -131,7 +131,7 @@ class Dinov2Backbone:
         os.environ["HF_HUB_OFFLINE"] = "1"  # belt and braces: never reach the network
         self.model = AutoModel.from_pretrained(str(folder), local_files_only=True).to(device).eval()
         self.device = device
-        self.patch = int(getattr(self.model.config, "patch_size", 14))
+        self.patch = int(self.model.config.patch_size)  # 14 for DINOv2
 
     @torch.no_grad()
     def __call__(self, images: torch.Tensor) -> torch.Tensor:

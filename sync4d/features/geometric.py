@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -44,13 +45,13 @@ class GeometricFeatures:
         hks_weight: float = 0.2        # weight of the HKS block (block has mean squared row norm 1)
         wks_weight: float = 0.2        # weight of the WKS block
         xyz_weight: float = 1.0        # weight of the coordinate block
-        xyz_encoding: str = "fourier"  # fourier: random Fourier features (cosine ~ Gaussian kernel) | raw
+        xyz_encoding: Literal["fourier", "raw"] = "fourier"  # fourier: random Fourier features (cosine ~ Gaussian kernel) | raw
         xyz_bandwidth: float = 0.15    # Fourier kernel width, in units of the shape's RMS radius
         xyz_dims: int = 512            # Fourier feature count per scale (few dims = noisy kernel)
         xyz_scales: int = 1            # Fourier octaves: bandwidths h, h/2, h/4, ... (multi-scale kernel)
         normalize_xyz: bool = False    # re-centre/scale coordinates here (sync4d.match already does it)
         n_neighbors: int = 30          # neighbours of the point-cloud Laplacian (no faces)
-        laplacian: str = "auto"        # auto: mesh if connected, else point cloud | mesh | point_cloud
+        laplacian: Literal["auto", "mesh", "point_cloud"] = "auto"  # auto: mesh if connected, else point cloud | mesh | point_cloud
         seed: int = 0                  # Fourier projection seed (shared by reference and target)
 
         def validate(self) -> None:
@@ -60,10 +61,6 @@ class GeometricFeatures:
                 raise ConfigError("features.*_weight: weights must be >= 0")
             if self.hks_weight + self.wks_weight + self.xyz_weight <= 0:
                 raise ConfigError("features: all block weights are 0; set hks_weight, wks_weight or xyz_weight > 0")
-            if self.xyz_encoding not in ("fourier", "raw"):
-                raise ConfigError(f"features.xyz_encoding={self.xyz_encoding!r}: use 'fourier' or 'raw'")
-            if self.laplacian not in ("auto", "mesh", "point_cloud"):
-                raise ConfigError(f"features.laplacian={self.laplacian!r}: use auto, mesh or point_cloud")
             if self.xyz_scales < 1:
                 raise ConfigError(f"features.xyz_scales={self.xyz_scales}: must be >= 1")
             if self.xyz_bandwidth <= 0:

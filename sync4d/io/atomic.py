@@ -13,6 +13,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], object]) -> Path:
     """Call ``write(tmp_path)`` (its return value is ignored) then rename the temporary file onto ``path``.
@@ -72,6 +74,6 @@ def _nan_to_none(obj: Any) -> Any:
         return {k: _nan_to_none(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_nan_to_none(v) for v in obj]
-    if hasattr(obj, "item") and hasattr(obj, "ndim") and obj.ndim == 0:
+    if isinstance(obj, (np.generic, np.ndarray)) and obj.ndim == 0:
         return _nan_to_none(obj.item())
     return obj

@@ -45,8 +45,8 @@ def load_mesh(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.
                          "vertices); give a mesh with a real surface")
     colors = None
     visual = loaded.visual
-    if getattr(visual, "kind", None) == "vertex":
-        rgba = np.asarray(getattr(visual, "vertex_colors"), dtype=np.float64)
+    if isinstance(visual, trimesh.visual.ColorVisuals) and visual.kind == "vertex":
+        rgba = np.asarray(visual.vertex_colors, dtype=np.float64)
         if rgba.shape[0] == len(vertices) and np.ptp(rgba[:, :3]) > 0:
             colors = rgba[:, :3] / 255.0
     return vertices, faces, colors

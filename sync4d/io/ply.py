@@ -33,7 +33,7 @@ REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "
 #: Inclusive (low, high) bounds of values a real splat can hold, per property prefix, and why.
 #: exp(+-80) is near the float32 range (exp(88.7) overflows, exp(-87) is subnormal); a logit of 100 is
 #: an opacity of 1 - 4e-44; 1e6 m is 1000 km (a floater farther than that is a corrupt file, and nearer
-#: ones are found by :mod:`sync4d.scenes.floaters`).
+#: ones are found by :mod:`sync4d.sources.floaters`).
 LIMITS: dict[str, tuple[float, float, str]] = {
     "scale_": (-80.0, 80.0, "a log standard deviation: exp() of it leaves the float32 range"),
     "opacity": (-100.0, 100.0, "an opacity logit"),

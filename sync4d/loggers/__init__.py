@@ -1,1 +1,2 @@
-"""sync4d.loggers: see the modules in this package."""
+"""Run loggers (group ``logger``): TensorBoard event files (scalars, images, the compare clip as an animated
+GIF, hyper-parameters) or nothing."""

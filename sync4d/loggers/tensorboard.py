@@ -39,6 +39,12 @@ class TensorBoardLogger:
             img = (np.clip(img, 0, 1) * 255).astype(np.uint8)
         self.writer.add_image(tag, img, step, dataformats="HWC")
 
+    def video(self, tag: str, frames: np.ndarray, fps: float, step: int = 0, *, gif_path: Path | None = None) -> None:
+        """Log (T, H, W, 3) frames as an animated GIF (TensorBoard's image panel plays it) and a strip of frames."""
+        from sync4d.render.video import log_gif_tensorboard
+
+        log_gif_tensorboard(self.writer, tag, frames, step, fps=fps, gif_path=gif_path)
+
     def hparams(self, params: dict[str, Any], metrics: dict[str, float]) -> None:
         clean = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in params.items()}
         finite = {f"hparam/{k}": float(v) for k, v in metrics.items() if isinstance(v, (int, float)) and np.isfinite(v)}

@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from dataclasses import dataclass, field
 from typing import Literal
 
 from sync4d.errors import ConfigError
 from sync4d.match.structure import StructureConfig
+from sync4d.registry import literal_options
 
-BOX_FRAMES: tuple[str, ...] = ("aligned", "pca")
-TIE_BREAKS: tuple[str, ...] = ("centroid", "nearest_vertex")
-METHODS: tuple[str, ...] = ("auto", "features", "structure")
+#: The option sets, each written once: the fields below are typed with them, the tuples are read from them.
+Method = Literal["auto", "features", "structure"]
+TieBreak = Literal["centroid", "nearest_vertex"]
+BoxFrame = Literal["aligned", "pca"]
+BOX_FRAMES: tuple[str, ...] = typing.get_args(BoxFrame)
+TIE_BREAKS: tuple[str, ...] = typing.get_args(TieBreak)
+METHODS: tuple[str, ...] = typing.get_args(Method)
 
 
 def prototype_count(spec: int | str) -> int:
@@ -56,15 +63,15 @@ class MatchConfig:
         structure: options of the structure match.
     """
 
-    method: Literal["auto", "features", "structure"] = "auto"
+    method: Method = "auto"
     up_axis: Literal["x", "y", "z"] = "y"
     align: Literal["none", "pca", "pca_icp", "upright_icp"] = "upright_icp"
     icp_iterations: int = 100
     outlier_sigma: float = 2.5
     prototypes: str = "all"
     smooth_neighbours: int = 0
-    tie_break: Literal["centroid", "nearest_vertex"] = "nearest_vertex"
-    box_frame: Literal["aligned", "pca"] = "aligned"
+    tie_break: TieBreak = "nearest_vertex"
+    box_frame: BoxFrame = "aligned"
     box_padding: float = 0.02
     max_target_vertices: int = 6000
     min_opacity: float = 0.1
@@ -72,16 +79,11 @@ class MatchConfig:
 
     def validate(self) -> MatchConfig:
         """Raise ConfigError naming the first bad option."""
-        choices = {
-            "method": METHODS,
-            "up_axis": ("x", "y", "z"),
-            "align": ("none", "pca", "pca_icp", "upright_icp"),
-            "tie_break": TIE_BREAKS,
-            "box_frame": BOX_FRAMES,
-        }
-        for key, allowed in choices.items():
-            if getattr(self, key) not in allowed:
-                raise ConfigError(f"match.{key}={getattr(self, key)!r}: use one of {', '.join(allowed)}")
+        hints = typing.get_type_hints(MatchConfig)
+        for f in dataclasses.fields(self):
+            allowed, value = literal_options(hints[f.name]), getattr(self, f.name)
+            if allowed is not None and value not in allowed:
+                raise ConfigError(f"match.{f.name}={value!r}: use one of {', '.join(map(str, allowed))}")
         prototype_count(self.prototypes)
         if self.icp_iterations < 1 or self.max_target_vertices < 16 or self.structure.yaw_steps < 1:
             raise ConfigError(

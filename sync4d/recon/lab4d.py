@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from scipy.optimize import nnls
 
-from sync4d.errors import ConfigError, InputError
+from sync4d.errors import InputError
 from sync4d.io.lab4d import Lab4DExport, read_lab4d_export
 from sync4d.recon import skinning as sk
 from sync4d.recon.skinning_fit import FitOptions, bbox_diagonal, fit_skinning, parse_bones, reference_from_fit
@@ -116,19 +116,15 @@ class Lab4DReconstructor:
             auto_candidates: as in ``recon=skinning_fit``.
         """
 
-        on_mismatch: str = "error"
+        on_mismatch: Literal["error", "refit"] = "error"
         bones: Any = "file"
         tolerance_pct: float = 2.0
-        posed_frame: str = "object"
+        posed_frame: Literal["object", "camera"] = "object"
         bone_floor: float = 0.01
         auto_tolerance_pct: float = 1.5
         auto_candidates: list[int] = field(default_factory=lambda: [2, 3, 4, 5, 6, 8, 10, 13, 16, 20, 25])
 
         def validate(self) -> None:
-            if self.on_mismatch not in ("error", "refit"):
-                raise ConfigError(f"recon.on_mismatch={self.on_mismatch!r}: use 'error' or 'refit'")
-            if self.posed_frame not in ("object", "camera"):
-                raise ConfigError(f"recon.posed_frame={self.posed_frame!r}: use 'object' or 'camera'")
             if self.bones != "file":
                 self.bones = parse_bones(self.bones)
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -48,7 +48,7 @@ from sync4d.types import Reference, ReferenceInput
 log = logging.getLogger(__name__)
 
 
-def detect_motion_format(path: Path) -> str:
+def detect_motion_format(path: Path) -> Literal["bvh", "joint_positions", "deepmimic"]:
     """``bvh`` for .bvh, ``deepmimic`` for a JSON clip (first non-blank character '{'), else ``joint_positions``."""
     if path.suffix.lower() == ".bvh":
         return "bvh"
@@ -238,7 +238,7 @@ class MocapReconstructor:
         """
 
         bones: Any = "skeleton"
-        format: str = "auto"
+        format: Literal["auto", "bvh", "joint_positions", "deepmimic"] = "auto"
         urdf: str = ""
         urdf_scale: float = 0.25
         bvh_unit_scale: float = CMU_UNIT_SCALE
@@ -247,7 +247,7 @@ class MocapReconstructor:
         root: int = 0
         target_fps: float = 30.0
         rest_frame: int = 0
-        global_motion: str = "root"
+        global_motion: Literal["root", "heading", "none"] = "root"
         radius_scale: float = 0.18
         min_radius: float = 0.03
         min_segment_length: float = 1e-3
@@ -263,12 +263,8 @@ class MocapReconstructor:
             if not (self.bones == "skeleton" or (isinstance(self.bones, int) and not isinstance(self.bones, bool)
                                                  and self.bones >= 1)):
                 raise ConfigError(f"recon.bones={self.bones!r}: use 'skeleton' or a positive integer for recon=mocap")
-            if self.format not in ("auto", "bvh", "joint_positions", "deepmimic"):
-                raise ConfigError(f"recon.format={self.format!r}: use auto, bvh, joint_positions or deepmimic")
             if self.urdf_scale <= 0:
                 raise ConfigError(f"recon.urdf_scale={self.urdf_scale}: must be > 0 (metres per URDF unit)")
-            if self.global_motion not in ("root", "heading", "none"):
-                raise ConfigError(f"recon.global_motion={self.global_motion!r}: use root, heading or none")
             if self.target_fps < 0:
                 raise ConfigError(f"recon.target_fps={self.target_fps}: must be >= 0 (0 keeps every frame)")
             if self.radius_scale <= 0 and self.min_radius <= 0:

@@ -14,13 +14,18 @@ from __future__ import annotations
 import io
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import torch
 
 from sync4d.errors import InputError
 from sync4d.io.atomic import atomic_write, atomic_write_bytes
 from sync4d.types import Camera
+
+if TYPE_CHECKING:
+    from torch.utils.tensorboard import SummaryWriter
+    from torch.utils.tensorboard.writer import FileWriter
 
 def to_uint8(frames: Any) -> np.ndarray:
     """Images to uint8.
@@ -32,7 +37,7 @@ def to_uint8(frames: Any) -> np.ndarray:
     Returns:
         (..., H, W, 3) uint8.
     """
-    if hasattr(frames, "detach"):
+    if isinstance(frames, torch.Tensor):
         frames = frames.detach().cpu().numpy()
     arr = np.asarray(frames)
     if arr.dtype != np.uint8:
@@ -57,7 +62,7 @@ def write_mp4(path: str | Path, frames: Any, fps: float, *, quality: float = 8.0
     import imageio.v2 as iio
 
     path = Path(path)
-    video = to_uint8(np.stack([to_uint8(f) for f in frames]) if not hasattr(frames, "shape") else frames)
+    video = to_uint8(frames if isinstance(frames, (np.ndarray, torch.Tensor)) else np.stack([to_uint8(f) for f in frames]))
     if video.ndim != 4 or len(video) == 0:
         raise InputError(f"write_mp4: expected (T, H, W, 3) frames, got shape {video.shape}")
     pad_h, pad_w = video.shape[1] % 2, video.shape[2] % 2
@@ -202,7 +207,7 @@ def frame_strip(frames: Any, *, max_frames: int = 8, columns: int | None = None)
 
 
 def log_gif_tensorboard(
-    writer: Any,
+    writer: SummaryWriter,
     tag: str,
     frames: Any,
     step: int,
@@ -214,8 +219,8 @@ def log_gif_tensorboard(
     """Log a clip to TensorBoard without moviepy: the animated GIF as an image summary, plus a strip.
 
     Args:
-        writer: a ``torch.utils.tensorboard.SummaryWriter`` (anything with ``add_image``; the animated
-            GIF is logged only when it also has ``_get_file_writer``, as SummaryWriter does).
+        writer: a ``torch.utils.tensorboard.SummaryWriter`` (the GIF goes through its public ``file_writer``,
+            as ``add_hparams`` does: ``add_image`` would encode a PNG).
         tag: summary tag; the GIF is logged under ``tag`` and the frame strip under ``tag + "/strip"``.
         frames: (T, H, W, 3) frames.
         step: global step.
@@ -227,12 +232,13 @@ def log_gif_tensorboard(
     gif = encode_gif(video, fps)
     if gif_path is not None:
         atomic_write_bytes(gif_path, gif)
-    file_writer = getattr(writer, "_get_file_writer", None)
-    if callable(file_writer):
-        from tensorboard.compat.proto.summary_pb2 import Summary
+    from tensorboard.compat.proto.summary_pb2 import Summary
 
-        image = Summary.Image(height=video.shape[1], width=video.shape[2], colorspace=3, encoded_image_string=gif)
-        file_writer().add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
+    image = Summary.Image(height=video.shape[1], width=video.shape[2], colorspace=3, encoded_image_string=gif)
+    file_writer: FileWriter | None = writer.file_writer
+    if file_writer is None:
+        raise ValueError(f"log_gif_tensorboard({tag}): the SummaryWriter is closed")
+    file_writer.add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
     writer.add_image(f"{tag}/strip", frame_strip(video, max_frames=max_frames), step, dataformats="HWC")
 
 

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from sync4d.render.reference import reference_gaussians, reference_nearest
+from sync4d.interfaces import VideoLogger
 from sync4d.registry import Component
 from sync4d.sim.control import bounded_subset, gaussian_trajectory
 from sync4d.types import Camera, DrivingMotion, PartMap, Reference, TargetGaussians, Trajectory, VideoClip
@@ -57,14 +58,13 @@ def motion_camera(sequence: np.ndarray, rc: Any) -> Camera:
 
 def write_videos(run_dir: Path, panels: list[tuple[str, np.ndarray]], fps: float, *, logger: Any) -> dict[str, Path]:
     """``render.mp4`` of the last panel, ``compare.mp4`` / ``compare.gif`` (and TensorBoard) of all of them."""
-    from sync4d.render.video import log_gif_tensorboard, side_by_side, write_gif, write_mp4
+    from sync4d.render.video import side_by_side, write_gif, write_mp4
 
     files = {"render.mp4": write_mp4(run_dir / "render.mp4", panels[-1][1], fps)}
     side = side_by_side([frames for _, frames in panels], labels=[name for name, _ in panels])
     files["compare.mp4"] = write_mp4(run_dir / "compare.mp4", side, fps)
-    writer = getattr(logger, "writer", None)
-    if writer is not None:
-        log_gif_tensorboard(writer, "video/compare", side, 0, fps=fps, gif_path=run_dir / "compare.gif")
+    if isinstance(logger, VideoLogger):
+        logger.video("video/compare", side, fps, gif_path=run_dir / "compare.gif")
     else:
         write_gif(run_dir / "compare.gif", side, fps)
     files["compare.gif"] = run_dir / "compare.gif"

@@ -21,12 +21,13 @@ from typing import Any, Literal
 from omegaconf import DictConfig, OmegaConf
 
 from sync4d.errors import ConfigError
+from sync4d.interfaces import BoundedFrames
+from sync4d.paths import PROJECT_ROOT
 from sync4d.match import MatchConfig
 from sync4d.registry import GROUPS, Component, available, component, lookup, plain_dict, typed_config
 from sync4d.transfer.config import TransferConfig
 
 log = logging.getLogger("sync4d")
-ROOT = Path(__file__).resolve().parents[2]
 #: Top-level keys that do not change a run's results (excluded from the resume fingerprint).
 NOT_RESULTS = ("resume", "name", "cache", "cache_dir", "render", "logger", "hydra", "run_dir")
 #: The run's own typed blocks beside the component groups.
@@ -110,7 +111,7 @@ def build_plan(cfg: DictConfig, *, explicit: set[str] | None = None) -> RunPlan:
         name=str(cfg.name), seed=int(cfg.seed), device=str(cfg.device), frames=int(cfg.frames),
         loop_reference=bool(cfg.loop_reference), pivot=cfg.pivot, budget=cfg.budget,
         resume=None if cfg.get("resume") is None else str(cfg.resume), cache=bool(cfg.cache),
-        cache_root=Path(cfg.cache_dir) if cfg.get("cache_dir") else ROOT / "outputs" / "cache",
+        cache_root=Path(cfg.cache_dir) if cfg.get("cache_dir") else PROJECT_ROOT / "outputs" / "cache",
         self_transfer=bool(cfg.self_transfer), render_video=bool(cfg.render_video), run_dir=run_dir_of(cfg),
         components=components, match=blocks["match"], transfer=blocks["transfer"], overrides=overrides_of(cfg),
         record=results_record(cfg),
@@ -153,7 +154,7 @@ def check_device(device: str) -> None:
 def bound_reference_frames(reference: Component, frames: int) -> Component:
     """A reference that reads frames from a file (``max_frames`` 0 = all) reads, and so reconstructs, only the
     ``frames`` the run uses; a ``max_frames`` the user set wins. The log says which key bounds it."""
-    if getattr(reference.config, "max_frames", None) != 0:
+    if not isinstance(reference.config, BoundedFrames) or reference.config.max_frames != 0:
         return reference
     log.info("reference=%s: reconstructing the first %d frames, the ones the run uses (frames=%d); set "
              "reference.max_frames to reconstruct more", reference.name, frames, frames)
@@ -273,7 +274,7 @@ def run_dir_of(cfg: DictConfig) -> Path:
 
     if HydraConfig.initialized():
         return Path(HydraConfig.get().runtime.output_dir)
-    return Path(cfg.get("run_dir") or ROOT / "outputs" / cfg.name / time.strftime("%Y-%m-%d_%H-%M-%S"))
+    return Path(cfg.get("run_dir") or PROJECT_ROOT / "outputs" / cfg.name / time.strftime("%Y-%m-%d_%H-%M-%S"))
 
 
 def results_record(cfg: DictConfig) -> dict[str, Any]:

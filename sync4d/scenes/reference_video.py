@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from sync4d.errors import ConfigError
 from sync4d.geometry import rgb_to_sh_dc
@@ -130,4 +131,4 @@ def film_reference(
 
 def _numpy(value: object) -> np.ndarray:
     """A renderer output (torch tensor or array) as a numpy array."""
-    return np.asarray(value.detach().cpu() if hasattr(value, "detach") else value)
+    return np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value)

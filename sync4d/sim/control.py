@@ -20,7 +20,6 @@ import numpy as np
 
 from sync4d.errors import ConfigError, InputError
 from sync4d.types import TargetGaussians, Trajectory
-from sync4d.geometry import quat_to_matrix
 
 
 def make_control_points(means: np.ndarray, control_grid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -57,13 +56,6 @@ def make_control_points(means: np.ndarray, control_grid: int) -> tuple[np.ndarra
     np.add.at(sums, gaussian_to_point, pts)
     points = sums / counts[:, None]
     return points, gaussian_to_point.astype(np.int64), counts.astype(np.int64)
-
-
-def gaussian_covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) covariances Sigma = R diag(s^2) R^T [m^2] from scales (N, 3) [m] and wxyz quaternions (N, 4)."""
-    R = quat_to_matrix(quats)
-    s2 = np.asarray(scales, dtype=np.float64) ** 2
-    return np.einsum("nij,nj,nkj->nik", R, s2, R)
 
 
 def carry_gaussians(

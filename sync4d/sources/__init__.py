@@ -1,1 +1,3 @@
-"""Reference sources: what a reconstructor is given (files, videos with their front end, mocap, exports)."""
+"""Sources read from files (groups ``reference`` and ``target``): reference inputs (mesh sequences, Lab4D
+exports, BVH / joint positions / DeepMimic mocap, glTF animations, videos with their front end) and targets
+(a mesh, a 3DGS ``.ply`` with floater removal)."""

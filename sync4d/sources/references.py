@@ -21,30 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from sync4d.errors import DataMissingError, InputError
+from sync4d.errors import InputError
 from sync4d.frontend import FrontEndConfig, Prompt, complete_video
 from sync4d.io.lab4d import find_mesh_files, read_mesh_sequence
 from sync4d.io.video import read_video_clip
+from sync4d.paths import PROJECT_ROOT, resolve_path
 from sync4d.registry import register
 from sync4d.types import Camera, ReferenceInput
-
-PROJECT_ROOT = Path(__file__).resolve().parents[2]
-
-
-def resolve_path(path: str, *, what: str) -> Path:
-    """An existing path: as given (relative to the working directory) or relative to the project root.
-
-    Raises:
-        DataMissingError: neither exists; names both places tried.
-    """
-    p = Path(path).expanduser()
-    if p.exists():
-        return p
-    alt = PROJECT_ROOT / path
-    if not p.is_absolute() and alt.exists():
-        return alt
-    raise DataMissingError(f"{what} not found: {path} (also tried {alt}); check the path or fetch the data")
-
 
 def camera_from_look(
     K: np.ndarray, position: np.ndarray, forward: np.ndarray, up: np.ndarray, width: int, height: int

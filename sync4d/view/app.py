@@ -244,9 +244,8 @@ class Viewer:
         next_button.on_click(lambda _: self.step(1))
 
     def _run_fps(self) -> float:
-        source = self.runs[0].target
-        seq = getattr(source, "seq", None)
-        return float(seq.fps) if seq is not None and seq.fps > 0 else 12.0
+        fps = self.runs[0].target.fps
+        return fps if fps is not None else 12.0
 
     def step(self, delta: int) -> None:
         """Move the slider by ``delta`` frames (wrapping); the slider's callback shows the frame."""

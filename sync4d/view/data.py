@@ -57,6 +57,8 @@ class FrameSource(Protocol):
 
     num: int
 
+    fps: float | None  # frames per second, when the sequence records it
+
     def frame(self, t: int) -> SplatFrame: ...
 
     def all_means(self, index: np.ndarray | None = None) -> np.ndarray: ...
@@ -68,6 +70,7 @@ class Seq4DSource:
     def __init__(self, path: Path) -> None:
         self.seq = Sequence4D(path)
         self.num_frames, self.num = self.seq.num_frames, self.seq.num
+        self.fps = float(self.seq.fps) if self.seq.fps > 0 else None
 
     def frame(self, t: int) -> SplatFrame:
         means, covs = self.seq.frame(t)
@@ -86,6 +89,7 @@ class PlySource:
             raise InputError(f"{folder}: no .ply frames; pass a run folder of train.py")
         self.num_frames = len(self.files)
         self.parts = parts
+        self.fps: float | None = None  # .ply frames record no frame rate
         from sync4d.io.ply import read_gaussians_ply
 
         self.num = read_gaussians_ply(self.files[0]).num

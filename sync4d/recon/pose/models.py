@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from sync4d.errors import DataMissingError
+from sync4d.paths import PROJECT_ROOT
 
-PROJECT_ROOT = Path(__file__).resolve().parents[3]
 DEFAULT_MODEL_DIR = PROJECT_ROOT / "models" / "mediapipe"
 DETECTOR_FILE = "pose_detection.tflite"
 LANDMARK_FILE = "pose_landmark_full.tflite"

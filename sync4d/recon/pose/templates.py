@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from sync4d.errors import ConfigError, InputError
+from sync4d.paths import PROJECT_ROOT
 
-SHARED = Path(__file__).resolve().parents[4] / "shared" / "data"
+SHARED = PROJECT_ROOT.parent / "shared" / "data"
 FOX_FILE = SHARED / "skinned" / "fox" / "Fox.gltf"
 LEG_PREFIXES = ("fl_", "fr_", "hl_", "hr_")
 

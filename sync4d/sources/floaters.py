@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse import coo_matrix
+
+from sync4d.types import FloaterReport
 from scipy.sparse.csgraph import connected_components
 
 from sync4d.errors import ConfigError, InputError
@@ -77,42 +79,6 @@ class FloaterConfig:
         for key, ok, rule in checks:
             if not ok:
                 raise ConfigError(f"target.floaters.{key}={getattr(self, key)}: must be {rule}")
-
-
-@dataclass(frozen=True)
-class FloaterReport:
-    """What floater removal did (logged and written to the run's metrics).
-
-    Attributes:
-        total: Gaussians given.
-        removed_far: removed by the distance test.
-        removed_sparse: removed by the density test.
-        removed_clusters: removed as small disconnected pieces.
-        cell: voxel side of the density and connectivity tests [m].
-        kept_box: (2, 3) bounding box of the kept centres [m] (the robust extent).
-        removed_box: (2, 3) bounding box of the removed centres [m], or None when none was removed.
-    """
-
-    total: int
-    removed_far: int
-    removed_sparse: int
-    removed_clusters: int
-    cell: float
-    kept_box: np.ndarray
-    removed_box: np.ndarray | None
-
-    @property
-    def removed(self) -> int:
-        return self.removed_far + self.removed_sparse + self.removed_clusters
-
-    def as_dict(self) -> dict[str, object]:
-        """JSON-ready summary."""
-        return {
-            "total": self.total, "removed": self.removed, "removed_far": self.removed_far,
-            "removed_sparse": self.removed_sparse, "removed_clusters": self.removed_clusters, "cell_m": self.cell,
-            "kept_box_m": self.kept_box.tolist(),
-            "removed_box_m": None if self.removed_box is None else self.removed_box.tolist(),
-        }  # fmt: skip
 
 
 def voxel_keys(cells: np.ndarray) -> np.ndarray:
