@@ -30,6 +30,7 @@ class PartRig:
         centroid: (B, 3) rest mass centroid of each part [m] (zeros for a part with no particle).
         inertia: (B, 3, 3) rest inertia of each part about its centroid [kg m^2].
         mass: (B,) mass of each part [kg] (0 for a part with no particle).
+        count: (B,) particles of each part.
     """
 
     part: np.ndarray
@@ -37,6 +38,14 @@ class PartRig:
     centroid: np.ndarray
     inertia: np.ndarray
     mass: np.ndarray
+    count: np.ndarray
+
+
+#: A part with fewer particles than this is held in translation only (its rotation is not determined).
+MIN_TURNING_PARTICLES = 4
+#: Inertia directions weaker than this share of the strongest are not held (a part on a line turns freely about
+#: it; inverting a near-zero moment would amplify float32 rounding into huge corrections).
+INERTIA_RCOND = 1e-3
 
 
 def part_rig(rest: np.ndarray, part: np.ndarray, mass: np.ndarray, num_parts: int) -> PartRig:
@@ -52,7 +61,8 @@ def part_rig(rest: np.ndarray, part: np.ndarray, mass: np.ndarray, num_parts: in
     outer = np.einsum("p,pi,pj->pij", weight, offset, offset)
     inertia = np.zeros((num_parts, 3, 3))
     np.add.at(inertia, idx, np.eye(3) * np.trace(outer, axis1=1, axis2=2)[:, None, None] - outer)
-    return PartRig(np.where(driven, part, -1), offset, centroid, inertia, total)
+    count = np.bincount(idx, weights=driven.astype(float), minlength=num_parts).astype(np.int64)
+    return PartRig(np.where(driven, part, -1), offset, centroid, inertia, total, count)
 
 
 @dataclass(frozen=True)
@@ -86,7 +96,8 @@ def substep_drive(rig: PartRig, pose: FramePose, *, substeps: int, frame_time: f
     s = (np.arange(substeps) + 1.0) / substeps
     turn = rotation_vector_to_matrix(s[:, None, None] * step[None]) @ start_rot[None]  # (S, B, 3, 3)
     centre = c_start[None] + s[:, None, None] * (c_end - c_start)[None]
-    inertia_pinv = np.linalg.pinv(rig.inertia, rcond=1e-6, hermitian=True)  # parts on a line or a point turn freely
+    inertia_pinv = np.linalg.pinv(rig.inertia, rcond=INERTIA_RCOND, hermitian=True)
+    inertia_pinv[rig.count < MIN_TURNING_PARTICLES] = 0.0
     inertia_inv = turn @ inertia_pinv[None] @ np.swapaxes(turn, -1, -2)
     return SubstepDrive(turn, centre, inertia_inv, (c_end - c_start) / frame_time, step / frame_time)
 
