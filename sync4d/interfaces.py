@@ -121,6 +121,45 @@ class Simulator(Protocol):
         ...
 
 
+@runtime_checkable
+class GridSimulatorConfig(Protocol):
+    """Capability of a ``sim`` config whose cost and size the transfer's budget can model (``MPMWarp.Config``): a
+    background grid, a material [Pa, kg/m^3] and a substep budget."""
+
+    E: float
+    nu: float
+    density: float
+    n_grid: int
+    grid_padding: float
+    wall_cells: int
+    frame_time: float | None
+    substeps: int
+    cfl_safety: float
+    checkpoint_budget_mb: float
+    max_substeps: int
+
+
+@runtime_checkable
+class GridModel(Protocol):
+    """Capability of a simulator's model that lives on a background grid (``grid.dx``: its cell [m])."""
+
+    grid: Any
+
+
+@runtime_checkable
+class FigureWriter(Protocol):
+    """Capability of a reconstructor that draws what it found (pictures under ``folder``)."""
+
+    def write_figures(self, folder: Path) -> None: ...
+
+
+@runtime_checkable
+class FileSourceConfig(Protocol):
+    """Capability of a source's config that names the file it reads (for messages)."""
+
+    path: str | None
+
+
 class VelocityField(Protocol):
     """Group ``velocity``: built with ``(config, num_parts=B, bounds=(lo, hi), seed=...)``; a torch module giving
     the delta velocity [m/s] added to the reference velocities (paper Eq. v <- v0 + dv)."""

@@ -18,7 +18,7 @@ import sys
 import time
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from omegaconf import DictConfig
@@ -27,14 +27,16 @@ from sync4d import cache
 from sync4d.errors import ConfigError, Sync4DError
 from sync4d.frontend.outputs import write_video_inputs
 from sync4d.geometry import part_centroids
-from sync4d.interfaces import Logger, Reconstructor, ReferenceSource, TargetSource
+from sync4d.interfaces import (CheckedTarget, FigureWriter, FileSourceConfig, GridSimulatorConfig, Logger,
+                               Reconstructor, ReferenceSource, TargetSource, VelocityField)
 from sync4d.io.atomic import atomic_write_json
 from sync4d.io.ply import write_gaussians_ply
 from sync4d.match import match_parts
+from sync4d.paths import PROJECT_ROOT
 from sync4d.run import figures
 from sync4d.run.plan import RunPlan, build_plan, run_dir_of
 from sync4d.run.writer import FrameWriter
-from sync4d.scenes.targets import check_target_extent
+from sync4d.sources.targets import check_target_extent
 from sync4d.surface import target_surface
 from sync4d.transfer.budget import check_run_cost, choose_budget
 from sync4d.transfer.loop import run_transfer
@@ -42,7 +44,7 @@ from sync4d.transfer.motion import driving_motion
 from sync4d.types import DrivingMotion, PartMap, Reference, ReferenceInput, TargetGaussians, Trajectory
 
 log = logging.getLogger("sync4d")
-ROOT = Path(__file__).resolve().parents[2]
+
 PACKAGES = ("torch", "warp-lang", "hydra-core", "omegaconf", "numpy", "trimesh", "scipy")
 #: What floater removal did to a splat target (counts, removed and kept boxes), also in metrics.json.
 FLOATERS = "floaters.json"
@@ -66,7 +68,7 @@ def seed_everything(seed: int) -> None:
 def git(*args: str) -> str | None:
     """The output of a git command in the project, or None when git is not there."""
     try:
-        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10,
+        return subprocess.run(["git", *args], cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=10,
                               check=False).stdout.strip()
     except OSError:
         return None
@@ -116,12 +118,13 @@ def claim_run_dir(run_dir: Path, resume: str | None) -> None:
 def stage_target(plan: RunPlan) -> tuple[TargetGaussians, TargetSource]:
     """Load the target Gaussians; returns them and the source (which may offer a surface mesh)."""
     source = plan["target"].build(device=plan.device, seed=plan.seed)
-    load_checked = getattr(source, "load_checked", None)  # splat targets: floaters removed, with a report
-    target, floaters = load_checked() if load_checked is not None else (source.load(), None)
+    # splat targets: floaters removed, with a report
+    target, floaters = source.load_checked() if isinstance(source, CheckedTarget) else (source.load(), None)
     target = target.validate()
     if floaters is not None:  # merged into metrics.json at the end of the run
         atomic_write_json(plan.run_dir / FLOATERS, floaters.as_dict())
-    path = getattr(plan["target"].config, "path", None)
+    config = plan["target"].config
+    path = config.path if isinstance(config, FileSourceConfig) else None
     check_target_extent(target.means, f"target.path={path}" if path else f"target={plan['target'].name}")
     log.info("target=%s: %d Gaussians (SH degree %d)", plan["target"].name, target.num, target.sh_degree)
     return target, source
@@ -149,9 +152,8 @@ def stage_reference(plan: RunPlan) -> tuple[Reference, str, ReferenceInput]:
 
     reference = cache.cached(plan.cache_root, "recon", key, Reference, compute, enabled=plan.cache)
     for reconstructor in built:  # pictures after the cache write: a failed picture never costs the fit
-        write_figures = getattr(reconstructor, "write_figures", None)
-        if write_figures is not None:
-            optional_step("recon pictures", write_figures, plan.run_dir / "recon")
+        if isinstance(reconstructor, FigureWriter):
+            optional_step("recon pictures", reconstructor.write_figures, plan.run_dir / "recon")
     return reference.validate(), key, loaded
 
 
@@ -205,7 +207,7 @@ def sized_plan(plan: RunPlan, target: TargetGaussians, motion: DrivingMotion) ->
     sim = plan["sim"]
     if plan.budget == "off":
         return plan
-    if not all(hasattr(sim.config, key) for key in ("n_grid", "substeps", "E")):
+    if not isinstance(sim.config, GridSimulatorConfig):
         log.info("budget=auto sizes grid simulators only; sim=%s unchanged", sim.name)
         return plan
     c = sim.config
@@ -220,7 +222,7 @@ def sized_plan(plan: RunPlan, target: TargetGaussians, motion: DrivingMotion) ->
 def stage_transfer(plan: RunPlan, target: TargetGaussians, part_map: PartMap, motion: DrivingMotion,
                    writer: FrameWriter) -> Trajectory:
     """Animate the target frame pair by frame pair (the transfer owns the loop; the simulator steps)."""
-    trainable = bool(getattr(plan["velocity"].cls, "trainable", False))
+    trainable = bool(cast("type[VelocityField]", plan["velocity"].cls).trainable)
     cost = check_run_cost(plan["sim"].config, plan.transfer, trainable, target, motion, frames=plan.frames)
     if cost is not None:
         atomic_write_json(plan.run_dir / "cost_estimate.json", dataclasses.asdict(cost))

@@ -28,6 +28,7 @@ import numpy as np
 
 from sync4d.geometry import bbox_diagonal, skinned_positions
 from sync4d.run import metrics as M
+from sync4d.run.plan import flatten
 from sync4d.sim.deform import deform_gaussians
 from sync4d.sim.mpm_warp import MPMWarp
 from sync4d.sim.physics import fit_grid
@@ -297,20 +298,11 @@ def load_checkpoint(folder: Path, resume: str) -> dict[str, Any]:
     return payload
 
 
-def _flatten(values: Any, prefix: str = "") -> dict[str, Any]:
-    if not isinstance(values, dict):
-        return {prefix: values}
-    out: dict[str, Any] = {}
-    for key, value in values.items():
-        out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
-    return out
-
-
 def check_same_config(saved: dict[str, Any] | None, current: dict[str, Any] | None, resume: str) -> None:
     """Raise :class:`ConfigError` naming the first settings that differ between a checkpoint and this run."""
     if saved is None or current is None:
         return
-    old, new = _flatten(saved), _flatten(current)
+    old, new = flatten(saved), flatten(current)
     differ = sorted(k for k in old.keys() | new.keys() if old.get(k) != new.get(k))
     if differ:
         shown = ", ".join(f"{k}={old.get(k)!r} (now {new.get(k)!r})" for k in differ[:3])

@@ -11,9 +11,6 @@ from sync4d.registry import register
 from sync4d.scenes.laptop import laptop_mesh
 from sync4d.types import TargetGaussians
 
-# check_target_extent and fit_to_size moved to sync4d.sources.targets; sync4d/run/pipeline.py and
-# sync4d_tools/evaluate/match_gt.py still import them from here (files being rewritten): delete this line after.
-from sync4d.sources.targets import check_target_extent, fit_to_size  # noqa: F401
 
 
 @register("target", "laptop")

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sync4d.errors import ConfigError
+from sync4d.interfaces import GridSimulatorConfig
 from sync4d.sim import physics
 from sync4d.sim.control import make_control_points
 from sync4d.transfer.config import TransferConfig
@@ -324,11 +325,11 @@ def check_run_cost(
     Raises:
         ConfigError: the estimate exceeds ``sim.max_substeps`` (see :func:`check_cost`).
     """
-    if not all(hasattr(sim_config, f) for f in (*SimSettings.fields(), "max_substeps")):
+    if not isinstance(sim_config, GridSimulatorConfig):
         return None
     iterations = transfer.iterations if trainable else 0
     estimate = estimate_cost(target.means, motion, SimSettings.of(sim_config, transfer.control_grid),
                              frames=frames, iterations=iterations, sh_coeffs=target.sh.shape[1])
     log.info("%s", estimate.summary())
-    check_cost(estimate, max_substeps=int(sim_config.max_substeps), E=float(sim_config.E))  # type: ignore[attr-defined]
+    check_cost(estimate, max_substeps=int(sim_config.max_substeps), E=float(sim_config.E))
     return estimate

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sync4d.interfaces import Simulator, VelocityField
+from sync4d.interfaces import GridModel, Simulator, VelocityField
 from sync4d.rng import deterministic_torch
 from sync4d.sim.control import ControlPoints, with_control
 from sync4d.transfer.config import TransferConfig
@@ -190,7 +190,7 @@ def advance(transfer: Transfer, state: ParticleState, t: int) -> tuple[ParticleS
         "loss/displacement": final, "loss/initial": losses[0] if losses else final,
         "loss/iterations": float(len(losses)), "time/frame_s": time.perf_counter() - started,
         "time/substeps": float(substeps), **({"sim/dx": float(transfer.model.grid.dx)}
-                                             if hasattr(transfer.model, "grid") else {}),
+                                             if isinstance(transfer.model, GridModel) else {}),
     }  # fmt: skip
     log.info("frame %d/%d: loss %.3e -> %.3e in %d iterations, %d substeps, %.1f s", t + 1,
              motion.num_frames - 1, stats["loss/initial"], final, len(losses), substeps, stats["time/frame_s"])

@@ -417,7 +417,7 @@ def load_label_target(spec: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | N
     path = Path(spec.target)
     vertices, faces = load_target_mesh(str(path) if path.is_absolute() else spec.target)
     if spec.up_axis != "y":
-        from sync4d.scenes.targets import fit_to_size
+        from sync4d.sources.targets import fit_to_size
 
         vertices = fit_to_size(vertices, None, spec.up_axis)
     return vertices, faces, None
