@@ -1,6 +1,7 @@
 """``recon_joints``: joint error of ``recon=body_video`` on a clip with exact joint truth.
 
     python -m sync4d.evaluate recon_joints --video V [--masks DIR] [--camera NPZ] --subject human --gt GT.npz
+        [--max-frames N] [--set KEY=VALUE ...]     # recon=body_video overrides, e.g. quadruped.starts=2
 
 ``GT.npz`` holds ``joints`` (T, J, 3) [m] and ``names`` (J,) from this vocabulary (names not present are
 skipped): human ``head, l_shoulder, r_shoulder, l_elbow, r_elbow, l_wrist, r_wrist, l_hip, r_hip, l_knee,
@@ -22,14 +23,17 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sync4d.match.align import umeyama
 from sync4d.errors import InputError
+from sync4d.match.align import umeyama
 from sync4d.recon.body_video import BodyVideoReconstructor
+from sync4d.registry import make_config
 from sync4d.sources.references import VideoSource
+from sync4d_tools.evaluate import dotlist
 
 #: the issue's human vocabulary (gt.npz ``names``); the fitted skeleton uses the same names
 HUMAN_VOCABULARY = (
@@ -51,11 +55,12 @@ HUMAN_VOCABULARY = (
 HUMAN_MAP = {n: n for n in HUMAN_VOCABULARY}
 
 
-def quadruped_map() -> dict[str, str]:
-    """Vocabulary -> template joint names of the quadruped fit."""
-    from sync4d.recon.pose.quadruped_fit import VOCABULARY
+def quadruped_map(template: str) -> dict[str, str]:
+    """Vocabulary -> joint names of the quadruped fit's body template ``template`` (each registered template
+    declares its own vocabulary, :attr:`sync4d.recon.pose.templates.BodyTemplate.vocabulary`)."""
+    from sync4d.recon.pose.templates import body_template
 
-    return dict(VOCABULARY)
+    return dict(body_template(template).vocabulary)
 
 
 def joint_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -84,7 +89,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--subject", choices=["human", "quadruped"], default="human")
     parser.add_argument("--gt", required=True, help="GT.npz with joints (T, J, 3) [m] and names (J,)")
     parser.add_argument("--max-frames", type=int, default=0)
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="recon=body_video overrides (dotted keys, YAML values), e.g. quadruped.starts=2")
     args = parser.parse_args(argv)
+    overrides = dotlist(args.set, option="--set")
+    if "subject" in overrides:
+        raise InputError("--set subject=...: the subject is chosen by --subject human|quadruped")
+    if not Path(args.gt).is_file():
+        raise InputError(f"--gt {args.gt}: not found; a clip with truth: python -m sync4d_tools.body_clips")
 
     start, cpu = time.perf_counter(), time.process_time()
     gt = np.load(args.gt)
@@ -108,9 +120,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 ),
             }
         )
-    recon = BodyVideoReconstructor(BodyVideoReconstructor.Config(subject=args.subject, figures=False))
+    _, config = make_config("recon", {"type": "body_video", "figures": False, **overrides, "subject": args.subject})
+    recon = BodyVideoReconstructor(config)
     fit = recon.fit(source)
-    mapping = HUMAN_MAP if args.subject == "human" else quadruped_map()
+    mapping = HUMAN_MAP if args.subject == "human" else quadruped_map(recon.config.quadruped.template)
     pairs = [(i, fit.names.index(mapping[n])) for i, n in enumerate(names) if n in mapping]
     if not pairs:
         raise InputError(f"{args.gt}: none of its joint names {names} is in the {args.subject} vocabulary")
