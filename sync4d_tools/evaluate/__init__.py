@@ -25,7 +25,7 @@ def dotlist(items: list[str], *, option: str) -> dict[str, Any]:
 
     bad = [item for item in items if "=" not in item or item.startswith("=")]
     if bad:
-        raise InputError(f"{option} {bad[0]!r}: expected KEY=VALUE (e.g. quadruped.starts=2)")
+        raise InputError(f"{option} {bad[0]!r}: expected KEY=VALUE (a dotted key, a YAML value)")
     values = OmegaConf.to_container(OmegaConf.from_dotlist(items))
     assert isinstance(values, dict)
     return {str(k): v for k, v in values.items()}
