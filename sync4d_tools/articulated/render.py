@@ -244,6 +244,16 @@ def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: 
             "part_pixels_frame0": [int((labels_a[0] == p + 1).sum()) for p in range(n_parts)]}
 
 
+def require_mujoco(what: str) -> None:
+    """Fail with one line when MuJoCo (``requirements-suite.txt``) is not installed; ``what`` names the need."""
+    import importlib.util
+
+    from sync4d.errors import DataMissingError
+
+    if importlib.util.find_spec("mujoco") is None or importlib.util.find_spec("metaworld") is None:
+        raise DataMissingError(f"{what} needs MuJoCo and Meta-World: pip install -r requirements-suite.txt")
+
+
 def clip_name(obj: str, view: str, seed: int) -> str:
     """The folder name of a clip: ``<object>-<view>`` at seed 0, ``<object>-<view>-s<seed>`` otherwise."""
     return f"{obj}-{view}" if seed == 0 else f"{obj}-{view}-s{seed}"
@@ -257,6 +267,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--size", type=int, nargs=2, default=(240, 180), metavar=("W", "H"))
     parser.add_argument("--only", nargs="*", default=[], help="object names to render (default: all)")
     args = parser.parse_args(argv)
+    require_mujoco("rendering the articulated suite")
     cache = Path(args.out)
     cache.mkdir(parents=True, exist_ok=True)
     rows = []

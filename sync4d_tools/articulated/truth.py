@@ -105,6 +105,14 @@ class CaseTruth:
         return out
 
 
+def first_frames(truth: CaseTruth, frames: int) -> CaseTruth:
+    """The truth of the first ``frames`` frames of a clip (all of it for 0)."""
+    if frames <= 0:
+        return truth
+    return replace(truth, part_labels=truth.part_labels[:frames], depth=truth.depth[:frames],
+                   values=truth.values[:frames])
+
+
 def clip_truth(gt: dict[str, np.ndarray]) -> CaseTruth:
     """The truth of a suite clip's ``gt.npz`` (needs ``depth_t``: clips rendered by this version)."""
     if "depth_t" not in gt:
@@ -125,6 +133,9 @@ def laptop_renders_truth(gt: dict[str, np.ndarray], camera: Camera, cache: Path)
     if store.exists():
         depth = np.load(store)["depth"]
     else:
+        from sync4d_tools.articulated.render import require_mujoco
+
+        require_mujoco("the laptop renders' depth truth (cast once at the MuJoCo model, then cached)")
         depth = _cast_laptop_depth(angles, camera, gt["part_labels"].shape[1:], cache)
         np.savez_compressed(store, depth=depth)
     depth = np.where(gt["part_labels"] > 0, depth, 0.0).astype(np.float32)
@@ -178,12 +189,13 @@ def laptop_film_settings(seed: int) -> object:
     return replace(base, direction=tuple(float(v) for v in d), texture_cell=base.texture_cell * float(rng.uniform(0.8, 1.25)))
 
 
-def filmed_laptop(seed: int) -> tuple[object, CaseTruth, str]:
-    """(ReferenceInput, truth, variant description) of the default scene's laptop filmed at ``seed``."""
+def filmed_laptop(seed: int, frames: int = 24) -> tuple[object, CaseTruth, str]:
+    """(ReferenceInput, truth, variant description) of the default scene's laptop filmed at ``seed`` (the first
+    ``frames`` frames of its motion)."""
     from sync4d.scenes.laptop import filmed_laptop_case, hinge_pivot, laptop_reference
 
     settings = laptop_film_settings(seed)
-    source, gt = filmed_laptop_case(settings)  # type: ignore[arg-type]
+    source, gt = filmed_laptop_case(settings, num_frames=frames)  # type: ignore[arg-type]
     reference = laptop_reference(len(gt["part_labels"]))
     camera = source.camera  # type: ignore[attr-defined]
     lid = reference.bone_transforms[:, 1, :3, :3] @ reference.bone_transforms[0, 1, :3, :3].T
