@@ -32,6 +32,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from sync4d_tools.articulated.objects import SuiteObject, suite_objects
 
@@ -238,7 +239,8 @@ def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: 
     (out / "masks").mkdir(parents=True, exist_ok=True)
     for t, lab in enumerate(labels_a):
         imageio.imwrite(out / "masks" / f"{t:05d}.png", ((lab > 0) * 255).astype(np.uint8))
-    imageio.mimwrite(out / "rgb.mp4", rgb, fps=12, quality=9, macro_block_size=1)
+    images: list[ArrayLike] = [*rgb]
+    imageio.mimwrite(out / "rgb.mp4", images, fps=12, quality=9, macro_block_size=1)
     np.savez_compressed(out / "gt.npz", **gt)
     return {"clip": out.name, "object": obj.name, "view": view.name, "joints": kinds.tolist(),
             "part_pixels_frame0": [int((labels_a[0] == p + 1).sum()) for p in range(n_parts)]}

@@ -46,6 +46,7 @@ from sync4d.match import METHODS, MatchConfig, MatchResult, match_parts
 from sync4d.registry import build
 from sync4d.surface import area_points
 from sync4d.types import Reference, TargetGaussians
+from sync4d_tools.evaluate import dotlist, mapping
 
 log = logging.getLogger(__name__)
 
@@ -405,8 +406,10 @@ def load_target_mesh(relative: str) -> tuple[np.ndarray, np.ndarray]:
     """A shared target mesh with texture-seam duplicates merged (vertices, faces)."""
     import trimesh
 
-    mesh = trimesh.load(data_path(relative), force="mesh", process=False)
-    mesh = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=True)  # merges seams
+    loaded = trimesh.load(data_path(relative), force="mesh", process=False)
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise InputError(f"{relative}: not a triangle mesh ({type(loaded).__name__})")
+    mesh = trimesh.Trimesh(np.asarray(loaded.vertices), np.asarray(loaded.faces), process=True)  # merges seams
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
@@ -567,8 +570,7 @@ def load_features_config(spec: str) -> dict[str, Any]:
     path = Path(spec)
     if not path.suffix:
         path = ROOT / "conf" / "features" / f"{spec}.yaml"
-    cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    assert isinstance(cfg, dict)
+    cfg = mapping(OmegaConf.load(path), str(path))
     cfg.pop("defaults", None)  # the Hydra schema line of conf/features/*.yaml; defaults come from the Config
     return cfg
 
@@ -601,9 +603,8 @@ def match_config(method: str, align: str, overrides: list[str]) -> MatchConfig:
 
     from sync4d.registry import typed_config
 
-    values = OmegaConf.to_container(OmegaConf.merge({"method": method, "align": align},
-                                                    OmegaConf.from_dotlist(overrides)))
-    assert isinstance(values, dict)
+    values = mapping(OmegaConf.merge({"method": method, "align": align}, dotlist(overrides, option="--match")),
+                     "match_gt --match")
     cfg = typed_config(MatchConfig, values, where="match", label="match_gt --match")
     return cfg.validate()
 
@@ -629,7 +630,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     options = match_config(args.method, args.align, args.match)
     extractor = None
     if options.method in ("features", "auto"):
-        feat_cfg = OmegaConf.merge(OmegaConf.create(load_features_config(args.features)), OmegaConf.from_dotlist(args.set))
+        feat_cfg = mapping(OmegaConf.merge(load_features_config(args.features), dotlist(args.set, option="--set")),
+                           "match_gt --features with --set")
         extractor = build("features", feat_cfg, device="cpu")
     out: dict[str, Any] = {}
     details: dict[str, Any] = {}

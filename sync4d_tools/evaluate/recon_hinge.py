@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,7 +34,8 @@ from sync4d.recon.video import VideoFit, VideoReconstructor, rotation_angle_deg
 from sync4d.recon.video.softsplat import composite_weights, front_weights, project_points, splat_alpha
 from sync4d.sources.references import VideoSource, resolve_path
 from sync4d.types import Reference
-from sync4d_tools.evaluate import dotlist
+from sync4d_tools import video_of
+from sync4d_tools.evaluate import component_options, dotlist
 
 
 def render_bone_labels(
@@ -136,15 +136,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                              "only (the camera found by the video front end), or nothing (both found)")
     args = parser.parse_args(argv)
 
-    from omegaconf import OmegaConf
-
     from sync4d.registry import make_config
 
-    conf = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recon" / "video.yaml")
-    conf.pop("defaults", None)  # the Hydra schema entry; the typed Config holds the defaults
-    conf.bones = args.bones
-    conf = OmegaConf.merge(conf, dotlist(args.set, option="--set"))
-    _, cfg = make_config("recon", conf)
+    _, cfg = make_config("recon", component_options("recon", "video", {"bones": args.bones,
+                                                                          **dotlist(args.set, option="--set")}))
 
     start = time.perf_counter()
     if args.scene == "laptop":
@@ -161,7 +156,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
         from sync4d.frontend import FrontEndConfig, complete_video
 
-        clip = source.video
+        clip = video_of(source)
         keep = args.inputs == "masks"
         clip, camera = complete_video(replace(clip, intrinsics=None, masks=clip.masks if keep else
                                               np.zeros_like(clip.masks)), None, FrontEndConfig(), masks_given=keep)

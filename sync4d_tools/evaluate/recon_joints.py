@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -30,9 +31,10 @@ import numpy as np
 
 from sync4d.errors import InputError
 from sync4d.match.align import umeyama
-from sync4d.recon.body_video import BodyVideoReconstructor
+from sync4d.recon.body_video import BodyVideoFit, BodyVideoReconstructor
 from sync4d.registry import make_config
 from sync4d.sources.references import VideoSource
+from sync4d_tools import video_of
 from sync4d_tools.evaluate import dotlist
 
 #: the issue's human vocabulary (gt.npz ``names``); the fitted skeleton uses the same names
@@ -104,22 +106,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     source = VideoSource(
         VideoSource.Config(video=args.video, masks=args.masks, camera=args.camera, max_frames=args.max_frames)
     ).load()
-    masks_in = source.video.masks if args.masks else None
+    clip = video_of(source)
+    masks_in = clip.masks if args.masks else None
     if args.subject == "human":
         # the learned model makes its own masks; the truth masks are only for the score
-        source = type(source)(
-            **{
-                **source.__dict__,
-                "video": type(source.video)(
-                    source.video.frames,
-                    np.zeros_like(source.video.masks),
-                    source.video.fps,
-                    source.video.intrinsics,
-                    None,
-                    source.video.source,
-                ),
-            }
-        )
+        source = replace(source, video=replace(clip, masks=np.zeros_like(clip.masks), extrinsics=None))
     _, config = make_config("recon", {"type": "body_video", "figures": False, **overrides, "subject": args.subject})
     recon = BodyVideoReconstructor(config)
     fit = recon.fit(source)
@@ -150,8 +141,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     return out
 
 
-def fit_silhouettes(fit) -> np.ndarray:
+def fit_silhouettes(fit: BodyVideoFit) -> np.ndarray:
     """(T, H, W) bool silhouettes of the fitted quadruped body (its mesh seen by each frame's camera)."""
+    if fit.silhouettes is None:
+        raise ValueError("fit_silhouettes: a human fit has no body silhouettes (its masks are fit.masks)")
     return fit.silhouettes
 
 

@@ -36,32 +36,29 @@ from typing import Any, Callable
 import numpy as np
 
 from sync4d.errors import InputError
-from sync4d.recon.video import VideoFit
+from sync4d.recon.video import VideoFit, VideoReconstructor
 from sync4d.sources.references import VideoSource, resolve_path
+from sync4d.types import ReferenceInput
+from sync4d_tools import camera_of, video_of
 from sync4d_tools.articulated.ceiling import exact_splats, rendered_labels
 from sync4d_tools.articulated.score import constant_labels, joint_row, label_scores, missing_row
 from sync4d_tools.articulated.truth import CaseTruth, clip_truth, filmed_laptop, first_frames, laptop_renders_truth
-from sync4d_tools.evaluate import dotlist
+from sync4d_tools.evaluate import component_options, dotlist
 
 log = logging.getLogger(__name__)
 LAPTOP_RENDERS = "../shared/data/rendered/metaworld_laptop_hinge"
 LABEL_BAR = 0.95  # first-frame labels against their ceiling
-Loader = Callable[[], tuple[Any, CaseTruth, str]]
+Loader = Callable[[], tuple[ReferenceInput, CaseTruth, str]]
 
 
-def build_recon(bones: int, seed: int, overrides: dict[str, Any] | None = None) -> Any:
+def build_recon(bones: int, seed: int, overrides: dict[str, Any] | None = None) -> VideoReconstructor:
     """``recon=video`` from ``conf/recon/video.yaml`` with the part count and the seed set (and ``overrides``,
     the command line's ``--set``, merged first)."""
-    from omegaconf import OmegaConf
-
     from sync4d.registry import make_config
 
-    conf = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recon" / "video.yaml")
-    conf.pop("defaults", None)  # the Hydra schema entry; the typed Config holds the defaults
-    conf = OmegaConf.merge(conf, overrides or {})
-    conf.bones, conf.seed = bones, seed
-    cls, cfg = make_config("recon", conf)
-    return cls(cfg)
+    _, cfg = make_config("recon", component_options("recon", "video", {**(overrides or {}), "bones": bones,
+                                                                        "seed": seed}))
+    return VideoReconstructor(cfg)
 
 
 def part_mapping(rendered: list[np.ndarray], gt_labels: np.ndarray, n_bones: int, n_parts: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -108,12 +105,12 @@ def label_block(rendered: list[np.ndarray], mapping: np.ndarray, truth: CaseTrut
 def run_case(name: str, seed: int, load: Loader, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Reconstruct one case (``recon=video`` with ``overrides``) and score it, with its floor and ceiling."""
     source, truth, variant = load()
-    clip = source.video
+    clip = video_of(source)
     clip_id = hashlib.sha1(clip.frames.tobytes() + clip.masks.tobytes()).hexdigest()[:12]
     n_parts = len(truth.kinds) + 1
     fit = build_recon(n_parts, seed, overrides).reconstruct_detailed(source)
     seen = truth.seen_first(fit.camera)
-    rendered = rendered_labels(fit, truth.part_labels)  # type: ignore[arg-type]
+    rendered = rendered_labels(fit, truth.part_labels)
     mapping, votes, _ = part_mapping(rendered, truth.part_labels, fit.reference.num_bones, n_parts)
     joints = joint_rows(fit, truth, mapping, votes)
     exact = exact_splats(fit.tracks, fit.masks, truth, clip, fit.camera, fit.object_width)
@@ -131,7 +128,7 @@ def run_case(name: str, seed: int, load: Loader, overrides: dict[str, Any] | Non
 
 
 def clip_loader(folder: Path, frames: int = 0) -> Loader:
-    def load() -> tuple[Any, CaseTruth, str]:
+    def load() -> tuple[ReferenceInput, CaseTruth, str]:
         source = VideoSource(VideoSource.Config(video=str(folder / "rgb.mp4"), masks=str(folder / "masks"),
                                                 camera=str(folder / "gt.npz"), max_frames=frames)).load()
         gt = dict(np.load(folder / "gt.npz"))
@@ -140,12 +137,18 @@ def clip_loader(folder: Path, frames: int = 0) -> Loader:
 
 
 def renders_loader(cache: Path, frames: int = 0) -> Loader:
-    def load() -> tuple[Any, CaseTruth, str]:
+    def load() -> tuple[ReferenceInput, CaseTruth, str]:
         root = resolve_path(LAPTOP_RENDERS, what="laptop render folder")
         source = VideoSource(VideoSource.Config(video=str(root / "rgb.mp4"), masks=str(root / "masks"),
                                                 camera=str(root / "gt.npz"), max_frames=frames)).load()
-        truth = laptop_renders_truth(dict(np.load(root / "gt.npz")), source.camera, cache)
+        truth = laptop_renders_truth(dict(np.load(root / "gt.npz")), camera_of(source), cache)
         return source, first_frames(truth, frames), "fixed clip (shared data)"
+    return load
+
+
+def filmed_loader(seed: int, frames: int) -> Loader:
+    def load() -> tuple[ReferenceInput, CaseTruth, str]:
+        return filmed_laptop(seed, frames)
     return load
 
 
@@ -167,7 +170,7 @@ def suite_cases(cache: Path, only: list[str], laptops: bool, seeds: list[int], f
     for name in names:
         for seed in seeds:
             if name == "laptop_filmed":
-                cases.append((name, seed, lambda s=seed: filmed_laptop(s, frames or 24)))
+                cases.append((name, seed, filmed_loader(seed, frames or 24)))
             elif name == "laptop_hinge_renders":
                 cases.append((name, seed, renders_loader(cache, frames)))
             else:
