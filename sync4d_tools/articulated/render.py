@@ -287,4 +287,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from sync4d.errors import Sync4DError
+
+    try:
+        main()
+    except Sync4DError as err:  # one line and exit code 2, as the evaluation commands end
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
