@@ -34,6 +34,12 @@ import time
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
+
+    from sync4d.sim.mpm_warp import MPMModel, MPMWarp
 
 ROOT = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".warp_cache"))
@@ -42,129 +48,10 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 import warp as wp  # noqa: E402
 
-wp.config.quiet = True
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the kernels beside this file, however it is loaded
+from mpm_reference_kernels import ref_g2p, ref_grid, ref_p2g, ref_stress  # noqa: E402
 
-
-@wp.kernel
-def ref_stress(F: wp.array(dtype=wp.mat33), mu: float, lam: float, tau: wp.array(dtype=wp.mat33)):
-    """(P,) Kirchhoff stress [Pa] of fixed-corotated elasticity, rotation from the SVD."""
-    p = wp.tid()
-    Fp = F[p]
-    U, sig, V = wp.svd3(Fp)
-    R = U * wp.transpose(V)
-    J = wp.determinant(Fp)
-    tau[p] = 2.0 * mu * (Fp - R) * wp.transpose(Fp) + wp.identity(n=3, dtype=float) * (lam * J * (J - 1.0))
-
-
-@wp.kernel
-def ref_p2g(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    tau: wp.array(dtype=wp.mat33),
-    mass: wp.array(dtype=float),
-    volume: wp.array(dtype=float),
-    origin: wp.vec3,
-    dx: float,
-    inv_dx: float,
-    dt: float,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-):
-    """Scatter mass [kg] and APIC/MLS momentum [kg m/s] to the 27 stencil nodes (atomic adds)."""
-    p = wp.tid()
-    gp = (x[p] - origin) * inv_dx
-    bx = int(wp.floor(gp[0] - 0.5))
-    by = int(wp.floor(gp[1] - 0.5))
-    bz = int(wp.floor(gp[2] - 0.5))
-    fx = gp - wp.vec3(float(bx), float(by), float(bz))
-    w0 = 0.5 * wp.cw_mul(wp.vec3(1.5) - fx, wp.vec3(1.5) - fx)
-    w1 = wp.vec3(0.75) - wp.cw_mul(fx - wp.vec3(1.0), fx - wp.vec3(1.0))
-    w2 = 0.5 * wp.cw_mul(fx - wp.vec3(0.5), fx - wp.vec3(0.5))
-    wx = wp.vec3(w0[0], w1[0], w2[0])
-    wy = wp.vec3(w0[1], w1[1], w2[1])
-    wz = wp.vec3(w0[2], w1[2], w2[2])
-    m = mass[p]
-    affine = m * C[p] - (dt * volume[p] * 4.0 * inv_dx * inv_dx) * tau[p]
-    mv = m * v[p]
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                weight = wx[i] * wy[j] * wz[k]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
-                wp.atomic_add(grid_mv, bx + i, by + j, bz + k, weight * (mv + affine * dpos))
-                wp.atomic_add(grid_m, bx + i, by + j, bz + k, weight * m)
-
-
-@wp.kernel
-def ref_grid(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-    gravity: wp.vec3,
-    dt: float,
-    mass_eps: float,
-    wall: int,
-    grid_v: wp.array3d(dtype=wp.vec3),
-):
-    """Node velocity [m/s] = momentum / mass + dt g; slip walls stop the outward component."""
-    i, j, k = wp.tid()
-    m = grid_m[i, j, k]
-    vi = wp.vec3(0.0)
-    if m > mass_eps:
-        vi = grid_mv[i, j, k] / m + dt * gravity
-        vx = vi[0]
-        vy = vi[1]
-        vz = vi[2]
-        if (i < wall and vx < 0.0) or (i >= grid_m.shape[0] - wall and vx > 0.0):
-            vx = 0.0
-        if (j < wall and vy < 0.0) or (j >= grid_m.shape[1] - wall and vy > 0.0):
-            vy = 0.0
-        if (k < wall and vz < 0.0) or (k >= grid_m.shape[2] - wall and vz > 0.0):
-            vz = 0.0
-        vi = wp.vec3(vx, vy, vz)
-    grid_v[i, j, k] = vi
-
-
-@wp.kernel
-def ref_g2p(
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    grid_v: wp.array3d(dtype=wp.vec3),
-    origin: wp.vec3,
-    inv_dx: float,
-    dt: float,
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
-    F_out: wp.array(dtype=wp.mat33),
-):
-    """Gather velocity [m/s] and the affine matrix C [1/s]; advance F and x into the next state's arrays."""
-    p = wp.tid()
-    gp = (x[p] - origin) * inv_dx
-    bx = int(wp.floor(gp[0] - 0.5))
-    by = int(wp.floor(gp[1] - 0.5))
-    bz = int(wp.floor(gp[2] - 0.5))
-    fx = gp - wp.vec3(float(bx), float(by), float(bz))
-    w0 = 0.5 * wp.cw_mul(wp.vec3(1.5) - fx, wp.vec3(1.5) - fx)
-    w1 = wp.vec3(0.75) - wp.cw_mul(fx - wp.vec3(1.0), fx - wp.vec3(1.0))
-    w2 = 0.5 * wp.cw_mul(fx - wp.vec3(0.5), fx - wp.vec3(0.5))
-    wx = wp.vec3(w0[0], w1[0], w2[0])
-    wy = wp.vec3(w0[1], w1[1], w2[1])
-    wz = wp.vec3(w0[2], w1[2], w2[2])
-    vp = wp.vec3(0.0)
-    Cp = wp.mat33(0.0)
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                weight = wx[i] * wy[j] * wz[k]
-                dpos = wp.vec3(float(i), float(j), float(k)) - fx  # in cells
-                gv = grid_v[bx + i, by + j, bz + k]
-                vp = vp + weight * gv
-                Cp = Cp + (4.0 * inv_dx * weight) * wp.outer(gv, dpos)
-    x_out[p] = x[p] + dt * vp
-    v_out[p] = vp
-    C_out[p] = Cp
-    F_out[p] = (wp.identity(n=3, dtype=float) + dt * Cp) * F[p]
+wp.config.log_level = wp.LOG_WARNING  # no module-load messages between the JSON records
 
 
 @dataclass
@@ -183,11 +70,11 @@ class Scene:
     mass_eps: float  # [kg]
 
 
-def make_scene(model) -> Scene:
+def make_scene(model: MPMModel) -> Scene:
     """The reference's copy of a :class:`sync4d.sim.mpm_warp.MPMModel` (slip walls; no fixed box)."""
     g = model.grid
     return Scene(
-        origin=np.asarray(g.origin, dtype=np.float64), dx=float(g.dx), dims=tuple(int(d) for d in g.dims),
+        origin=np.asarray(g.origin, dtype=np.float64), dx=float(g.dx), dims=(int(g.dims[0]), int(g.dims[1]), int(g.dims[2])),
         wall=int(g.wall), mass=wp.array(model.mass.astype(np.float32), dtype=float, device="cpu"),
         volume=wp.array(model.volume.astype(np.float32), dtype=float, device="cpu"), mu=float(model.mu),
         lam=float(model.lam), gravity=np.asarray(model.gravity, dtype=np.float64),
@@ -204,7 +91,8 @@ def _particles(n: int, grad: bool) -> list[wp.array]:
     ]
 
 
-def rollout(scene: Scene, x, v, F, C, *, substeps: int, dt: float, grad: bool):
+def rollout(scene: Scene, x: np.ndarray, v: np.ndarray, F: np.ndarray, C: np.ndarray, *, substeps: int, dt: float,
+            grad: bool) -> tuple[wp.Tape | None, list[wp.array], list[wp.array]]:
     """Advance (x, v, F, C) (NumPy float32, (P, 3) / (P, 3, 3)) ``substeps`` substeps of ``dt`` [s].
 
     Returns:
@@ -212,7 +100,7 @@ def rollout(scene: Scene, x, v, F, C, *, substeps: int, dt: float, grad: bool):
         lists [x, v, C, F] of Warp arrays (with gradient buffers when ``grad``).
     """
     n = len(x)
-    first = [
+    first: list[wp.array] = [
         wp.array(np.asarray(x, np.float32), dtype=wp.vec3, device="cpu", requires_grad=grad),
         wp.array(np.asarray(v, np.float32), dtype=wp.vec3, device="cpu", requires_grad=grad),
         wp.array(np.asarray(C, np.float32), dtype=wp.mat33, device="cpu", requires_grad=grad),
@@ -247,14 +135,16 @@ def rollout(scene: Scene, x, v, F, C, *, substeps: int, dt: float, grad: bool):
     return tape, first, cur
 
 
-def backward(tape, last, grad_x: np.ndarray, grad_F: np.ndarray) -> None:
+def backward(tape: wp.Tape | None, last: list[wp.array], grad_x: np.ndarray, grad_F: np.ndarray) -> None:
     """Run the tape backward from dL/dx and dL/dF of the last state (fills the first state's ``.grad``)."""
-    gx = wp.array(np.asarray(grad_x, np.float32), dtype=wp.vec3, device="cpu")
-    gF = wp.array(np.asarray(grad_F, np.float32), dtype=wp.mat33, device="cpu")
+    if tape is None:
+        raise ValueError("backward: the rollout was run without grad=True, so nothing was taped")
+    gx: wp.array = wp.array(np.asarray(grad_x, np.float32), dtype=wp.vec3, device="cpu")
+    gF: wp.array = wp.array(np.asarray(grad_F, np.float32), dtype=wp.mat33, device="cpu")
     tape.backward(grads={last[0]: gx, last[3]: gF})
 
 
-def _bench_scene(n_particles: int, n_grid: int):
+def _bench_scene(n_particles: int, n_grid: int) -> tuple[MPMWarp, MPMModel, dict[str, torch.Tensor], torch.Tensor]:
     """The benchmark scene of benchmarks/mpm.py, built through the simulator so both share grid and masses."""
     import torch
 
@@ -269,7 +159,7 @@ def _bench_scene(n_particles: int, n_grid: int):
     return sim, model, st, v0
 
 
-def loss_and_grads(x: np.ndarray, F: np.ndarray, rest_x: np.ndarray):
+def loss_and_grads(x: np.ndarray, F: np.ndarray, rest_x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """The benchmark's loss (centroid displacement of the cube's x < 0.15 m half, plus mean (F - I)^2)
     and its gradients dL/dx (P, 3), dL/dF (P, 3, 3), by torch autograd (the same code for both solvers)."""
     import torch
@@ -279,6 +169,7 @@ def loss_and_grads(x: np.ndarray, F: np.ndarray, rest_x: np.ndarray):
     part = torch.as_tensor(rest_x[:, 0] < 0.15)
     loss = xt[part].mean(0).square().sum() + (Ft - torch.eye(3)).square().mean()
     loss.backward()
+    assert xt.grad is not None and Ft.grad is not None  # both are leaves the loss depends on
     return float(loss.detach()), xt.grad.numpy(), Ft.grad.numpy()
 
 
@@ -348,6 +239,7 @@ def agreement(n_particles: int, n_grid: int, substeps: int = 100, dt: float = 1e
 
     loss = xs[part].mean(0).square().sum() + (Fs - torch.eye(3)).square().mean()
     loss.backward()
+    assert v.grad is not None  # v is the leaf the loss is differentiated against
     gs = v.grad.numpy().astype(np.float64)
     return {
         "max_dx_over_cell": float(np.abs(xs.detach().numpy() - xr).max() / scene.dx),

@@ -19,12 +19,18 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from sync4d.types import TargetGaussians
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-def splat(n: int):
+def splat(n: int) -> TargetGaussians:
     import numpy as np
 
     from sync4d.types import TargetGaussians
@@ -39,7 +45,7 @@ def splat(n: int):
     )  # fmt: skip
 
 
-def raw_read(path: Path):
+def raw_read(path: Path) -> np.ndarray:
     """Header by hand, then one np.fromfile of the vertex table (all float32 little-endian)."""
     import numpy as np
 
@@ -54,7 +60,7 @@ def raw_read(path: Path):
         return np.fromfile(f, dtype=[(n, "<f4") for n in names], count=count)
 
 
-def timed(fn, repeats: int = 3) -> float:
+def timed(fn: Callable[[], object], repeats: int = 3) -> float:
     times = []
     for _ in range(repeats):
         started = time.perf_counter()
@@ -78,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         write_s = timed(lambda: write_gaussians_ply(path, g))
         raw_path = Path(tmp) / "raw.ply"
         table = gaussians_table(g)
+        assert table.dtype.names is not None  # a structured table: one field per property
         header = ("ply\nformat binary_little_endian 1.0\n" f"element vertex {g.num}\n"
                   + "".join(f"property float {n}\n" for n in table.dtype.names) + "end_header\n").encode()
 

@@ -92,7 +92,8 @@ def bench(n: int, res: int, repeats: int, backward: bool) -> dict[str, float]:
         btimes = []
         for i in range(repeats + 1):
             t0 = time.perf_counter()
-            img = renderer.render(*tensors, cam)
+            means, covariances, sh, opacities = tensors
+            img = renderer.render(means, covariances, sh, opacities, cam)
             img.sum().backward()
             if i:
                 btimes.append(time.perf_counter() - t0)

@@ -18,6 +18,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable
@@ -47,7 +48,7 @@ def time_command(argv: list[str]) -> dict:
     load = os.getloadavg()[0]
     started = time.perf_counter()
     proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, check=False)
-    row = {"seconds": round(time.perf_counter() - started, 1), "exit_code": proc.returncode,
+    row: dict[str, Any] = {"seconds": round(time.perf_counter() - started, 1), "exit_code": proc.returncode,
            "load_average_at_start": round(load, 2)}
     if "pytest" in argv:
         row["counts"] = pytest_counts(proc.stdout)

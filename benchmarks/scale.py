@@ -35,6 +35,10 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sync4d.types import TargetGaussians
 
 ROOT = Path(__file__).resolve().parent.parent
 os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / ".warp_cache"))
@@ -49,7 +53,7 @@ WORK = ROOT / "outputs" / "bench_scale"
 FLOATER_FRACTION = 5e-4
 
 
-def enlarged_splat(n: int, seed: int = 0):
+def enlarged_splat(n: int, seed: int = 0) -> TargetGaussians:
     """The source splat enlarged to ``n`` Gaussians (see the module docstring), floaters included."""
     import numpy as np
 
@@ -126,10 +130,10 @@ class Stages:
             self.peak[name] = max(self.peak.get(name, 0.0), self.rss_mb())
             time.sleep(0.02)
 
-    def wrap(self, owner, attribute: str, name: str) -> None:
+    def wrap(self, owner: object, attribute: str, name: str) -> None:
         inner = getattr(owner, attribute)
 
-        def timed(*args, **kwargs):
+        def timed(*args: Any, **kwargs: Any) -> Any:
             self.stack.append([name, time.perf_counter(), time.process_time(), 0.0, 0.0])
             try:
                 return inner(*args, **kwargs)
@@ -146,13 +150,13 @@ class Stages:
 
         setattr(owner, attribute, timed)
 
-    def wrap_thread(self, owner, attribute: str, name: str) -> None:
+    def wrap_thread(self, owner: object, attribute: str, name: str) -> None:
         """Time a function run in another thread (its wall and that thread's CPU seconds); its CPU is
         also inside the process CPU of whichever stage ran meanwhile (``time.process_time`` counts every
         thread), so this row is what of those stages was this work."""
         inner = getattr(owner, attribute)
 
-        def timed(*args, **kwargs):
+        def timed(*args: Any, **kwargs: Any) -> Any:
             wall0, cpu0 = time.perf_counter(), time.thread_time()
             try:
                 return inner(*args, **kwargs)

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sync4d.types import Camera
+
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "motion"
 SKIN, SHIRT, TROUSERS, SHOE = (0.87, 0.68, 0.55), (0.18, 0.33, 0.62), (0.32, 0.27, 0.22), (0.12, 0.12, 0.12)
 
@@ -219,7 +221,7 @@ def capsule_gaussians(
     return a + pts_local @ rot.T, local @ rot.T
 
 
-def render_clip(tracks: dict[str, np.ndarray], camera, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def render_clip(tracks: dict[str, np.ndarray], camera: Camera, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(T, H, W, 3) uint8 frames and (T, H, W) bool masks of the mannequin posed by ``tracks``."""
     from sync4d.render.splat_torch import SplatTorch
 
@@ -244,7 +246,8 @@ def render_clip(tracks: dict[str, np.ndarray], camera, *, seed: int = 0) -> tupl
     return np.stack(frames), np.stack(masks)
 
 
-def clip_camera(tracks: dict[str, np.ndarray], view: str, width: int, height: int, fov_deg: float):
+def clip_camera(tracks: dict[str, np.ndarray], view: str, width: int, height: int, fov_deg: float
+                ) -> tuple[Camera, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A static look-at camera framing the whole clip; returns (Camera, K, position, forward, up)."""
     from sync4d.sources.references import camera_from_look
 

@@ -27,15 +27,22 @@ import io
 import json
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sync4d.types import Camera, ReferenceInput, VideoClip
+from sync4d_tools import camera_of, video_of
 from sync4d_tools.body_clips import write_clip
-from sync4d_tools.evaluate.recon_joints import joint_errors, mask_iou
+from sync4d_tools.evaluate.recon_joints import fit_silhouettes, joint_errors, mask_iou
 from sync4d_tools.evaluate.recon_joints import main as recon_joints
 from sync4d_tools.fox_clip import write_clip as write_fox
 from sync4d_tools.shiba_clip import write_clip as write_shiba
+
+if TYPE_CHECKING:
+    import torch
+
+    from sync4d.recon.pose.quadruped_fit import Params, QuadrupedFitConfig, QuadrupedProblem
 
 CLIPS = (
     ("cmu", "front", 30, 12),
@@ -133,15 +140,16 @@ def floor_joints(source: ReferenceInput, names: list[str]) -> np.ndarray:
     cfg = qf.QuadrupedFitConfig()
     tmpl = body_template(cfg.template)
     ids = [tmpl.names.index(dict(tmpl.vocabulary)[n]) for n in names]
-    w2c0 = source.camera.world_to_cam
+    clip, camera = video_of(source), camera_of(source)
+    w2c0 = camera.world_to_cam
     rot = qf.heading_rotation(w2c0[:3, :3] @ source.world_up, 0.0)
     from scipy.spatial.transform import Rotation
 
     rest = tmpl.joints[ids] * cfg.template_length @ Rotation.from_rotvec(rot).as_matrix().T
     out = []
-    for t, mask in enumerate(source.video.masks):
-        root = qf.initial_root(mask, source.camera, cfg.template_length, cfg.template_length * float(np.ptp(tmpl.vertices[:, 1])))
-        ext = source.video.extrinsics
+    for t, mask in enumerate(clip.masks):
+        root = qf.initial_root(mask, camera, cfg.template_length, cfg.template_length * float(np.ptp(tmpl.vertices[:, 1])))
+        ext = clip.extrinsics
         to_first = np.eye(4) if ext is None else ext[0] @ np.linalg.inv(ext[t])  # frame t camera -> first
         out.append((rest + root) @ to_first[:3, :3].T + to_first[:3, 3])
     return first_camera_to_world(np.stack(out), w2c0)
@@ -162,13 +170,13 @@ def score_quadruped(folder: Path) -> dict:
     fit = recon.fit(source)
     cpu_s = time.process_time() - cpu
     mapping = dict(recon_template_vocabulary())
-    pred = first_camera_to_world(fit.joints[:, [fit.names.index(mapping[n]) for n in names]],
-                                 source.camera.world_to_cam)
+    clip, camera = video_of(source), camera_of(source)
+    pred = first_camera_to_world(fit.joints[:, [fit.names.index(mapping[n]) for n in names]], camera.world_to_cam)
     row = joint_score(pred, truth[: len(pred)])
     floor = joint_score(floor_joints(source, names), truth)
     return {**row, "floor_mpjpe_pct_height": floor["mpjpe_pct_height"], "floor_pck10": floor["pck10"],
-            "mask_iou": round(mask_iou(fit.silhouettes, source.video.masks), 4), "frames": len(pred),
-            "moving_camera": source.video.extrinsics is not None, "seconds": round(time.perf_counter() - start, 2),
+            "mask_iou": round(mask_iou(fit_silhouettes(fit), clip.masks), 4), "frames": len(pred),
+            "moving_camera": clip.extrinsics is not None, "seconds": round(time.perf_counter() - start, 2),
             "cpu_seconds": round(cpu_s, 2), "cpu_seconds_per_frame": round(cpu_s / len(pred), 2)}
 
 
@@ -188,8 +196,9 @@ def split_clip(folder: Path) -> dict:
     source, truth, names, w2c = load_quadruped_clip(folder)
     truth_cam = np.einsum("ij,tkj->tki", w2c[0][:3, :3], truth) + w2c[0][:3, 3]  # the first camera's frame
     cfg = qf.QuadrupedFitConfig()
-    prob = qf.QuadrupedProblem(source.video.masks, source.camera, cfg, frames=source.video.frames,
-                               extrinsics=source.video.extrinsics, fps=source.fps)
+    clip = video_of(source)
+    prob = qf.QuadrupedProblem(clip.masks, camera_of(source), cfg, frames=clip.frames, extrinsics=clip.extrinsics,
+                               fps=source.fps)
     tmpl = prob.tt.template
     ids = [tmpl.names.index(dict(tmpl.vocabulary)[n]) for n in names]
     frames, up_cam = np.arange(len(truth)), w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
@@ -207,7 +216,7 @@ def split_clip(folder: Path) -> dict:
     return row
 
 
-def truth_start(prob, truth_cam: np.ndarray, names: list[str], up_cam: np.ndarray) -> dict:
+def truth_start(prob: QuadrupedProblem, truth_cam: np.ndarray, names: list[str], up_cam: np.ndarray) -> Params:
     """Fit parameters whose root follows the truth (pelvis position, heading from pelvis to neck, up)."""
     from scipy.spatial.transform import Rotation
 
@@ -227,13 +236,14 @@ def truth_start(prob, truth_cam: np.ndarray, names: list[str], up_cam: np.ndarra
     return params
 
 
-def torch_no_grad():
+def torch_no_grad() -> torch.no_grad:
     import torch
 
     return torch.no_grad()
 
 
-def fit_to_truth(prob, params: dict, target, ids: list[int], cfg, priors: bool, steps: int = 1500) -> None:
+def fit_to_truth(prob: QuadrupedProblem, params: Params, target: torch.Tensor, ids: list[int],
+                 cfg: QuadrupedFitConfig, priors: bool, steps: int = 1500) -> None:
     """Adam on the template's joints ``ids`` against the truth (first camera frame), with or without the priors."""
     import torch
 

@@ -7,6 +7,7 @@ into one image, for docs and the README (the viewer shows the same run interacti
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,8 @@ def main(argv: list[str] | None = None) -> Path:
 
     video = args.run / "compare.mp4"
     if not video.is_file():
-        raise SystemExit(f"compare_frames: {video} not found; pass a finished run's folder")
+        print(f"error: compare_frames: {video} not found; pass a finished run's folder", file=sys.stderr)
+        raise SystemExit(2)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(stacked_frames(video, args.frames)).save(args.out, quality=88)
     print(args.out)

@@ -35,7 +35,8 @@ DOLLY = 0.2
 CLIP_FPS = {"Walk": 24.0, "Run": 18.0, "Survey": 6.0}
 
 
-def fox_frames(clip: str, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+def fox_frames(clip: str, fps: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, tuple[str, ...]]:
     """Posed vertices (T, V, 3) [m], faces, vertex colours (V, 3), truth joints (T, J, 3) [m] and their names
     over one loop of ``clip`` sampled at ``fps``."""
     from sync4d.io.gltf import joint_matrices, joint_world, read_gltf, skin_vertices, vertex_colours
@@ -90,9 +91,9 @@ def write_clip(out: Path, clip: str, view: str) -> dict:
     for t, m in enumerate(masks):
         imageio.imwrite(out / "masks" / f"{t:05d}.png", (m * 255).astype(np.uint8))
     static = view != "orbit"
-    cam = {"K": K, "world_to_cam": w2c[0] if static else w2c}
-    np.savez(out / "camera.npz", **cam)
-    np.savez(out / "gt.npz", joints=joints, names=np.array(names), fps=fps, **cam)
+    world_to_cam = w2c[0] if static else w2c
+    np.savez(out / "camera.npz", K=K, world_to_cam=world_to_cam)
+    np.savez(out / "gt.npz", joints=joints, names=np.array(names), fps=fps, K=K, world_to_cam=world_to_cam)
     return {"clip": f"fox_{clip.lower()}", "view": view, "frames": len(rgb), "fps": fps, "out": str(out)}
 
 

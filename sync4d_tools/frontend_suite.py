@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from sync4d.errors import Sync4DError
-from sync4d.frontend import FrontEndConfig, run_front_end
+from sync4d.frontend import FrontEndConfig, FrontEndResult, run_front_end
 from sync4d.geometry import rotation_angle_deg
 from sync4d.sources.references import camera_from_look
 from sync4d.types import Camera, VideoClip
@@ -92,7 +92,8 @@ def capsule_subject(name: str, seed: int) -> Subject:
     parts = bc.MANNEQUIN if name == "person" else bc.dog_capsules(tracks)
     light = np.array([0.3, 0.8, 0.6]) / np.linalg.norm([0.3, 0.8, 0.6])
     rng = np.random.default_rng(seed)
-    means, colours = [], []
+    means: list[np.ndarray] = []
+    colours: list[np.ndarray] = []
     for t in range(FRAMES):
         pts, cols = [], []
         for part in parts:
@@ -102,9 +103,8 @@ def capsule_subject(name: str, seed: int) -> Subject:
         means.append(np.concatenate(pts))
         colours.append(np.concatenate(cols))
     count = min(len(m) for m in means)
-    means = np.stack([m[:count] for m in means])
     covs = np.broadcast_to(np.eye(3) * 0.009**2, (FRAMES, count, 3, 3))
-    return Subject(name, means, covs, np.stack([c[:count] for c in colours]), np.full(count, 0.9), fps=fps)
+    return Subject(name, np.stack([m[:count] for m in means]), covs, np.stack([c[:count] for c in colours]), np.full(count, 0.9), fps=fps)
 
 
 def camera_path(subject: Subject, moving: bool, rng: np.random.Generator) -> list[Camera]:
@@ -203,6 +203,14 @@ def relative_rotations(cameras: list[Camera]) -> np.ndarray:
     return np.stack([c.world_to_cam[:3, :3] @ r0.T for c in cameras])
 
 
+def found_camera(result: FrontEndResult) -> tuple[np.ndarray, np.ndarray]:
+    """(intrinsics (3, 3) [px], extrinsics (T, 4, 4)) the front end filled into its clip."""
+    clip = result.clip
+    if clip.intrinsics is None or clip.extrinsics is None:
+        raise ValueError(f"{clip.source}: the front end returned a clip without its camera")
+    return clip.intrinsics, clip.extrinsics
+
+
 def rotation_errors(extrinsics: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """(T,) angle [deg] between the estimated (T, 4, 4) world-to-camera rotations relative to the first and
     the true relative rotations (T, 3, 3)."""
@@ -289,10 +297,10 @@ def run_case(case: str, *, seed: int, recon: bool, pictures: str = "") -> dict[s
         "iou": round(float(np.median(per_iou)), 4), "iou_min": round(float(per_iou.min()), 4),
         "iou_floor_whole_frame": round(float(np.median(iou(np.ones_like(masks), masks))), 4),
         "iou_floor_first_mask": round(float(np.median(iou(np.repeat(masks[:1], len(masks), 0), masks))), 4),
-        "rot_err_deg": round(float(np.median(rotation_errors(found.clip.extrinsics, truth_rot)[1:])), 3),
-        "rot_err_deg_true_K": round(float(np.median(rotation_errors(with_k.clip.extrinsics, truth_rot)[1:])), 3),
+        "rot_err_deg": round(float(np.median(rotation_errors(found_camera(found)[1], truth_rot)[1:])), 3),
+        "rot_err_deg_true_K": round(float(np.median(rotation_errors(found_camera(with_k)[1], truth_rot)[1:])), 3),
         "rot_floor_identity_deg": round(float(np.median(rotation_angle_deg(truth_rot)[1:])), 3),
-        "camera_mode": found.camera.mode, "focal_px": round(float(found.clip.intrinsics[0, 0]), 1),
+        "camera_mode": found.camera.mode, "focal_px": round(float(found_camera(found)[0][0, 0]), 1),
         "true_focal_px": round(float(cameras[0].K[0, 0]), 1), "cpu_s": round(cpu, 1),
     }
     if recon and labels is not None and subject.gt is not None:
@@ -350,15 +358,15 @@ def real_clip(path: str, *, stride: int, max_frames: int, picture: str) -> dict[
         picks = np.linspace(0, clip.num_frames - 1, 4).round().astype(int)
         tiles = mask_overlay(clip.frames[picks], found.clip.masks[picks])
         scale = 240.0 / tiles.shape[1]
-        tiles = [cv2.resize(t, (round(t.shape[1] * scale), 240), interpolation=cv2.INTER_AREA) for t in tiles]
+        resized = [cv2.resize(t, (round(t.shape[1] * scale), 240), interpolation=cv2.INTER_AREA) for t in tiles]
         Path(picture).parent.mkdir(parents=True, exist_ok=True)
-        imageio.imwrite(picture, np.concatenate(tiles, axis=1), quality=85)
-    ext = found.clip.extrinsics
+        imageio.imwrite(picture, np.concatenate(resized, axis=1), quality=85)
+    intrinsics, ext = found_camera(found)
     turn = rotation_angle_deg(ext[:, :3, :3] @ ext[0, :3, :3].T)
     area = found.clip.masks.reshape(clip.num_frames, -1).mean(1)
     return {"video": path, "frames": clip.num_frames, "size": [clip.frames.shape[2], clip.frames.shape[1]],
             "subject_method": found.subject, "camera_mode": found.camera.mode,
-            "focal_px": round(float(found.clip.intrinsics[0, 0]), 1), "focal_source": found.camera.focal_source,
+            "focal_px": round(float(intrinsics[0, 0]), 1), "focal_source": found.camera.focal_source,
             "max_turn_deg": round(float(turn.max()), 2), "reprojection_px": round(found.camera.reprojection_px, 3),
             "mask_area_median": round(float(np.median(area)), 4), "cpu_s": round(cpu, 1)}
 

@@ -207,8 +207,7 @@ def configured_substeps(run: RunRecord) -> int | None:
 
 def used_substeps(run: RunRecord) -> int | None:
     """The most substeps any frame used (``frame_stats[*]['time/substeps']``), or None if not recorded."""
-    counts = [as_float(s.get("time/substeps")) for s in run.metrics.get("frame_stats") or []]
-    counts = [c for c in counts if c is not None]
+    counts = [c for s in run.metrics.get("frame_stats") or [] if (c := as_float(s.get("time/substeps"))) is not None]
     return int(max(counts)) if counts else None
 
 
@@ -447,8 +446,7 @@ def _draw_cfl(ax: Any, runs: Sequence[RunRecord], root: Path, y_axis: str, E_ran
 def plot_stability_map(runs: Sequence[RunRecord], root: Path, y_axis: str, keys: Sequence[str], path: Path) -> bool:
     """Outcome per (E, substep size) or (E, nu), one panel per value of the other swept keys, with the
     CFL bound drawn. Returns False when no run has both coordinates."""
-    placed = [(run, stability_point(run, y_axis)) for run in runs]
-    placed = [(run, p) for run, p in placed if p is not None]
+    placed = [(run, p) for run in runs if (p := stability_point(run, y_axis)) is not None]
     if not placed:
         return False
     E_range = (min(p[0] for _, p in placed), max(p[0] for _, p in placed))
@@ -488,8 +486,7 @@ def ablation_values(runs: Sequence[RunRecord], key: str, metric: str) -> list[tu
     numeric = all(as_float(v) is not None for v in groups)
     out = []
     for value in sorted(groups, key=lambda v: (as_float(v), v) if numeric else (0.0, v)):
-        metrics = [as_float(r.metrics.get(metric)) for r in groups[value] if r.status == "ok"]
-        metrics = [m for m in metrics if m is not None]
+        metrics = [m for r in groups[value] if r.status == "ok" and (m := as_float(r.metrics.get(metric))) is not None]
         failures = sum(r.status != "ok" for r in groups[value])
         out.append((value, sum(metrics) / len(metrics) if metrics else None, failures))
     return out

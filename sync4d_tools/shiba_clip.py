@@ -27,8 +27,13 @@ import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from sync4d.errors import InputError
+from sync4d.io.lab4d import Lab4DExport
+from sync4d.types import Camera
 
 EXPORT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lab4d_export" / "shiba-haru-1002"
 METRES_PER_UNIT = 6.0
@@ -156,10 +161,12 @@ def surface_samples(
 
 
 def render_mesh_frames(
-    vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray, cameras: list, *, samples: int = 60000
+    vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None, cameras: list[Camera], *,
+    samples: int = 60000
 ) -> tuple[np.ndarray, np.ndarray]:
     """(T, H, W, 3) uint8 frames and (T, H, W) bool masks (opacity > 0.5) of the mesh sequence, frame t seen by
-    ``cameras[t]``; Gaussians of radius ~ the sample spacing, shaded by the face normal (two-sided)."""
+    ``cameras[t]``; Gaussians of radius ~ the sample spacing, shaded by the face normal (two-sided); ``colours``
+    (V, 3) in [0, 1] per vertex, or None for a plain light grey."""
     from sync4d.render.splat_torch import SplatTorch
 
     renderer = SplatTorch(SplatTorch.Config(background=[0.78, 0.78, 0.76], num_threads=1))
@@ -168,6 +175,8 @@ def render_mesh_frames(
     tri0 = vertices[0][faces]
     area = 0.5 * np.linalg.norm(np.cross(tri0[:, 1] - tri0[:, 0], tri0[:, 2] - tri0[:, 0]), axis=1).sum()
     sigma = 0.7 * np.sqrt(area / samples)
+    if colours is None:
+        colours = np.full((len(vertices[0]), 3), 0.8)
     cols = (colours[faces[face]] * bary[..., None]).sum(1)
     light = np.array([0.3, 0.8, 0.6]) / np.linalg.norm([0.3, 0.8, 0.6])
     frames, masks = [], []
@@ -184,12 +193,14 @@ def render_mesh_frames(
     return np.stack(frames), np.stack(masks)
 
 
-def export_cameras(export) -> tuple[list, np.ndarray, dict]:
+def export_cameras(export: Lab4DExport) -> tuple[list[Camera], np.ndarray, dict[str, Any]]:
     """The export's cameras as one static camera (frame 0's) and the per-frame object motion ``inv(W_0) W_t``.
 
     Returns (cameras (T,), motion (T, 4, 4) object -> frame-0 object frame, camera.npz fields)."""
     from sync4d.sources.references import camera_from_look
 
+    if export.object_to_camera is None or export.intrinsics is None:
+        raise InputError(f"{EXPORT}: the export has no per-frame cameras (object_to_camera, intrinsics)")
     w2c = export.object_to_camera.copy()
     w2c[:, :3, 3] *= METRES_PER_UNIT
     fx, fy, cx, cy = export.intrinsics[0] * EXPORT_SCALE
@@ -212,6 +223,8 @@ def write_clip(out: Path, view: str) -> dict:
     from sync4d_tools.body_clips import DOG_TRUTH, clip_camera
 
     export = read_lab4d_export(EXPORT)
+    if export.posed_vertices is None:
+        raise InputError(f"{EXPORT}: the export has no posed meshes to render")
     verts = export.posed_vertices * METRES_PER_UNIT
     groups = joint_groups(verts[0], export.faces)
     if view == "export":

@@ -264,7 +264,8 @@ def hinge_angles_rad(reference: Reference, base: int = 0, lid: int = 1) -> np.nd
     return np.linalg.norm(Rotation.from_matrix(change).as_rotvec(), axis=1)
 
 
-def filmed_laptop_case(settings: FilmSettings | None = None, *, num_frames: int = 24, device: str = "cpu") -> tuple[object, dict[str, np.ndarray]]:
+def filmed_laptop_case(settings: FilmSettings | None = None, *, num_frames: int = 24, device: str = "cpu"
+                       ) -> tuple[ReferenceInput, dict[str, np.ndarray]]:
     """The default scene's laptop filmed, with ground truth in the layout of the hinge renders' ``gt.npz``.
 
     Returns:

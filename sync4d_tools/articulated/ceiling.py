@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from sync4d.recon.video.images import backproject
+from sync4d.recon.video import VideoFit
 from sync4d.recon.video.joints import JointFit
 from sync4d.recon.video.reconstructor import build_reference
 from sync4d.recon.video.reveal import reveal
@@ -42,7 +43,7 @@ class Splats:
     object_width: float
 
 
-def rendered_labels(fit: Splats, gt_labels: np.ndarray) -> list[np.ndarray]:
+def rendered_labels(fit: Splats | VideoFit, gt_labels: np.ndarray) -> list[np.ndarray]:
     """Per frame, the bone rendered at each gt object pixel (in the order of ``np.nonzero``)."""
     out = []
     for t in range(fit.reference.num_frames):

@@ -24,7 +24,9 @@ from sync4d.sources.references import VideoSource
 from sync4d.recon.video import joints as jt
 from sync4d.recon.video.images import backproject
 from sync4d.recon.video.reconstructor import VideoReconstructor
-from sync4d.recon.video.stages import init_parts, reference_depth, track_grid, video_masks
+from sync4d.recon.video.stages import Tracks, init_parts, reference_depth, track_grid, video_masks
+from sync4d.types import Camera, VideoClip
+from sync4d_tools import camera_of, video_of
 from sync4d_tools.articulated.ceiling import exact_splats, rendered_labels
 from sync4d_tools.articulated.truth import CaseTruth, clip_truth
 
@@ -74,7 +76,7 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0, *, labels_ceiling: bool
     ).load()
     n_parts = len(gt["joint_type"]) + 1
     cfg = VideoReconstructor.Config(bones=n_parts, seed=seed)
-    clip, camera = source.video.validate(), source.camera
+    clip, camera = video_of(source).validate(), camera_of(source)
     masks = video_masks(clip, cfg.masks)
     tracks = track_grid(clip.frames, masks, cfg.tracks)
     pix = np.floor(tracks.uv0).astype(int)
@@ -127,18 +129,18 @@ def diagnose(folder: Path, run_fit: bool, seed: int = 0, *, labels_ceiling: bool
     return report
 
 
-def exact_label_score(truth: CaseTruth, tracks: object, masks: np.ndarray, clip: object, camera: object,
+def exact_label_score(truth: CaseTruth, tracks: Tracks, masks: np.ndarray, clip: VideoClip, camera: Camera,
                       width: float) -> float:
     """The suite's label score of the exact truth in the method's representation (frame-0 points and the
     surfaces later frames reveal): the labels' ceiling (:mod:`sync4d_tools.articulated.ceiling`)."""
     from sync4d_tools.evaluate.recon_suite import part_mapping
 
-    exact = exact_splats(tracks, masks, truth, clip, camera, width)  # type: ignore[arg-type]
+    exact = exact_splats(tracks, masks, truth, clip, camera, width)
     rendered = rendered_labels(exact, truth.part_labels)
     return round(part_mapping(rendered, truth.part_labels, exact.reference.num_bones, len(truth.kinds) + 1)[2], 4)
 
 
-def refined_scores(model: jt.Articulation, truth: CaseTruth, camera: object) -> list[dict[str, float | None]]:
+def refined_scores(model: jt.Articulation, truth: CaseTruth, camera: Camera) -> list[dict[str, float | None]]:
     """Per gt joint, the suite's joint scores (axis [deg], pivot [% size], motion) of a model whose part b is
     gt joint b - 1 (the truth refined: where the objective pulls the exact joints)."""
     from sync4d_tools.articulated.score import joint_row
@@ -148,7 +150,7 @@ def refined_scores(model: jt.Articulation, truth: CaseTruth, camera: object) -> 
     means = model.scene.centre.numpy() + fit.depth[:, None] * model.scene.rays.numpy()
     out = []
     for j in range(len(truth.kinds)):
-        row = joint_row(motions[:, j + 1], fit.kinds[j + 1], j, truth, camera, means[fit.labels == j + 1])  # type: ignore[arg-type]
+        row = joint_row(motions[:, j + 1], fit.kinds[j + 1], j, truth, camera, means[fit.labels == j + 1])
         out.append({k: (None if row[k] is None else round(float(row[k]), 2)) for k in ("axis_deg", "pivot_pct", "motion")})
     return out
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from sync4d_tools.articulated.objects import SuiteObject, suite_objects
 
@@ -238,10 +239,21 @@ def render_clip(obj: SuiteObject, view: View, out: Path, *, frames: int, width: 
     (out / "masks").mkdir(parents=True, exist_ok=True)
     for t, lab in enumerate(labels_a):
         imageio.imwrite(out / "masks" / f"{t:05d}.png", ((lab > 0) * 255).astype(np.uint8))
-    imageio.mimwrite(out / "rgb.mp4", rgb, fps=12, quality=9, macro_block_size=1)
+    images: list[ArrayLike] = [*rgb]
+    imageio.mimwrite(out / "rgb.mp4", images, fps=12, quality=9, macro_block_size=1)
     np.savez_compressed(out / "gt.npz", **gt)
     return {"clip": out.name, "object": obj.name, "view": view.name, "joints": kinds.tolist(),
             "part_pixels_frame0": [int((labels_a[0] == p + 1).sum()) for p in range(n_parts)]}
+
+
+def require_mujoco(what: str) -> None:
+    """Fail with one line when MuJoCo (``requirements-suite.txt``) is not installed; ``what`` names the need."""
+    import importlib.util
+
+    from sync4d.errors import DataMissingError
+
+    if importlib.util.find_spec("mujoco") is None or importlib.util.find_spec("metaworld") is None:
+        raise DataMissingError(f"{what} needs MuJoCo and Meta-World: pip install -r requirements-suite.txt")
 
 
 def clip_name(obj: str, view: str, seed: int) -> str:
@@ -257,6 +269,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--size", type=int, nargs=2, default=(240, 180), metavar=("W", "H"))
     parser.add_argument("--only", nargs="*", default=[], help="object names to render (default: all)")
     args = parser.parse_args(argv)
+    require_mujoco("rendering the articulated suite")
     cache = Path(args.out)
     cache.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -274,4 +287,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from sync4d.errors import Sync4DError
+
+    try:
+        main()
+    except Sync4DError as err:  # one line and exit code 2, as the evaluation commands end
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)

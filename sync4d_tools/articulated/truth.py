@@ -25,7 +25,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from sync4d.recon.video.images import backproject
-from sync4d.types import Camera
+from sync4d.scenes.reference_video import FilmSettings
+from sync4d.types import Camera, Reference, ReferenceInput
+from sync4d_tools import camera_of
 
 
 @dataclass(frozen=True)
@@ -105,6 +107,14 @@ class CaseTruth:
         return out
 
 
+def first_frames(truth: CaseTruth, frames: int) -> CaseTruth:
+    """The truth of the first ``frames`` frames of a clip (all of it for 0)."""
+    if frames <= 0:
+        return truth
+    return replace(truth, part_labels=truth.part_labels[:frames], depth=truth.depth[:frames],
+                   values=truth.values[:frames])
+
+
 def clip_truth(gt: dict[str, np.ndarray]) -> CaseTruth:
     """The truth of a suite clip's ``gt.npz`` (needs ``depth_t``: clips rendered by this version)."""
     if "depth_t" not in gt:
@@ -125,6 +135,9 @@ def laptop_renders_truth(gt: dict[str, np.ndarray], camera: Camera, cache: Path)
     if store.exists():
         depth = np.load(store)["depth"]
     else:
+        from sync4d_tools.articulated.render import require_mujoco
+
+        require_mujoco("the laptop renders' depth truth (cast once at the MuJoCo model, then cached)")
         depth = _cast_laptop_depth(angles, camera, gt["part_labels"].shape[1:], cache)
         np.savez_compressed(store, depth=depth)
     depth = np.where(gt["part_labels"] > 0, depth, 0.0).astype(np.float32)
@@ -162,10 +175,8 @@ def _cast_laptop_depth(angles: np.ndarray, camera: Camera, shape: tuple[int, int
     return out
 
 
-def laptop_film_settings(seed: int) -> object:
+def laptop_film_settings(seed: int) -> FilmSettings:
     """The filmed laptop's camera and texture at ``seed`` (0: the default scene's)."""
-    from sync4d.scenes.reference_video import FilmSettings
-
     base = FilmSettings()
     if seed == 0:
         return base
@@ -175,34 +186,36 @@ def laptop_film_settings(seed: int) -> object:
     d = Rotation.from_rotvec(np.radians(rng.uniform(-15, 15)) * up).apply(d)
     side = np.cross(up, d)
     d = Rotation.from_rotvec(np.radians(rng.uniform(-8, 8)) * side / np.linalg.norm(side)).apply(d)
-    return replace(base, direction=tuple(float(v) for v in d), texture_cell=base.texture_cell * float(rng.uniform(0.8, 1.25)))
+    direction = (float(d[0]), float(d[1]), float(d[2]))
+    return replace(base, direction=direction, texture_cell=base.texture_cell * float(rng.uniform(0.8, 1.25)))
 
 
-def filmed_laptop(seed: int) -> tuple[object, CaseTruth, str]:
-    """(ReferenceInput, truth, variant description) of the default scene's laptop filmed at ``seed``."""
+def filmed_laptop(seed: int, frames: int = 24) -> tuple[ReferenceInput, CaseTruth, str]:
+    """(ReferenceInput, truth, variant description) of the default scene's laptop filmed at ``seed`` (the first
+    ``frames`` frames of its motion)."""
     from sync4d.scenes.laptop import filmed_laptop_case, hinge_pivot, laptop_reference
 
     settings = laptop_film_settings(seed)
-    source, gt = filmed_laptop_case(settings)  # type: ignore[arg-type]
+    source, gt = filmed_laptop_case(settings, num_frames=frames)
     reference = laptop_reference(len(gt["part_labels"]))
-    camera = source.camera  # type: ignore[attr-defined]
+    camera = camera_of(source)
     lid = reference.bone_transforms[:, 1, :3, :3] @ reference.bone_transforms[0, 1, :3, :3].T
     axis = np.array([1.0, 0.0, 0.0])
     values = Rotation.from_matrix(lid).as_rotvec() @ axis
     depth = np.stack([_zbuffer_depth(reference, t, camera, gt["part_labels"][t]) for t in range(reference.num_frames)])
     truth = CaseTruth(part_labels=gt["part_labels"], depth=depth, kinds=("hinge",), axes=axis[None],
                       pivots=hinge_pivot(0.24, 0.02)[None], values=values[:, None])
-    return source, truth, json.dumps({"direction": settings.direction, "texture_cell": settings.texture_cell})  # type: ignore[attr-defined]
+    return source, truth, json.dumps({"direction": settings.direction, "texture_cell": settings.texture_cell})
 
 
-def _zbuffer_depth(reference: object, t: int, camera: Camera, labels: np.ndarray, samples: int = 300_000) -> np.ndarray:
+def _zbuffer_depth(reference: Reference, t: int, camera: Camera, labels: np.ndarray, samples: int = 300_000) -> np.ndarray:
     """(H, W) camera depth [m] of the nearest of ``samples`` points on the posed mesh of frame t per pixel,
     kept where ``labels`` marks the object (gaps filled from the nearest covered pixel)."""
     import trimesh
     from scipy.ndimage import distance_transform_edt
 
-    verts = reference.posed_vertices(t)  # type: ignore[attr-defined]
-    mesh = trimesh.Trimesh(verts, reference.rest_faces, process=False)  # type: ignore[attr-defined]
+    verts = reference.posed_vertices(t)
+    mesh = trimesh.Trimesh(verts, reference.rest_faces, process=False)
     pts = trimesh.sample.sample_surface(mesh, samples, seed=0)[0]
     pc = pts @ camera.world_to_cam[:3, :3].T + camera.world_to_cam[:3, 3]
     uv = (pc @ camera.K.T)[:, :2] / pc[:, 2:3]

@@ -36,7 +36,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -46,6 +46,7 @@ from sync4d.match import METHODS, MatchConfig, MatchResult, match_parts
 from sync4d.registry import build
 from sync4d.surface import area_points
 from sync4d.types import Reference, TargetGaussians
+from sync4d_tools.evaluate import dotlist, mapping
 
 log = logging.getLogger(__name__)
 
@@ -340,7 +341,10 @@ def run_pair(
     return PairResult(name, accuracy, vertex_accuracy, result, reference, truth, seconds)
 
 
-def pair_self_copy(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = 4000) -> PairResult:
+POINTS = 4000  # target points of a within-category pair
+
+
+def pair_self_copy(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = POINTS) -> PairResult:
     """(a) the human body against a resampled, rescaled, rotated, jittered copy of itself."""
     rng = np.random.default_rng(seed)
     body = human_body()
@@ -351,7 +355,7 @@ def pair_self_copy(extractor: Any, options: MatchConfig, *, seed: int = 0, n_poi
     return run_pair("self_copy", body_reference(body, name="human"), target, truth, extractor, options)
 
 
-def pair_laptop_proportions(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = 4000) -> PairResult:
+def pair_laptop_proportions(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = POINTS) -> PairResult:
     """(b) the default laptop against a laptop of other proportions (mesh given), rotated."""
     from sync4d.scenes.laptop import laptop_mesh, laptop_reference
 
@@ -371,7 +375,7 @@ def pair_laptop_proportions(extractor: Any, options: MatchConfig, *, seed: int =
     )
 
 
-def pair_mocap_bodies(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = 4000) -> PairResult:
+def pair_mocap_bodies(extractor: Any, options: MatchConfig, *, seed: int = 0, n_points: int = POINTS) -> PairResult:
     """(c) two capsule bodies of different proportions on the same CMU skeleton."""
     rng = np.random.default_rng(seed + 2)
     body_a = human_body()
@@ -380,6 +384,11 @@ def pair_mocap_bodies(extractor: Any, options: MatchConfig, *, seed: int = 0, n_
     points = random_similarity(points, rng, scale=1.0)
     target = points_to_gaussians(points, name="human_b")
     return run_pair("mocap_bodies", body_reference(body_a, name="human_a"), target, truth, extractor, options)
+
+
+#: the within-category pairs (``--pairs``)
+PAIRS: dict[str, Callable[..., PairResult]] = {"self_copy": pair_self_copy, "laptop_proportions": pair_laptop_proportions,
+                                               "mocap_bodies": pair_mocap_bodies}
 
 
 def save_pair_figure(pair: PairResult, path: Path, *, views: tuple[tuple[float, float], ...] = ((0.0, 10.0), (90.0, 10.0))) -> None:
@@ -397,8 +406,10 @@ def load_target_mesh(relative: str) -> tuple[np.ndarray, np.ndarray]:
     """A shared target mesh with texture-seam duplicates merged (vertices, faces)."""
     import trimesh
 
-    mesh = trimesh.load(data_path(relative), force="mesh", process=False)
-    mesh = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=True)  # merges seams
+    loaded = trimesh.load(data_path(relative), force="mesh", process=False)
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise InputError(f"{relative}: not a triangle mesh ({type(loaded).__name__})")
+    mesh = trimesh.Trimesh(np.asarray(loaded.vertices), np.asarray(loaded.faces), process=True)  # merges seams
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
@@ -430,11 +441,11 @@ MAX_YAW_DEG = 20.0
 MAX_STRETCH = 0.1
 
 
-def sampled_target(vertices: np.ndarray, faces: np.ndarray, names: np.ndarray | None, rng: np.random.Generator
-                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+def sampled_target(vertices: np.ndarray, faces: np.ndarray, names: np.ndarray | None, rng: np.random.Generator,
+                   samples: int = LABEL_SAMPLES) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Area-uniform surface samples (S, 3) of a labelled target, their part names (or None) and face (S,)."""
     tri = vertices[faces]
-    sampled = area_points(tri, LABEL_SAMPLES, rng)
+    sampled = area_points(tri, samples, rng)
     if sampled is None:
         raise InputError("match_gt: a labelled target has zero surface area")
     points, face = sampled
@@ -451,7 +462,7 @@ def seed_transform(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 
 def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: MatchConfig,
-                  figures: Path | None) -> dict[str, Any]:
+                  figures: Path | None, samples: int = LABEL_SAMPLES) -> dict[str, Any]:
     """Match one label file's target (Gaussians sampled on its surface, turned and stretched by the seed) to
     its reference body; accuracy, floors, chance-corrected accuracy, per label, and a picture."""
     import zlib
@@ -464,7 +475,7 @@ def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: M
     reference = body_reference(body, name=spec.reference)
     vertices, faces, names = load_label_target(spec)
     rng = np.random.default_rng([SEED, zlib.crc32(spec.name.encode())])
-    points, point_names, _ = sampled_target(vertices, faces, names, rng)
+    points, point_names, _ = sampled_target(vertices, faces, names, rng, samples)
     labels = vertex_labels(spec, points, point_names, box=np.stack([vertices.min(axis=0), vertices.max(axis=0)]))
     centre, linear = vertices.mean(axis=0), seed_transform(vertices, rng)
     moved_vertices, moved_points = (vertices - centre) @ linear.T + centre, (points - centre) @ linear.T + centre
@@ -526,8 +537,9 @@ def save_labelled_figure(figures: Path, spec: Any, options: MatchConfig, result:
 
 
 def cross_category(extractor: Any, options: MatchConfig, label_files: list[Path],
-                   figures: Path | None) -> dict[str, dict[str, Any]]:
-    """Limb accuracy of every labelled pair (see :mod:`sync4d_tools.match_labels.labels`)."""
+                   figures: Path | None, samples: int = LABEL_SAMPLES) -> dict[str, dict[str, Any]]:
+    """Limb accuracy of every labelled pair (see :mod:`sync4d_tools.match_labels.labels`), ``samples``
+    Gaussians on each target."""
     from sync4d_tools.match_labels.labels import read_label_file
 
     specs = [read_label_file(p) for p in label_files]  # all files checked before any matching
@@ -536,7 +548,7 @@ def cross_category(extractor: Any, options: MatchConfig, label_files: list[Path]
         if spec.reference not in builders:
             raise DataMissingError(f"--labels {spec.path}: reference {spec.reference!r}: use one of {', '.join(builders)}")
     bodies = {name: builders[name]() for name in sorted({spec.reference for spec in specs})}
-    return {spec.name: labelled_pair(spec, bodies, extractor, options, figures) for spec in specs}
+    return {spec.name: labelled_pair(spec, bodies, extractor, options, figures, samples) for spec in specs}
 
 
 def pair_table(pairs: dict[str, dict[str, Any]]) -> str:
@@ -558,8 +570,7 @@ def load_features_config(spec: str) -> dict[str, Any]:
     path = Path(spec)
     if not path.suffix:
         path = ROOT / "conf" / "features" / f"{spec}.yaml"
-    cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    assert isinstance(cfg, dict)
+    cfg = mapping(OmegaConf.load(path), str(path))
     cfg.pop("defaults", None)  # the Hydra schema line of conf/features/*.yaml; defaults come from the Config
     return cfg
 
@@ -575,7 +586,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--align", default="pca_icp", choices=("none", "pca", "pca_icp", "upright_icp"),
                    help="for the randomly rotated within-category pairs (the labelled pairs use upright_icp)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--pairs", default="self_copy,laptop_proportions,mocap_bodies")
+    p.add_argument("--pairs", default=",".join(PAIRS), help="comma-separated within-category pairs ('' = none)")
+    p.add_argument("--points", type=int, default=0,
+                   help=f"target points per pair (0: {POINTS} within a category, {LABEL_SAMPLES} for a labelled pair)")
     p.add_argument("--figures", default="", help="folder for one picture per pair")
     p.add_argument("--cross-category", nargs="?", const="docs", default="", metavar="DIR",
                    help="also score the labelled pairs (sync4d_tools/match_labels/*.json); pictures into DIR (docs)")
@@ -590,9 +603,8 @@ def match_config(method: str, align: str, overrides: list[str]) -> MatchConfig:
 
     from sync4d.registry import typed_config
 
-    values = OmegaConf.to_container(OmegaConf.merge({"method": method, "align": align},
-                                                    OmegaConf.from_dotlist(overrides)))
-    assert isinstance(values, dict)
+    values = mapping(OmegaConf.merge({"method": method, "align": align}, dotlist(overrides, option="--match")),
+                     "match_gt --match")
     cfg = typed_config(MatchConfig, values, where="match", label="match_gt --match")
     return cfg.validate()
 
@@ -609,16 +621,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from sync4d_tools.match_labels.labels import default_label_files
 
     SEED = args.seed
+    pairs = [n for n in args.pairs.split(",") if n]
+    unknown = [n for n in pairs if n not in PAIRS]
+    if unknown:
+        raise InputError(f"--pairs {unknown[0]}: unknown pair; known: {', '.join(PAIRS)}")
+    if args.points < 0 or 0 < args.points < 100:
+        raise InputError(f"--points {args.points}: 0 (the defaults) or at least 100")
     options = match_config(args.method, args.align, args.match)
     extractor = None
     if options.method in ("features", "auto"):
-        feat_cfg = OmegaConf.merge(OmegaConf.create(load_features_config(args.features)), OmegaConf.from_dotlist(args.set))
+        feat_cfg = mapping(OmegaConf.merge(load_features_config(args.features), dotlist(args.set, option="--set")),
+                           "match_gt --features with --set")
         extractor = build("features", feat_cfg, device="cpu")
-    runners = {"self_copy": pair_self_copy, "laptop_proportions": pair_laptop_proportions, "mocap_bodies": pair_mocap_bodies}
     out: dict[str, Any] = {}
     details: dict[str, Any] = {}
-    for name in [n for n in args.pairs.split(",") if n]:
-        pair = runners[name](extractor, options, seed=args.seed)
+    for name in pairs:
+        pair = PAIRS[name](extractor, options, seed=args.seed, n_points=args.points or POINTS)
         out[f"accuracy_{name}"] = round(pair.accuracy, 4)
         details[name] = pair.details()
         if args.figures:
@@ -627,7 +645,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if label_files:
         # the labelled targets are given upright (Y up), as the pipeline's experiments use them
         figures = Path(args.cross_category) if args.cross_category else None
-        out["cross_category"] = cross_category(extractor, replace(options, align="upright_icp"), label_files, figures)
+        out["cross_category"] = cross_category(extractor, replace(options, align="upright_icp"), label_files, figures,
+                                               args.points or LABEL_SAMPLES)
         print(pair_table(out["cross_category"]))
     out["method"] = options.method
     out["features"] = args.features if options.method in ("features", "auto") else None

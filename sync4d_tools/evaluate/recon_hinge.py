@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +34,8 @@ from sync4d.recon.video import VideoFit, VideoReconstructor, rotation_angle_deg
 from sync4d.recon.video.softsplat import composite_weights, front_weights, project_points, splat_alpha
 from sync4d.sources.references import VideoSource, resolve_path
 from sync4d.types import Reference
+from sync4d_tools import video_of
+from sync4d_tools.evaluate import component_options, dotlist
 
 
 def render_bone_labels(
@@ -91,7 +92,7 @@ def evaluate(fit: VideoFit, gt: dict[str, np.ndarray], *, blend: str = "composit
     bone_to_part = np.where(votes[:, 2] > votes[:, 1], 2, 1)
     per_frame = [float((bone_to_part[lab] == labels_gt[t][labels_gt[t] > 0]).mean()) for t, lab in enumerate(rendered)]
     agree = sum(int((bone_to_part[lab] == labels_gt[t][labels_gt[t] > 0]).sum()) for t, lab in enumerate(rendered))
-    total = int((labels_gt > 0).sum())
+    total = int((labels_gt[:n_frames] > 0).sum())  # the frames scored (--max-frames may cut the clip)
     # lid angle: heaviest lid bone relative to heaviest base bone
     mass = ref.skinning.sum(0)
     lid_bones = np.flatnonzero(bone_to_part == 2)
@@ -124,21 +125,27 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="laptop: instead of --data, the default scene's laptop filmed by the project's "
                              "renderer (24 frames, 160x120, lid 110 -> 40 deg), scored the same way")
     parser.add_argument("--bones", type=int, default=2)
-    parser.add_argument("--max-frames", type=int, default=0)
+    parser.add_argument("--max-frames", type=int, default=0, help="the first N frames only (0 = all; --scene: 24)")
     parser.add_argument("--blend", default="composite", choices=("composite", "soft_z"),
                         help="how rendered part labels blend: front-to-back alpha compositing (as the renderer) "
                              "or the fit's soft z-buffer vote (earlier sessions' figures)")
-    parser.add_argument("--set", nargs="*", default=[], help="recon=video overrides key=value (YAML values)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="recon=video overrides (dotted keys, YAML values), e.g. fit.steps=60")
     parser.add_argument("--inputs", default="exact", choices=("exact", "masks", "none"),
                         help="what the fit is given besides the frames: exact masks and camera, the exact masks "
                              "only (the camera found by the video front end), or nothing (both found)")
     args = parser.parse_args(argv)
 
+    from sync4d.registry import make_config
+
+    _, cfg = make_config("recon", component_options("recon", "video", {"bones": args.bones,
+                                                                          **dotlist(args.set, option="--set")}))
+
     start = time.perf_counter()
     if args.scene == "laptop":
         from sync4d.scenes.laptop import filmed_laptop_case
 
-        source, gt = filmed_laptop_case()
+        source, gt = filmed_laptop_case(num_frames=args.max_frames or 24)
     else:
         root = resolve_path(args.data, what="laptop render folder")
         source = VideoSource(VideoSource.Config(video=str(root / "rgb.mp4"), masks=str(root / "masks"),
@@ -149,22 +156,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
         from sync4d.frontend import FrontEndConfig, complete_video
 
-        clip = source.video
+        clip = video_of(source)
         keep = args.inputs == "masks"
         clip, camera = complete_video(replace(clip, intrinsics=None, masks=clip.masks if keep else
                                               np.zeros_like(clip.masks)), None, FrontEndConfig(), masks_given=keep)
         source = replace(source, video=clip, camera=camera)
-    from omegaconf import OmegaConf
-
-    from sync4d.registry import make_config
-
-    conf = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recon" / "video.yaml")
-    conf.pop("defaults", None)  # the Hydra schema entry; the typed Config holds the defaults
-    conf.bones = args.bones
-    for item in args.set:
-        key, value = item.split("=", 1)
-        OmegaConf.update(conf, key, OmegaConf.create({"v": __import__("yaml").safe_load(value)}).v)
-    _, cfg = make_config("recon", conf)
     recon = VideoReconstructor(cfg)
     fit = recon.reconstruct_detailed(source)
     ref = fit.reference

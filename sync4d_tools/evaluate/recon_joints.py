@@ -1,6 +1,7 @@
 """``recon_joints``: joint error of ``recon=body_video`` on a clip with exact joint truth.
 
     python -m sync4d.evaluate recon_joints --video V [--masks DIR] [--camera NPZ] --subject human --gt GT.npz
+        [--max-frames N] [--set KEY=VALUE ...]     # recon=body_video overrides, e.g. quadruped.starts=2
 
 ``GT.npz`` holds ``joints`` (T, J, 3) [m] and ``names`` (J,) from this vocabulary (names not present are
 skipped): human ``head, l_shoulder, r_shoulder, l_elbow, r_elbow, l_wrist, r_wrist, l_hip, r_hip, l_knee,
@@ -22,14 +23,19 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sync4d.match.align import umeyama
 from sync4d.errors import InputError
-from sync4d.recon.body_video import BodyVideoReconstructor
+from sync4d.match.align import umeyama
+from sync4d.recon.body_video import BodyVideoFit, BodyVideoReconstructor
+from sync4d.registry import make_config
 from sync4d.sources.references import VideoSource
+from sync4d_tools import video_of
+from sync4d_tools.evaluate import dotlist
 
 #: the issue's human vocabulary (gt.npz ``names``); the fitted skeleton uses the same names
 HUMAN_VOCABULARY = (
@@ -51,11 +57,12 @@ HUMAN_VOCABULARY = (
 HUMAN_MAP = {n: n for n in HUMAN_VOCABULARY}
 
 
-def quadruped_map() -> dict[str, str]:
-    """Vocabulary -> template joint names of the quadruped fit."""
-    from sync4d.recon.pose.quadruped_fit import VOCABULARY
+def quadruped_map(template: str) -> dict[str, str]:
+    """Vocabulary -> joint names of the quadruped fit's body template ``template`` (each registered template
+    declares its own vocabulary, :attr:`sync4d.recon.pose.templates.BodyTemplate.vocabulary`)."""
+    from sync4d.recon.pose.templates import body_template
 
-    return dict(VOCABULARY)
+    return dict(body_template(template).vocabulary)
 
 
 def joint_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -84,7 +91,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--subject", choices=["human", "quadruped"], default="human")
     parser.add_argument("--gt", required=True, help="GT.npz with joints (T, J, 3) [m] and names (J,)")
     parser.add_argument("--max-frames", type=int, default=0)
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="recon=body_video overrides (dotted keys, YAML values), e.g. quadruped.starts=2")
     args = parser.parse_args(argv)
+    overrides = dotlist(args.set, option="--set")
+    if "subject" in overrides:
+        raise InputError("--set subject=...: the subject is chosen by --subject human|quadruped")
+    if not Path(args.gt).is_file():
+        raise InputError(f"--gt {args.gt}: not found; a clip with truth: python -m sync4d_tools.body_clips")
 
     start, cpu = time.perf_counter(), time.process_time()
     gt = np.load(args.gt)
@@ -92,25 +106,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     source = VideoSource(
         VideoSource.Config(video=args.video, masks=args.masks, camera=args.camera, max_frames=args.max_frames)
     ).load()
-    masks_in = source.video.masks if args.masks else None
+    clip = video_of(source)
+    masks_in = clip.masks if args.masks else None
     if args.subject == "human":
         # the learned model makes its own masks; the truth masks are only for the score
-        source = type(source)(
-            **{
-                **source.__dict__,
-                "video": type(source.video)(
-                    source.video.frames,
-                    np.zeros_like(source.video.masks),
-                    source.video.fps,
-                    source.video.intrinsics,
-                    None,
-                    source.video.source,
-                ),
-            }
-        )
-    recon = BodyVideoReconstructor(BodyVideoReconstructor.Config(subject=args.subject, figures=False))
+        source = replace(source, video=replace(clip, masks=np.zeros_like(clip.masks), extrinsics=None))
+    _, config = make_config("recon", {"type": "body_video", "figures": False, **overrides, "subject": args.subject})
+    recon = BodyVideoReconstructor(config)
     fit = recon.fit(source)
-    mapping = HUMAN_MAP if args.subject == "human" else quadruped_map()
+    mapping = HUMAN_MAP if args.subject == "human" else quadruped_map(recon.config.quadruped.template)
     pairs = [(i, fit.names.index(mapping[n])) for i, n in enumerate(names) if n in mapping]
     if not pairs:
         raise InputError(f"{args.gt}: none of its joint names {names} is in the {args.subject} vocabulary")
@@ -137,8 +141,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     return out
 
 
-def fit_silhouettes(fit) -> np.ndarray:
+def fit_silhouettes(fit: BodyVideoFit) -> np.ndarray:
     """(T, H, W) bool silhouettes of the fitted quadruped body (its mesh seen by each frame's camera)."""
+    if fit.silhouettes is None:
+        raise ValueError("fit_silhouettes: a human fit has no body silhouettes (its masks are fit.masks)")
     return fit.silhouettes
 
 

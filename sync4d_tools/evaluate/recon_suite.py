@@ -1,6 +1,7 @@
 """``recon_suite``: ``recon=video`` (one configuration) on the articulated-object suite, every joint scored as a line.
 
     python -m sync4d.evaluate recon_suite [--seeds 0 1 2] [--only mw_drawer chest_lid] [--no-laptops] [--out DIR]
+        [--frames N] [--set KEY=VALUE ...]     # the first N frames of every clip; recon=video overrides
 
 Cases: the suite's eight objects x two views (MuJoCo clips, :mod:`sync4d_tools.articulated.render`; a seed other
 than 0 samples another clip of each: camera placement, start state, colours and texture, floor, light), the
@@ -34,29 +35,30 @@ from typing import Any, Callable
 
 import numpy as np
 
-from sync4d.recon.video import VideoFit
+from sync4d.errors import InputError
+from sync4d.recon.video import VideoFit, VideoReconstructor
 from sync4d.sources.references import VideoSource, resolve_path
+from sync4d.types import ReferenceInput
+from sync4d_tools import camera_of, video_of
 from sync4d_tools.articulated.ceiling import exact_splats, rendered_labels
 from sync4d_tools.articulated.score import constant_labels, joint_row, label_scores, missing_row
-from sync4d_tools.articulated.truth import CaseTruth, clip_truth, filmed_laptop, laptop_renders_truth
+from sync4d_tools.articulated.truth import CaseTruth, clip_truth, filmed_laptop, first_frames, laptop_renders_truth
+from sync4d_tools.evaluate import component_options, dotlist
 
 log = logging.getLogger(__name__)
 LAPTOP_RENDERS = "../shared/data/rendered/metaworld_laptop_hinge"
 LABEL_BAR = 0.95  # first-frame labels against their ceiling
-Loader = Callable[[], tuple[Any, CaseTruth, str]]
+Loader = Callable[[], tuple[ReferenceInput, CaseTruth, str]]
 
 
-def build_recon(bones: int, seed: int) -> Any:
-    """``recon=video`` from ``conf/recon/video.yaml`` with only the part count and the seed set."""
-    from omegaconf import OmegaConf
-
+def build_recon(bones: int, seed: int, overrides: dict[str, Any] | None = None) -> VideoReconstructor:
+    """``recon=video`` from ``conf/recon/video.yaml`` with the part count and the seed set (and ``overrides``,
+    the command line's ``--set``, merged first)."""
     from sync4d.registry import make_config
 
-    conf = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "recon" / "video.yaml")
-    conf.pop("defaults", None)  # the Hydra schema entry; the typed Config holds the defaults
-    conf.bones, conf.seed = bones, seed
-    cls, cfg = make_config("recon", conf)
-    return cls(cfg)
+    _, cfg = make_config("recon", component_options("recon", "video", {**(overrides or {}), "bones": bones,
+                                                                        "seed": seed}))
+    return VideoReconstructor(cfg)
 
 
 def part_mapping(rendered: list[np.ndarray], gt_labels: np.ndarray, n_bones: int, n_parts: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -100,15 +102,15 @@ def label_block(rendered: list[np.ndarray], mapping: np.ndarray, truth: CaseTrut
     return label_scores([mapping[r] == lab[t][lab[t] > 0] for t, r in enumerate(rendered)], seen, lab)
 
 
-def run_case(name: str, seed: int, load: Loader) -> dict[str, Any]:
-    """Reconstruct one case and score it, with its floor and ceiling."""
+def run_case(name: str, seed: int, load: Loader, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Reconstruct one case (``recon=video`` with ``overrides``) and score it, with its floor and ceiling."""
     source, truth, variant = load()
-    clip = source.video
+    clip = video_of(source)
     clip_id = hashlib.sha1(clip.frames.tobytes() + clip.masks.tobytes()).hexdigest()[:12]
     n_parts = len(truth.kinds) + 1
-    fit = build_recon(n_parts, seed).reconstruct_detailed(source)
+    fit = build_recon(n_parts, seed, overrides).reconstruct_detailed(source)
     seen = truth.seen_first(fit.camera)
-    rendered = rendered_labels(fit, truth.part_labels)  # type: ignore[arg-type]
+    rendered = rendered_labels(fit, truth.part_labels)
     mapping, votes, _ = part_mapping(rendered, truth.part_labels, fit.reference.num_bones, n_parts)
     joints = joint_rows(fit, truth, mapping, votes)
     exact = exact_splats(fit.tracks, fit.masks, truth, clip, fit.camera, fit.object_width)
@@ -125,40 +127,52 @@ def run_case(name: str, seed: int, load: Loader) -> dict[str, Any]:
             "pass": passes(joints) and bool(ratio >= LABEL_BAR)}
 
 
-def clip_loader(folder: Path) -> Loader:
-    def load() -> tuple[Any, CaseTruth, str]:
+def clip_loader(folder: Path, frames: int = 0) -> Loader:
+    def load() -> tuple[ReferenceInput, CaseTruth, str]:
         source = VideoSource(VideoSource.Config(video=str(folder / "rgb.mp4"), masks=str(folder / "masks"),
-                                                camera=str(folder / "gt.npz"))).load()
+                                                camera=str(folder / "gt.npz"), max_frames=frames)).load()
         gt = dict(np.load(folder / "gt.npz"))
-        return source, clip_truth(gt), str(gt.get("variant", ""))
+        return source, first_frames(clip_truth(gt), frames), str(gt.get("variant", ""))
     return load
 
 
-def renders_loader(cache: Path) -> Loader:
-    def load() -> tuple[Any, CaseTruth, str]:
+def renders_loader(cache: Path, frames: int = 0) -> Loader:
+    def load() -> tuple[ReferenceInput, CaseTruth, str]:
         root = resolve_path(LAPTOP_RENDERS, what="laptop render folder")
         source = VideoSource(VideoSource.Config(video=str(root / "rgb.mp4"), masks=str(root / "masks"),
-                                                camera=str(root / "gt.npz"))).load()
-        return source, laptop_renders_truth(dict(np.load(root / "gt.npz")), source.camera, cache), "fixed clip (shared data)"
+                                                camera=str(root / "gt.npz"), max_frames=frames)).load()
+        truth = laptop_renders_truth(dict(np.load(root / "gt.npz")), camera_of(source), cache)
+        return source, first_frames(truth, frames), "fixed clip (shared data)"
     return load
 
 
-def suite_cases(cache: Path, only: list[str], laptops: bool, seeds: list[int]) -> list[tuple[str, int, Loader]]:
-    """(name, seed, loader) of every case; clips missing from the cache are rendered first."""
+def filmed_loader(seed: int, frames: int) -> Loader:
+    def load() -> tuple[ReferenceInput, CaseTruth, str]:
+        return filmed_laptop(seed, frames)
+    return load
+
+
+def suite_cases(cache: Path, only: list[str], laptops: bool, seeds: list[int], frames: int = 0
+                ) -> list[tuple[str, int, Loader]]:
+    """(name, seed, loader) of every case, the first ``frames`` frames of each (0: all); clips missing from the
+    cache are rendered first."""
     from sync4d_tools.articulated.objects import suite_objects
     from sync4d_tools.articulated.render import VIEWS, clip_name
 
     names = [f"{o.name}-{v.name}" for o in suite_objects() for v in VIEWS]
     if laptops:
         names += ["laptop_hinge_renders", "laptop_filmed"]
+    unknown = [o for o in only if not any(n.startswith(o) for n in names)]
+    if unknown:
+        raise InputError(f"--only {unknown[0]}: no case starts with it; cases: {', '.join(names)}")
     names = [n for n in names if not only or any(n.startswith(o) for o in only)]
     cases: list[tuple[str, int, Loader]] = []
     for name in names:
         for seed in seeds:
             if name == "laptop_filmed":
-                cases.append((name, seed, lambda s=seed: filmed_laptop(s)))
+                cases.append((name, seed, filmed_loader(seed, frames or 24)))
             elif name == "laptop_hinge_renders":
-                cases.append((name, seed, renders_loader(cache)))
+                cases.append((name, seed, renders_loader(cache, frames)))
             else:
                 obj, view = name.rsplit("-", 1)
                 folder = cache / "clips" / clip_name(obj, view, seed)
@@ -166,7 +180,7 @@ def suite_cases(cache: Path, only: list[str], laptops: bool, seeds: list[int]) -
                     from sync4d_tools.articulated.render import main as render
 
                     render(["--out", str(cache), "--seeds", str(seed), "--only", obj])
-                cases.append((name, seed, clip_loader(folder)))
+                cases.append((name, seed, clip_loader(folder, frames)))
     return cases
 
 
@@ -271,14 +285,26 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--out", default="outputs/recon_suite")
     parser.add_argument("--merge", nargs="*", default=[], metavar="RESULTS_JSON",
                         help="run nothing: merge these results.json files (e.g. of parallel runs) into --out")
+    parser.add_argument("--frames", type=int, default=0, help="score the first N frames of every clip (0: all)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="recon=video overrides (dotted keys, YAML values) beside the suite's bones and seed")
     args = parser.parse_args(argv)
+    overrides = dotlist(args.set, option="--set")
+    if {"bones", "seed"} & set(overrides):
+        raise InputError("--set bones/seed: the suite sets them per case (bones: its parts; seed: --seeds)")
+    if args.frames < 0 or args.frames == 1:
+        raise InputError(f"--frames {args.frames}: 0 (every frame) or at least 2")
+    missing = [f for f in args.merge if not Path(f).is_file()]
+    if missing:
+        raise InputError(f"--merge {missing[0]}: not found")
     start = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = [r for f in args.merge for r in json.loads(Path(f).read_text())]
     rows.sort(key=lambda r: (r["case"], r["seed"]))
-    for name, seed, load in [] if args.merge else suite_cases(Path(args.cache), args.only, not args.no_laptops, args.seeds):
-        rows.append(run_case(name, seed, load))
+    cases = [] if args.merge else suite_cases(Path(args.cache), args.only, not args.no_laptops, args.seeds, args.frames)
+    for name, seed, load in cases:
+        rows.append(run_case(name, seed, load, overrides))
         print(json.dumps(rows[-1]), flush=True)
         (out / "results.json").write_text(json.dumps(rows, indent=1))  # never lose computed rows
     (out / "results.json").write_text(json.dumps(rows, indent=1))

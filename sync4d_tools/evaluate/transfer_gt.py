@@ -338,7 +338,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         log.info("transfer_gt %s: both truths in %.1f s CPU", name, time.process_time() - t0)
         results[name] = score_pair(pair, methods, bounds, args.frames)
     judged = args.candidate in methods and "lbs_hard" in methods
-    out: dict[str, Any] = {
+    out = {
         "pairs": results,
         "criteria": {p: {t: criteria(r[t], t, args.candidate) for t in TRUTHS} for p, r in results.items()}
         if judged else {},

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -87,6 +88,7 @@ def posed_by_own_model(model: Reference, points: np.ndarray, num_frames: int) ->
 
 def elastic_truth(model: Reference, points: np.ndarray, num_frames: int) -> tuple[np.ndarray, np.ndarray]:
     """((T, N, 3) the points as an ARAP solid held by the model's bone cores [m], (N,) core bone or -1)."""
+    assert model.rest_faces is not None  # the targets are meshes
     mesh = elastic.tetrahedralise(points, model.rest_vertices, model.rest_faces)
     core = elastic.bone_cores(points, own_weights(model, points), model.bone_centers, model.bone_covariances)
     return elastic.arap_frames(mesh, core, own_bone_motion(model, num_frames)), core
@@ -95,6 +97,7 @@ def elastic_truth(model: Reference, points: np.ndarray, num_frames: int) -> tupl
 def make_pair(name: str, reference: Reference, model: Reference, *, num_frames: int, gaussians: int,
               seed: int = 0) -> GTPair:
     """Sample the target model's rest surface into Gaussians and pose them by both truths."""
+    assert model.rest_faces is not None  # the targets are meshes
     target = mesh_to_gaussians(model.rest_vertices, model.rest_faces, num_surface=int(gaussians * 0.6),
                                num_interior=int(gaussians * 0.4), seed=seed, name=f"{name}_target")
     points = target.means.astype(np.float64)
@@ -110,7 +113,7 @@ def laptop_pair(num_frames: int, gaussians: int) -> GTPair:
     """Laptop -> a wider, shallower laptop with a thicker base and a thinner lid (hinge at its own edge)."""
     from sync4d.scenes.laptop import laptop_reference
 
-    kw = dict(rest_angle_deg=110.0, min_angle_deg=40.0, period_frames=24, subdivisions=2)
+    kw: dict[str, Any] = dict(rest_angle_deg=110.0, min_angle_deg=40.0, period_frames=24, subdivisions=2)
     ref = laptop_reference(num_frames, **kw)
     model = laptop_reference(num_frames, width=0.42, depth=0.18, base_thickness=0.03, lid_thickness=0.008, **kw)
     return make_pair("laptop", ref, model, num_frames=num_frames, gaussians=gaussians)
@@ -207,7 +210,7 @@ def load_pair(name: str, num_frames: int, gaussians: int) -> GTPair:
     """Build one of :data:`PAIRS` with ``num_frames`` frames (30 fps for the mocap pairs)."""
     from sync4d.io.mocap import CMU_UNIT_SCALE, read_bvh, read_joint_position_motion
 
-    body = dict(radius_scale=0.18, girth=1.35, num_frames=num_frames, gaussians=gaussians)
+    body: dict[str, Any] = dict(radius_scale=0.18, girth=1.35, num_frames=num_frames, gaussians=gaussians)
     if name == "laptop":
         return laptop_pair(num_frames, gaussians)
     if name == "cmu_walk":

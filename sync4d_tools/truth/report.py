@@ -33,6 +33,7 @@ def row_cells(row: dict[str, Any]) -> list[str]:
         elif title.startswith("frag"):
             out.append(" / ".join(cell(int(curve.get("fragments", {}).get(k, 0))) for k in ("10", "20")))
         else:
+            assert key is not None  # only the two curve columns have no key
             out.append(cell(row.get(key)))
     if row.get("same_as"):
         out[-1] = f"= {row['same_as']}"
