@@ -14,7 +14,8 @@ along x, node (i, j, k) of field f at x-index ``f nx + i``; each particle scatte
 own field; the grid update bonds fields at the joints of parts in different fields. One field is the plain
 single-grid MLS-MPM, the same arithmetic.
 
-All three kernels are differentiable with Warp's generated adjoints, including the grid mass: the grid
+All three are differentiated, including the grid mass (by the hand-written adjoints below; P2G and G2P also
+have Warp's generated ones, the grid update, whose loop over fields is unrolled, only its own): the grid
 update divides by the node mass, and that division is what carries the gradient of the weights back
 to the particle positions (PhysDreamer's solver treats the node mass as a constant and its gradients go
 wrong after ~20 substeps). Array stores and atomic adds are not replayed in the adjoint (Warp's
@@ -29,6 +30,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from sync4d.sim.mpm_warp.fields import MAX_FIELDS as MAX_FIELDS_
+
 # Differentiable kernels; the CPU backend compiles them with optimisation (level 0 runs ~80x slower).
 wp.set_module_options({"enable_backward": True})
 
@@ -39,6 +42,8 @@ POLAR_ITERS = wp.constant(4)
 POLAR_MIN_J = wp.constant(0.2)
 POLAR_TOL = wp.constant(1.0e-4)
 STATUS_OK = wp.constant(2147483647)
+# The most velocity fields the grid update handles (its loops over fields are unrolled to this).
+MAX_FIELDS = wp.constant(MAX_FIELDS_)
 
 
 @wp.func
@@ -330,32 +335,40 @@ def bonded(bonds: wp.array4d(dtype=float), i: int, j: int, k: int, m: float, sha
 
 
 @wp.func
-def bond_totals(
+def field_nodes(
     grids: wp.array4d(dtype=wp.vec4),
     bonds: wp.array4d(dtype=float),
     nx: int,
     num_fields: int,
+    bonding: int,
     i: int,
     j: int,
     k: int,
     mass_eps: float,
     share: float,
 ):
-    """Momentum, mass and count of the fields bonded at physical node (i, j, k) (:func:`bonded`, mass > eps)."""
+    """Physical node (i, j, k) of every field, read once: (G, on, ps, ms, ns) with row f of G field f's
+    vec4(m v, m), on[f] = 1 for a field bonded there (:func:`bonded`, mass > eps, only with ``bonding``) and
+    the bonded fields' summed momentum ps, mass ms and count ns."""
+    G = wp.mat44(0.0)
+    on = wp.vec4(0.0)
     ps = wp.vec3(0.0)
     ms = float(0.0)
     ns = int(0)
-    for f in range(num_fields):
-        g = node_sum(grids, f * nx + i, j, k)
-        if g[3] > mass_eps:
-            if bonded(bonds, f * nx + i, j, k, g[3], share):
-                ps = ps + wp.vec3(g[0], g[1], g[2])
-                ms = ms + g[3]
-                ns = ns + 1
-    return ps, ms, ns
+    for f in range(MAX_FIELDS):
+        if f < num_fields:
+            g = node_sum(grids, f * nx + i, j, k)
+            G[f] = g
+            if bonding != 0 and g[3] > mass_eps:
+                if bonded(bonds, f * nx + i, j, k, g[3], share):
+                    on[f] = 1.0
+                    ps = ps + wp.vec3(g[0], g[1], g[2])
+                    ms = ms + g[3]
+                    ns = ns + 1
+    return G, on, ps, ms, ns
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def grid_update(
     grids: wp.array4d(dtype=wp.vec4),
     bonds: wp.array4d(dtype=float),
@@ -379,7 +392,8 @@ def grid_update(
     """Node velocities v_i = (m v)_i / m_i + dt g per field, bonds, then boundary conditions (:func:`boundary_mask`).
 
     Launched over the slab of physical nodes i0 <= i < i0 + dim[0] (the whole grid, or one thread's share); each
-    launch point updates node (i, j, k) of every field (stored at x-index f nx + i).
+    launch point updates node (i, j, k) of every field (stored at x-index f nx + i). Differentiated by
+    :func:`grid_update_adjoint` (no generated adjoint).
 
     Args:
         grids: (T, F nx, ny, nz) vec4(m v, m) from :func:`p2g`, one grid per thread that scattered
@@ -399,27 +413,22 @@ def grid_update(
     """
     i, j, k = wp.tid()
     i = i + i0
-    ps = wp.vec3(0.0)
-    ms = float(0.0)
-    ns = int(0)
-    if bonding != 0:
-        ps, ms, ns = bond_totals(grids, bonds, nx, num_fields, i, j, k, mass_eps, bond_share)
-    for f in range(num_fields):
-        fi = f * nx + i
-        g = node_sum(grids, fi, j, k)
-        m = g[3]
-        vi = wp.vec3(0.0)
-        if m > mass_eps:
-            vi = wp.vec3(g[0], g[1], g[2]) / m + dt * gravity
-            if ns > 1:
-                if bonded(bonds, fi, j, k, m, bond_share):
+    G, on, ps, ms, ns = field_nodes(grids, bonds, nx, num_fields, bonding, i, j, k, mass_eps, bond_share)
+    for f in range(MAX_FIELDS):
+        if f < num_fields:
+            g = G[f]
+            m = g[3]
+            vi = wp.vec3(0.0)
+            if m > mass_eps:
+                vi = wp.vec3(g[0], g[1], g[2]) / m + dt * gravity
+                if ns > 1 and on[f] > 0.0:
                     vi = ps / ms + dt * gravity
-            mask = boundary_mask(
-                i, j, k, nx, grids.shape[2], grids.shape[3], vi, wall, sticky, origin, dx, fixed_lo, fixed_hi,
-                use_fixed,
-            )  # fmt: skip
-            vi = wp.cw_mul(vi, mask)
-        grid_v[fi, j, k] = vi
+                mask = boundary_mask(
+                    i, j, k, nx, grids.shape[2], grids.shape[3], vi, wall, sticky, origin, dx, fixed_lo, fixed_hi,
+                    use_fixed,
+                )  # fmt: skip
+                vi = wp.cw_mul(vi, mask)
+            grid_v[f * nx + i, j, k] = vi
 
 
 @wp.func
@@ -466,46 +475,37 @@ def grid_update_adjoint(
     """
     i, j, k = wp.tid()
     i = i + i0
-    ps = wp.vec3(0.0)
-    ms = float(0.0)
-    ns = int(0)
-    if bonding != 0:
-        ps, ms, ns = bond_totals(grids, bonds, nx, num_fields, i, j, k, mass_eps, bond_share)
+    G, on, ps, ms, ns = field_nodes(grids, bonds, nx, num_fields, bonding, i, j, k, mass_eps, bond_share)
     a_s = wp.vec3(0.0)
     if ns > 1:
         vs = ps / ms + dt * gravity
         mask_s = boundary_mask(
             i, j, k, nx, grids.shape[2], grids.shape[3], vs, wall, sticky, origin, dx, fixed_lo, fixed_hi, use_fixed
         )  # fmt: skip
-        for f in range(num_fields):
-            g = node_sum(grids, f * nx + i, j, k)
-            if g[3] > mass_eps:
-                if bonded(bonds, f * nx + i, j, k, g[3], bond_share):
-                    a_s = a_s + wp.cw_mul(adj_sum(adj_grid_v, f * nx + i, j, k), mask_s)
-    for f in range(num_fields):
-        fi = f * nx + i
-        g = node_sum(grids, fi, j, k)
-        m = g[3]
-        out = wp.vec4(0.0)
-        if m > mass_eps:
-            joint = False
-            if ns > 1:
-                joint = bonded(bonds, fi, j, k, m, bond_share)
-            if joint:
-                ap = a_s / ms
-                out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, ps) / ms)
-            else:
-                p = wp.vec3(g[0], g[1], g[2])
-                inv_m = 1.0 / m
-                vi = p * inv_m + dt * gravity
-                mask = boundary_mask(
-                    i, j, k, nx, grids.shape[2], grids.shape[3], vi, wall, sticky, origin, dx, fixed_lo, fixed_hi,
-                    use_fixed,
-                )  # fmt: skip
-                a = wp.cw_mul(adj_sum(adj_grid_v, fi, j, k), mask)
-                ap = a * inv_m
-                out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, p) * inv_m)
-        adj_grid[fi, j, k] = out
+        for f in range(MAX_FIELDS):
+            if f < num_fields and on[f] > 0.0:
+                a_s = a_s + wp.cw_mul(adj_sum(adj_grid_v, f * nx + i, j, k), mask_s)
+    for f in range(MAX_FIELDS):
+        if f < num_fields:
+            g = G[f]
+            m = g[3]
+            out = wp.vec4(0.0)
+            if m > mass_eps:
+                if ns > 1 and on[f] > 0.0:
+                    ap = a_s / ms
+                    out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, ps) / ms)
+                else:
+                    p = wp.vec3(g[0], g[1], g[2])
+                    inv_m = 1.0 / m
+                    vi = p * inv_m + dt * gravity
+                    mask = boundary_mask(
+                        i, j, k, nx, grids.shape[2], grids.shape[3], vi, wall, sticky, origin, dx, fixed_lo, fixed_hi,
+                        use_fixed,
+                    )  # fmt: skip
+                    a = wp.cw_mul(adj_sum(adj_grid_v, f * nx + i, j, k), mask)
+                    ap = a * inv_m
+                    out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, p) * inv_m)
+            adj_grid[f * nx + i, j, k] = out
 
 
 @wp.kernel
