@@ -222,6 +222,28 @@ def run_split(n_particles: int, n_grid: int, held: bool = False) -> dict:
     return {k: v / SUBSTEPS for k, v in timers.items()}
 
 
+def run_parts_split(n_particles: int, n_grid: int, variant: str) -> dict:
+    """Per-substep kernel times [s] of the benchmark cube cut into four x-y quadrants held by their drive (identity
+    poses): ``drive`` without a part tree (one velocity field), ``fields`` with the tree 1->0, 2->0, 3->1 (the
+    unjoined diagonal neighbours and 2-3 conflict: three fields, bonded at the joints 0-2 and 1-3)."""
+    import numpy as np
+
+    from sync4d.types import FramePose
+
+    sim, model, st, v0, _ = _scene(n_particles, n_grid)
+    x = st["x"].double().numpy()
+    part = (x[:, 0] > 0.15).astype(int) + 2 * (x[:, 1] > 0.15).astype(int)
+    parent = np.array([-1, 0, 0, 1]) if variant == "fields" else None
+    model = sim.prepare(x, volume=0.3**3, part=part, parent=parent)
+    pose = FramePose(np.stack([np.eye(4)] * 4), np.stack([np.eye(4)] * 4))
+    sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=2, dt=DT, pose=pose)
+    timers: dict[str, float] = {}
+    sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=SUBSTEPS, dt=DT, pose=pose, timers=timers)
+    out = {k: v / SUBSTEPS for k, v in timers.items()}
+    out["fields"] = float(getattr(model, "num_fields", 1))
+    return out
+
+
 def _subprocess(args: list[str], script: Path | None = None) -> dict:
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     cmd = [sys.executable, str(script or __file__), *args]
@@ -237,6 +259,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="write the records to this JSON file")
     parser.add_argument("--case", nargs="+", metavar="P G MODE THREADS [held]", help=argparse.SUPPRESS)
     parser.add_argument("--split", nargs="+", metavar="P G [held]", help=argparse.SUPPRESS)
+    parser.add_argument("--parts-split", nargs=3, metavar=("P", "G", "VARIANT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
 
     if args.case:
@@ -246,6 +269,10 @@ def main() -> None:
         return
     if args.split:
         print(json.dumps(run_split(int(args.split[0]), int(args.split[1]), args.split[2:] == ["held"])))
+        return
+    if args.parts_split:
+        n, g, variant = args.parts_split
+        print(json.dumps(run_parts_split(int(n), int(g), variant)))
         return
 
     reference = ROOT / "benchmarks" / "mpm_reference.py"
@@ -349,6 +376,8 @@ def main() -> None:
         f"  with the held drive (8 parts): G2P + moments {1e3 * held_split['g2p']:.2f} ms, correction "
         f"{1e3 * held_split['drive']:.2f} ms; substep {1e3 * held_total:.2f} ms, {held_total / total:.3f}x"
     )
+    parts = {v: _subprocess(["--parts-split", "50000", "64", v]) for v in ("drive", "fields")}
+    _print_parts(split, parts)
 
     if not args.quick:
         agree = _subprocess(["--agree", "10000", "32"], script=reference)
@@ -366,6 +395,19 @@ def main() -> None:
                "load_average": os.getloadavg()[0]}
         args.json.write_text(json.dumps(out, indent=2))
         print(f"\nwrote {args.json}")
+
+
+def _print_parts(plain: dict, parts: dict[str, dict]) -> None:
+    """The substep of four driven quadrants, one field and with velocity fields, against the plain substep."""
+    base = plain["p2g"] + plain["grid"] + plain["g2p"]
+    print("\nThe cube as four driven quadrants (same scene; ms per substep, P2G / grid / G2P / drive):")
+    for name, rec in parts.items():
+        total = rec["p2g"] + rec["grid"] + rec["g2p"] + rec.get("drive", 0.0)
+        print(f"  {name:>6} ({rec['fields']:.0f} fields): {1e3 * rec['p2g']:.2f} / {1e3 * rec['grid']:.2f} / "
+              f"{1e3 * rec['g2p']:.2f} / {1e3 * rec.get('drive', 0.0):.2f} = {1e3 * total:.2f} ms, "
+              f"{100 * (total / base - 1):+.0f}% on the plain substep")
+    d, f = (sum(parts[v].get(k, 0.0) for k in ("p2g", "grid", "g2p", "drive")) for v in ("drive", "fields"))
+    print(f"  the fields add {100 * (f / d - 1):+.0f}% to the driven substep")
 
 
 def _idle(rec: dict) -> float:

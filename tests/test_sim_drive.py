@@ -4,6 +4,8 @@ finite differences. CPU, tiny scenes."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -89,16 +91,15 @@ def test_without_the_drive_the_block_does_not_turn():
     assert rotation_angle_deg(fit[:3, :3] @ end[:3, :3].T) > 29.0
 
 
-@pytest.mark.xfail(strict=True, reason="one shared velocity grid glues touching parts; multi-field MPM (issue 39 B) "
-                   "is not built: docs/results/physics.md")
 def test_two_touching_unjoined_parts_driven_apart_separate():
     """Two blocks 2 mm apart (inside one grid cell) driven apart by 3 cm: each follows its own drive."""
     sim = make_sim(E=3e4, n_grid=32)
     left, right = box(800, [0.0, 0, 0], [0.05, 0.05, 0.05], 1), box(800, [0.052, 0, 0], [0.102, 0.05, 0.05], 2)
     pts = np.concatenate([left, right])
     part = np.repeat([0, 1], 800)
-    model = sim.prepare(pts, volume=2 * 0.05**3, part=part)
+    model = sim.prepare(pts, volume=2 * 0.05**3, part=part, parent=np.array([-1, -1]))  # two roots: not joined
     assert model.grid.dx > 0.002
+    assert model.num_fields == 2 and not model.bonding
     end = np.stack([shift([-0.015, 0, 0]), shift([0.015, 0, 0])])
     substeps, dt = sim.substeps_for(model, 1.0, fps=30.0)
     x, *_ = run(sim, model, FramePose(np.stack([np.eye(4)] * 2), end), substeps=substeps, dt=dt)
@@ -108,6 +109,44 @@ def test_two_touching_unjoined_parts_driven_apart_separate():
     for b in range(2):
         moved = x[part == b].mean(0) - pts[part == b].mean(0)
         np.testing.assert_allclose(moved, end[b, :3, 3], atol=1e-4)
+
+
+def _legs(n_top: int, n_leg: int, seed: int = 1):
+    """A block on two legs 2 mm apart: parts 0 (top, the root), 1 and 2 (the legs, each joined to the top only)."""
+    top = box(n_top, [0.0, 0.052, 0], [0.1, 0.102, 0.05], seed)
+    left = box(n_leg, [0.0, 0, 0], [0.049, 0.05, 0.05], seed + 1)
+    right = box(n_leg, [0.051, 0, 0], [0.1, 0.05, 0.05], seed + 2)
+    return np.concatenate([top, left, right]), np.repeat([0, 1, 2], [n_top, n_leg, n_leg]), np.array([-1, 0, 0])
+
+
+def test_joined_parts_in_different_fields_stay_together_at_their_joint():
+    """The right leg turns 20 deg about its joint with the top. The legs touch without being joined, so they get
+    two fields; the right one shares no field with the top it is joined to and is bonded to it at the joint: no gap
+    opens there (without the bond one does, ~4 mm), and the legs stay apart."""
+    from scipy.spatial import cKDTree
+
+    sim = make_sim(E=3e4, n_grid=32)
+    pts, part, parent = _legs(1000, 500)
+    model = sim.prepare(pts, volume=0.1 * 0.1 * 0.05, part=part, parent=parent)
+    assert model.num_fields == 2 and model.fields.part_field.tolist() == [0, 0, 1] and model.bonding
+    flagged = model.fields.bond > 0
+    assert set(part[flagged]) == {0, 2} and np.all(np.abs(pts[flagged, 1] - 0.051) < 2.5 * model.grid.dx)
+    assert np.all(pts[flagged & (part == 0), 0] > 0.05 - 2.5 * model.grid.dx)  # only at the right leg's joint
+    end = np.stack([np.eye(4), np.eye(4), turn_about(np.array([0.075, 0.051, 0.025]), 20.0, (1.0, 0.0, 0.0))])
+    pose = FramePose(np.stack([np.eye(4)] * 3), end)
+    substeps, dt = sim.substeps_for(model, 1.0, fps=30.0)
+    face = (part == 0) & (pts[:, 1] < 0.056) & (pts[:, 0] > 0.055)  # the top's side of the joint
+
+    def joint_gap(x):  # 90th percentile over the top's joint face of the distance to the right leg [m]
+        return float(np.percentile(cKDTree(x[part == 2]).query(x[face])[0], 90))
+
+    rest = joint_gap(pts)
+    x = run(sim, model, pose, substeps=substeps, dt=dt)[0].double().numpy()
+    assert joint_gap(x) - rest < 1e-3
+    assert x[part == 2, 0].min() - x[part == 1, 0].max() > 0.0015  # the legs themselves did not glue
+    unbonded = dataclasses.replace(model, fields=dataclasses.replace(model.fields, bond=np.zeros(len(pts))))
+    x = run(sim, unbonded, pose, substeps=substeps, dt=dt)[0].double().numpy()
+    assert joint_gap(x) - rest > 3e-3
 
 
 def _adjoint_scene(threads):
@@ -124,11 +163,24 @@ def _adjoint_scene(threads):
     return sim, model, FramePose(start, end), v0, torch.as_tensor(pts[:, 1] < 0.05)
 
 
-@pytest.mark.parametrize("threads", [None, 2])
-def test_drive_adjoint_matches_finite_differences(threads):
+def _fields_scene(threads):
+    """The legs of :func:`_legs` (two fields bonded at the right leg's joint), each part driven."""
+    sim = make_sim(E=2e3, nu=0.3, n_grid=16, checkpoint_every=3, cpu_threads=threads)
+    pts, part, parent = _legs(150, 75, seed=3)
+    model = sim.prepare(pts, volume=0.1 * 0.1 * 0.05, part=part, parent=parent)
+    assert model.num_fields == 2 and model.bonding
+    start = np.stack([np.eye(4)] * 3)
+    end = np.stack([shift([0.0, 0.004, 0.0]), turn_about(np.array([0.025, 0.05, 0.025]), 8.0, (1.0, 0.0, 0.3)),
+                    turn_about(np.array([0.075, 0.05, 0.025]), -10.0, (1.0, 0.2, 0.0))])
+    v0 = torch.tensor(np.random.default_rng(0).normal(0.0, 0.3, (300, 3)), dtype=torch.float32)
+    return sim, model, FramePose(start, end), v0, torch.as_tensor(part == 2)
+
+
+@pytest.mark.parametrize(("scene", "threads"), [("halves", None), ("halves", 2), ("fields", None), ("fields", 2)])
+def test_drive_adjoint_matches_finite_differences(scene, threads):
     """d/dv, d/dx, d/dF and d/dC of a loss on every output, through 8 held substeps (two threads: the
-    particle chunks and their partial moments)."""
-    sim, model, pose, v0, half = _adjoint_scene(threads)
+    particle chunks and their partial moments; fields: two velocity fields bonded at a joint)."""
+    sim, model, pose, v0, half = (_adjoint_scene if scene == "halves" else _fields_scene)(threads)
     st = sim.initial_state(model)
     rng = np.random.default_rng(5)
     F0 = st["F"] + torch.tensor(0.02 * rng.normal(size=(300, 3, 3)), dtype=torch.float32)
@@ -151,6 +203,27 @@ def test_drive_adjoint_matches_finite_differences(threads):
         adjoint = float((leaves[which].grad.double() * d.double()).sum())
         assert abs(fd) > 1e-7
         assert adjoint == pytest.approx(fd, rel=5e-2), (which, adjoint, fd)
+
+
+def test_fields_on_two_threads_match_one_thread_and_are_deterministic():
+    """Velocity fields and bonds split over two threads (each its own grids of every field and of flagged mass):
+    the same forward and gradients as one thread up to float rounding, and the same bits run after run."""
+
+    def run_on(threads):
+        sim, model, pose, v0, leg = _fields_scene(threads)
+        st = sim.initial_state(model)
+        v = v0.clone().requires_grad_(True)
+        x, vo, F, C = sim.rollout(model, st["x"], v, st["F"], st["C"], substeps=8, dt=1e-3, pose=pose)
+        (((x[leg] - 0.05) ** 2).sum() + ((F - torch.eye(3)) ** 2).sum() + (vo**2).sum()).backward()
+        assert sim.workspace.threads == (threads or 1) and sim.workspace.fields == 2
+        return x.detach(), v.grad
+
+    x1, g1 = run_on(None)
+    x2, g2 = run_on(2)
+    torch.testing.assert_close(x2, x1, rtol=0, atol=1e-6)
+    torch.testing.assert_close(g2, g1, rtol=1e-3, atol=1e-6 * float(g1.abs().max()))
+    x2b, g2b = run_on(2)
+    assert torch.equal(x2, x2b) and torch.equal(g2, g2b)
 
 
 def test_the_drive_removes_the_rigid_part_of_the_velocity_gradient():

@@ -165,6 +165,8 @@ def follow_strain_chart(rows: dict[str, dict[str, dict[str, Any]]], path: Path, 
         ax.set_ylabel("p99 strain, worst frame [%]", fontsize=8)
         ax.set_xscale("symlog", linthresh=1)
         ax.set_yscale("symlog", linthresh=10)
+        ax.set_xlim(left=0.0)
+        ax.set_ylim(bottom=0.0)
         ax.grid(alpha=0.3)
     handles = {h.get_label(): h for ax in axes for h in ax.collections}
     fig.legend(list(handles.values()), list(handles), fontsize=7, loc="lower right")

@@ -9,8 +9,13 @@ One substep is three launches (Hu et al. 2018, MLS-MPM; paper Sec. 3.1 and appen
 
 Conventions: positions in metres, the grid node (i, j, k) sits at ``origin + (i, j, k) * dx``. A grid
 cell of P2G output holds ``vec4(m v_x, m v_y, m v_z, m)`` so one scatter per node does mass and momentum.
+Multi-field MPM (:mod:`sync4d.sim.mpm_warp.fields`): with F velocity fields the grids are F grids stacked
+along x, node (i, j, k) of field f at x-index ``f nx + i``; each particle scatters into and gathers from its
+own field; the grid update bonds fields at the joints of parts in different fields. One field is the plain
+single-grid MLS-MPM, the same arithmetic.
 
-All three kernels are differentiable with Warp's generated adjoints, including the grid mass: the grid
+All three are differentiated, including the grid mass (by the hand-written adjoints below; P2G and G2P also
+have Warp's generated ones, the grid update, whose loop over fields is unrolled, only its own): the grid
 update divides by the node mass, and that division is what carries the gradient of the weights back
 to the particle positions (PhysDreamer's solver treats the node mass as a constant and its gradients go
 wrong after ~20 substeps). Array stores and atomic adds are not replayed in the adjoint (Warp's
@@ -25,6 +30,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from sync4d.sim.mpm_warp.fields import MAX_FIELDS as MAX_FIELDS_
+
 # Differentiable kernels; the CPU backend compiles them with optimisation (level 0 runs ~80x slower).
 wp.set_module_options({"enable_backward": True})
 
@@ -35,6 +42,8 @@ POLAR_ITERS = wp.constant(4)
 POLAR_MIN_J = wp.constant(0.2)
 POLAR_TOL = wp.constant(1.0e-4)
 STATUS_OK = wp.constant(2147483647)
+# The most velocity fields the grid update handles (its loops over fields are unrolled to this).
+MAX_FIELDS = wp.constant(MAX_FIELDS_)
 
 
 @wp.func
@@ -180,6 +189,7 @@ def p2g(
     F: wp.array(dtype=wp.mat33),
     mass: wp.array(dtype=float),
     volume: wp.array(dtype=float),
+    field: wp.array(dtype=wp.int32),
     mu: float,
     lam: float,
     origin: wp.vec3,
@@ -191,9 +201,12 @@ def p2g(
     nz: int,
     substep: int,
     store_rotation: int,
+    bond: wp.array(dtype=float),
+    bonding: int,
     grid: wp.array3d(dtype=wp.vec4),
     status: wp.array(dtype=wp.int32),
     rotation: wp.array(dtype=wp.mat33),
+    bond_grid: wp.array3d(dtype=float),
 ):
     """Particle-to-grid scatter with the stress fused in (MLS-MPM).
 
@@ -204,14 +217,17 @@ def p2g(
         x, v: (P,) positions [m] and velocities [m/s].
         C, F: (P,) APIC affine matrices [1/s] and deformation gradients.
         mass, volume: (P,) particle masses [kg] and initial volumes V_p^0 [m^3].
+        field: (P,) each particle's velocity field f (:mod:`fields`): node i of f at x-index f nx + i.
         mu, lam: Lame parameters [Pa].
         origin: world position of node (0, 0, 0) [m]; dx, inv_dx: cell size [m] and its inverse.
         dt: substep [s]; nx, ny, nz: nodes per axis; substep: index recorded on failure.
         store_rotation: 1 to also write each particle's polar rotation R (the backward pass rebuilds a
             substep's grid and then needs R again in :func:`p2g_adjoint`), 0 to skip it.
-        grid: (nx, ny, nz) zeroed accumulator of vec4(m v, m) [kg m/s, kg] (output).
+        bond, bonding: (P,) 1 for a particle flagged at its joint (read only when ``bonding`` is 1).
+        grid: (F nx, ny, nz) zeroed accumulator of vec4(m v, m) [kg m/s, kg] per field (output).
         status: (1,) int, min substep index at which a particle left the grid or became non-finite.
         rotation: (P,) polar rotation of F (output, written only with ``store_rotation``).
+        bond_grid: (F nx, ny, nz) zeroed flagged mass [kg] (output with ``bonding``; switches, no gradient).
     """
     p = wp.tid()
     xp = x[p]
@@ -223,6 +239,8 @@ def p2g(
     wx, wy, wz = bspline_weights(fx)
 
     m = mass[p]
+    fo = field[p] * nx
+    flagged = bonding != 0 and bond[p] > 0.0  # bond holds P entries whatever ``bonding``
     Fp = F[p]
     R = rotation_part(Fp)
     if store_rotation != 0:
@@ -240,7 +258,9 @@ def p2g(
             for c in range(3):
                 w = wx[a] * wy[b] * wz[c]
                 mom = mom0 + float(a) * Ax + float(b) * Ay + float(c) * Az
-                wp.atomic_add(grid, bx + a, by + b, bz + c, wp.vec4(w * mom[0], w * mom[1], w * mom[2], w * m))
+                wp.atomic_add(grid, fo + bx + a, by + b, bz + c, wp.vec4(w * mom[0], w * mom[1], w * mom[2], w * m))
+                if flagged:
+                    wp.atomic_add(bond_grid, fo + bx + a, by + b, bz + c, w * m)
 
 
 @wp.func
@@ -305,10 +325,58 @@ def node_sum(grids: wp.array4d(dtype=wp.vec4), i: int, j: int, k: int) -> wp.vec
     return g
 
 
-@wp.kernel
+@wp.func
+def bonded(bonds: wp.array4d(dtype=float), i: int, j: int, k: int, m: float, share: float) -> bool:
+    """Whether a field with node mass ``m`` at x-index i (field-major) carries flagged mass >= share m there."""
+    s = bonds[0, i, j, k]
+    for t in range(1, bonds.shape[0]):
+        s = s + bonds[t, i, j, k]
+    return s >= share * m
+
+
+@wp.func
+def field_nodes(
+    grids: wp.array4d(dtype=wp.vec4),
+    bonds: wp.array4d(dtype=float),
+    nx: int,
+    num_fields: int,
+    bonding: int,
+    i: int,
+    j: int,
+    k: int,
+    mass_eps: float,
+    share: float,
+):
+    """Physical node (i, j, k) of every field, read once: (G, on, ps, ms, ns) with row f of G field f's
+    vec4(m v, m), on[f] = 1 for a field bonded there (:func:`bonded`, mass > eps, only with ``bonding``) and
+    the bonded fields' summed momentum ps, mass ms and count ns."""
+    G = wp.mat44(0.0)
+    on = wp.vec4(0.0)
+    ps = wp.vec3(0.0)
+    ms = float(0.0)
+    ns = int(0)
+    for f in range(MAX_FIELDS):
+        if f < num_fields:
+            g = node_sum(grids, f * nx + i, j, k)
+            G[f] = g
+            if bonding != 0 and g[3] > mass_eps:
+                if bonded(bonds, f * nx + i, j, k, g[3], share):
+                    on[f] = 1.0
+                    ps = ps + wp.vec3(g[0], g[1], g[2])
+                    ms = ms + g[3]
+                    ns = ns + 1
+    return G, on, ps, ms, ns
+
+
+@wp.kernel(enable_backward=False)
 def grid_update(
     grids: wp.array4d(dtype=wp.vec4),
+    bonds: wp.array4d(dtype=float),
     i0: int,
+    nx: int,
+    num_fields: int,
+    bonding: int,
+    bond_share: float,
     gravity: wp.vec3,
     dt: float,
     mass_eps: float,
@@ -321,53 +389,66 @@ def grid_update(
     use_fixed: int,
     grid_v: wp.array3d(dtype=wp.vec3),
 ):
-    """Node velocities v_i = (m v)_i / m_i + dt g, then boundary conditions (:func:`boundary_mask`).
+    """Node velocities v_i = (m v)_i / m_i + dt g per field, bonds, then boundary conditions (:func:`boundary_mask`).
 
-    Launched over the slab of nodes i0 <= i < i0 + dim[0] (the whole grid, or one thread's share).
+    Launched over the slab of physical nodes i0 <= i < i0 + dim[0] (the whole grid, or one thread's share); each
+    launch point updates node (i, j, k) of every field (stored at x-index f nx + i). Differentiated by
+    :func:`grid_update_adjoint` (no generated adjoint).
 
     Args:
-        grids: (T, nx, ny, nz) vec4(m v, m) from :func:`p2g`, one grid per thread that scattered
+        grids: (T, F nx, ny, nz) vec4(m v, m) from :func:`p2g`, one grid per thread that scattered
             (summed here, so the threads never write the same node).
-        i0: first x-index of the slab this launch covers.
+        bonds: (T, F nx, ny, nz) each field's flagged mass from :func:`p2g` (read only with ``bonding``).
+        i0: first x-index of the slab this launch covers; nx: physical nodes along x; num_fields: F.
+        bonding: 1 to bond fields: at a node where two or more fields carry flagged mass of at least
+            ``bond_share`` of their own mass, those fields all take their common velocity
+            sum (m v) / sum m + dt g (momentum conserving); 0: fields are independent.
         gravity: [m/s^2]; dt: substep [s].
         mass_eps: nodes lighter than this [kg] are empty (avoids 1/m blow-ups in value and gradient).
         wall: nodes within this many of a face are walls; sticky: 1 zeroes the whole velocity there,
             0 only the outward normal component (slip).
         origin, dx: node (0, 0, 0) [m] and cell size [m] (to place the fixed region).
         fixed_lo, fixed_hi: world box [m] whose nodes are held at zero velocity when use_fixed is 1.
-        grid_v: (nx, ny, nz) node velocities [m/s] (output).
+        grid_v: (F nx, ny, nz) node velocities [m/s] (output).
     """
     i, j, k = wp.tid()
     i = i + i0
-    g = node_sum(grids, i, j, k)
-    m = g[3]
-    vi = wp.vec3(0.0)
-    if m > mass_eps:
-        vi = wp.vec3(g[0], g[1], g[2]) / m + dt * gravity
-        mask = boundary_mask(
-            i,
-            j,
-            k,
-            grids.shape[1],
-            grids.shape[2],
-            grids.shape[3],
-            vi,
-            wall,
-            sticky,
-            origin,
-            dx,
-            fixed_lo,
-            fixed_hi,
-            use_fixed,
-        )
-        vi = wp.cw_mul(vi, mask)
-    grid_v[i, j, k] = vi
+    G, on, ps, ms, ns = field_nodes(grids, bonds, nx, num_fields, bonding, i, j, k, mass_eps, bond_share)
+    for f in range(MAX_FIELDS):
+        if f < num_fields:
+            g = G[f]
+            m = g[3]
+            vi = wp.vec3(0.0)
+            if m > mass_eps:
+                vi = wp.vec3(g[0], g[1], g[2]) / m + dt * gravity
+                if ns > 1 and on[f] > 0.0:
+                    vi = ps / ms + dt * gravity
+                mask = boundary_mask(
+                    i, j, k, nx, grids.shape[2], grids.shape[3], vi, wall, sticky, origin, dx, fixed_lo, fixed_hi,
+                    use_fixed,
+                )  # fmt: skip
+                vi = wp.cw_mul(vi, mask)
+            grid_v[f * nx + i, j, k] = vi
+
+
+@wp.func
+def adj_sum(adj_grid_v: wp.array4d(dtype=wp.vec3), i: int, j: int, k: int) -> wp.vec3:
+    """Node (i, j, k) of the per-thread G2P-adjoint grids summed."""
+    av = adj_grid_v[0, i, j, k]
+    for t in range(1, adj_grid_v.shape[0]):
+        av = av + adj_grid_v[t, i, j, k]
+    return av
 
 
 @wp.kernel(enable_backward=False)
 def grid_update_adjoint(
     grids: wp.array4d(dtype=wp.vec4),
+    bonds: wp.array4d(dtype=float),
     i0: int,
+    nx: int,
+    num_fields: int,
+    bonding: int,
+    bond_share: float,
     gravity: wp.vec3,
     dt: float,
     mass_eps: float,
@@ -381,46 +462,50 @@ def grid_update_adjoint(
     adj_grid_v: wp.array4d(dtype=wp.vec3),
     adj_grid: wp.array3d(dtype=wp.vec4),
 ):
-    """Hand-written adjoint of :func:`grid_update`: dL/d(m v)_i and dL/dm_i from dL/dv_i.
+    """Hand-written adjoint of :func:`grid_update`: dL/d(m v)_i and dL/dm_i from dL/dv_i, per field.
 
-    v = M (p / m + dt g) with p = (m v)_i and the boundary mask M (piecewise constant):
+    A free field: v = M (p / m + dt g) with p = (m v)_i and the boundary mask M (piecewise constant):
     dL/dp = M dL/dv / m and dL/dm = -(M dL/dv) . p / m^2. The node mass gets its gradient here; it is
-    what carries the weights' position dependence back correctly over many substeps. ``adj_grid`` is
-    written, not accumulated (no zeroing needed). ``grids`` and ``adj_grid_v`` (T, nx, ny, nz) hold one
-    grid per thread (P2G's and G2P-adjoint's scatters), summed here; the slab is as in :func:`grid_update`.
+    what carries the weights' position dependence back correctly over many substeps. Bonded fields S share
+    v = M (P / M_S + dt g) with P = sum p_f, M_S = sum m_f over S: each gets dL/dp_f = A / M_S and
+    dL/dm_f = -(A / M_S) . P / M_S with A = sum over S of M dL/dv_f (the bond switch itself is piecewise
+    constant). ``adj_grid`` (F nx, ny, nz) is written, not accumulated (no zeroing needed). ``grids`` and
+    ``adj_grid_v`` (T, F nx, ny, nz) hold one grid per thread (P2G's and G2P-adjoint's scatters), summed here;
+    the slab is as in :func:`grid_update`.
     """
     i, j, k = wp.tid()
     i = i + i0
-    g = node_sum(grids, i, j, k)
-    m = g[3]
-    out = wp.vec4(0.0)
-    if m > mass_eps:
-        p = wp.vec3(g[0], g[1], g[2])
-        inv_m = 1.0 / m
-        vi = p * inv_m + dt * gravity
-        mask = boundary_mask(
-            i,
-            j,
-            k,
-            grids.shape[1],
-            grids.shape[2],
-            grids.shape[3],
-            vi,
-            wall,
-            sticky,
-            origin,
-            dx,
-            fixed_lo,
-            fixed_hi,
-            use_fixed,
-        )
-        av = adj_grid_v[0, i, j, k]
-        for t in range(1, adj_grid_v.shape[0]):
-            av = av + adj_grid_v[t, i, j, k]
-        a = wp.cw_mul(av, mask)
-        ap = a * inv_m
-        out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, p) * inv_m)
-    adj_grid[i, j, k] = out
+    G, on, ps, ms, ns = field_nodes(grids, bonds, nx, num_fields, bonding, i, j, k, mass_eps, bond_share)
+    a_s = wp.vec3(0.0)
+    if ns > 1:
+        vs = ps / ms + dt * gravity
+        mask_s = boundary_mask(
+            i, j, k, nx, grids.shape[2], grids.shape[3], vs, wall, sticky, origin, dx, fixed_lo, fixed_hi, use_fixed
+        )  # fmt: skip
+        for f in range(MAX_FIELDS):
+            if f < num_fields and on[f] > 0.0:
+                a_s = a_s + wp.cw_mul(adj_sum(adj_grid_v, f * nx + i, j, k), mask_s)
+    for f in range(MAX_FIELDS):
+        if f < num_fields:
+            g = G[f]
+            m = g[3]
+            out = wp.vec4(0.0)
+            if m > mass_eps:
+                if ns > 1 and on[f] > 0.0:
+                    ap = a_s / ms
+                    out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, ps) / ms)
+                else:
+                    p = wp.vec3(g[0], g[1], g[2])
+                    inv_m = 1.0 / m
+                    vi = p * inv_m + dt * gravity
+                    mask = boundary_mask(
+                        i, j, k, nx, grids.shape[2], grids.shape[3], vi, wall, sticky, origin, dx, fixed_lo, fixed_hi,
+                        use_fixed,
+                    )  # fmt: skip
+                    a = wp.cw_mul(adj_sum(adj_grid_v, f * nx + i, j, k), mask)
+                    ap = a * inv_m
+                    out = wp.vec4(ap[0], ap[1], ap[2], -wp.dot(ap, p) * inv_m)
+            adj_grid[f * nx + i, j, k] = out
 
 
 @wp.kernel
@@ -428,6 +513,8 @@ def g2p(
     x: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
     grid_v: wp.array3d(dtype=wp.vec3),
+    field: wp.array(dtype=wp.int32),
+    nx: int,
     origin: wp.vec3,
     inv_dx: float,
     dt: float,
@@ -442,7 +529,8 @@ def g2p(
 
     Args:
         x, F: (P,) positions [m] and deformation gradients at the start of the substep.
-        grid_v: (nx, ny, nz) node velocities [m/s] from :func:`grid_update`.
+        grid_v: (F nx, ny, nz) node velocities [m/s] of every field from :func:`grid_update`.
+        field: (P,) each particle's field (it gathers from that field only); nx: physical nodes along x.
         origin, inv_dx: node (0, 0, 0) [m] and inverse cell size [1/m]; dt: substep [s].
         substep: index recorded in ``status`` when a particle ends off the grid or non-finite.
         x_out, v_out, C_out, F_out: (P,) the next state (outputs; never the input arrays).
@@ -451,12 +539,12 @@ def g2p(
     p = wp.tid()
     xp = x[p]
     gp = (xp - origin) * inv_dx
-    nx = grid_v.shape[0]
     ny = grid_v.shape[1]
     nz = grid_v.shape[2]
     bx, by, bz, ok = stencil_base(gp, nx, ny, nz)
     fx = gp - wp.vec3(float(bx), float(by), float(bz))
     wx, wy, wz = bspline_weights(fx)
+    fo = field[p] * nx
 
     vp = wp.vec3(0.0)
     B = wp.mat33(0.0)
@@ -464,7 +552,7 @@ def g2p(
         for b in range(3):
             for c in range(3):
                 w = wx[a] * wy[b] * wz[c]
-                wv = w * grid_v[bx + a, by + b, bz + c]
+                wv = w * grid_v[fo + bx + a, by + b, bz + c]
                 vp = vp + wv
                 B = B + wp.outer(wv, wp.vec3(float(a), float(b), float(c)))
     # sum_i w v_i (node - fx)^T in cell units; (4/dx^2) (x_i - x_p) = (4/dx) (node - fx).
@@ -498,6 +586,7 @@ def p2g_adjoint(
     F: wp.array(dtype=wp.mat33),
     mass: wp.array(dtype=float),
     volume: wp.array(dtype=float),
+    field: wp.array(dtype=wp.int32),
     mu: float,
     lam: float,
     origin: wp.vec3,
@@ -519,15 +608,15 @@ def p2g_adjoint(
     With G_i = dL/d(m v, m)_i and mom_i = mom0 + A (node - fx) dx:
     dL/dmom0 = sum w G_i, dL/dA = dx sum w G_i (node - fx)^T, dL/dw_i = G_i . (mom_i, m); the weights'
     derivatives give dL/dx, dL/dtau = -dt V (4/dx^2) dL/dA gives dL/dF through :func:`kirchhoff_adjoint`.
-    Writes dL/dv and dL/dC, adds to dL/dx and dL/dF (G2P's adjoint wrote them first).
+    Writes dL/dv and dL/dC, adds to dL/dx and dL/dF (G2P's adjoint wrote them first); fields as in P2G.
     """
     p = wp.tid()
     gp = (x[p] - origin) * inv_dx
     bx, by, bz, ok = stencil_base(gp, nx, ny, nz)
+    fo = field[p] * nx
     fx = gp - wp.vec3(float(bx), float(by), float(bz))
     wx, wy, wz = bspline_weights(fx)
     dwx, dwy, dwz = bspline_dweights(fx)
-
     m = mass[p]
     Fp = F[p]
     R = rotation[p]  # stored by the P2G that rebuilt this substep's grid (same F)
@@ -538,7 +627,6 @@ def p2g_adjoint(
     Ax = dx * wp.vec3(A[0, 0], A[1, 0], A[2, 0])
     Ay = dx * wp.vec3(A[0, 1], A[1, 1], A[2, 1])
     Az = dx * wp.vec3(A[0, 2], A[1, 2], A[2, 2])
-
     s0 = wp.vec3(0.0)
     sa = wp.vec3(0.0)
     sb = wp.vec3(0.0)
@@ -549,7 +637,7 @@ def p2g_adjoint(
     for a in range(3):
         for b in range(3):
             for c in range(3):
-                G = adj_grid[bx + a, by + b, bz + c]
+                G = adj_grid[fo + bx + a, by + b, bz + c]
                 gv = wp.vec3(G[0], G[1], G[2])
                 wyz = wy[b] * wz[c]
                 w = wx[a] * wyz
@@ -577,6 +665,8 @@ def g2p_adjoint(
     x: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
     grid_v: wp.array3d(dtype=wp.vec3),
+    field: wp.array(dtype=wp.int32),
+    nx: int,
     origin: wp.vec3,
     inv_dx: float,
     dt: float,
@@ -593,14 +683,15 @@ def g2p_adjoint(
     From x' = x + dt v_p, F' = (I + dt C_p) F, C_p = (4/dx) (B - v_p fx^T), B = sum w v_i node^T:
     dL/dC_p = dL/dC' + dt dL/dF' F^T, dL/dv_p = dL/dv' + dt dL/dx' - (4/dx) dL/dC_p fx, and each node gets
     dL/dv_i += w (dL/dv_p + (4/dx) dL/dC_p node) (scattered into ``adj_grid_v``, which must be zeroed).
-    Writes dL/dx and dL/dF of the substep's input state (P2G's adjoint adds its parts afterwards).
+    Writes dL/dx and dL/dF of the substep's input state (P2G's adjoint adds its parts afterwards). Fields
+    as in :func:`g2p`.
     """
     p = wp.tid()
     gp = (x[p] - origin) * inv_dx
-    nx = grid_v.shape[0]
     ny = grid_v.shape[1]
     nz = grid_v.shape[2]
     bx, by, bz, ok = stencil_base(gp, nx, ny, nz)
+    fo = field[p] * nx
     fx = gp - wp.vec3(float(bx), float(by), float(bz))
     wx, wy, wz = bspline_weights(fx)
     dwx, dwy, dwz = bspline_dweights(fx)
@@ -625,11 +716,11 @@ def g2p_adjoint(
     for a in range(3):
         for b in range(3):
             for c in range(3):
-                vi = grid_v[bx + a, by + b, bz + c]
+                vi = grid_v[fo + bx + a, by + b, bz + c]
                 wyz = wy[b] * wz[c]
                 w = wx[a] * wyz
                 g = av + float(a) * aBx + float(b) * aBy + float(c) * aBz
-                wp.atomic_add(adj_grid_v, bx + a, by + b, bz + c, w * g)
+                wp.atomic_add(adj_grid_v, fo + bx + a, by + b, bz + c, w * g)
                 gw = wp.dot(vi, g)
                 wv = w * vi
                 vp = vp + wv

@@ -16,6 +16,7 @@ import warp as wp
 
 from sync4d.sim import physics
 from sync4d.sim.mpm_warp.drive import PartRig
+from sync4d.sim.mpm_warp.fields import FieldSplit
 
 #: The status record's value when no substep failed (a failing substep writes its index with atomic_min).
 STATUS_OK = 2147483647
@@ -41,6 +42,8 @@ class MPMModel:
         device: Warp device name.
         rig: the parts' rest centroids, inertias and masses (:mod:`drive`), or None when no parts were given
             (the drive is then off).
+        fields: each particle's velocity field and bond flag (:mod:`fields`), or None: one field (no parts or part
+            tree given, or no touching parts that are not joined).
     """
 
     grid: physics.GridSpec
@@ -57,6 +60,17 @@ class MPMModel:
     fixed_box: np.ndarray | None
     device: str
     rig: PartRig | None = None
+    fields: FieldSplit | None = None
+
+    @property
+    def num_fields(self) -> int:
+        """Velocity fields of the grid (1 without a split)."""
+        return 1 if self.fields is None else self.fields.num_fields
+
+    @property
+    def bonding(self) -> bool:
+        """Whether fields are bonded at joints (some particle flagged)."""
+        return self.fields is not None and self.fields.bonding
 
     @property
     def num_particles(self) -> int:
@@ -140,21 +154,28 @@ class Workspace:
 
     With ``threads`` T > 1 (CPU), thread t handles particles ``bounds[t]`` and node slab ``slabs[t]``,
     and owns P2G grid ``grids[t]``, G2P-adjoint grid ``adj_grid_v[t]`` and failure record ``status_of[t]``.
+    With ``fields`` F > 1 every grid holds the F fields stacked along x (``field_dims``: F nx, ny, nz); with
+    ``bonding`` each thread also owns a grid of flagged mass ``bonds[t]`` (else ``bonds`` is a dummy).
     Not thread-safe: one simulator object runs one rollout (forward or backward) at a time.
     """
 
     def __init__(
-        self, n: int, dims: tuple[int, int, int], device: str, threads: int = 1, pool: ThreadPoolExecutor | None = None
+        self, n: int, dims: tuple[int, int, int], device: str, threads: int = 1, pool: ThreadPoolExecutor | None = None,
+        *, fields: int = 1, bonding: bool = False,
     ) -> None:
         self.n, self.dims, self.device, self.threads, self.pool = n, dims, device, threads, pool
+        self.fields, self.bonding = fields, bonding
         if threads > 1 and pool is None:
             raise ValueError("Workspace: a thread pool is needed for threads > 1")
         self.bounds = split_range(n, threads)
         self.slabs = split_range(dims[0], threads)
-        self.grids = wp.zeros((threads, *dims), dtype=wp.vec4, device=device)
+        self.field_dims = (fields * dims[0], dims[1], dims[2])
+        self.grids = wp.zeros((threads, *self.field_dims), dtype=wp.vec4, device=device)
         self.grid_of = [self.grids[t] for t in range(threads)]
         self.grid = self.grid_of[0]
-        self.grid_v = wp.zeros(dims, dtype=wp.vec3, device=device)
+        self.bonds = wp.zeros((threads, *(self.field_dims if bonding else (1, 1, 1))), dtype=float, device=device)
+        self.bond_of = [self.bonds[t] for t in range(threads)]
+        self.grid_v = wp.zeros(self.field_dims, dtype=wp.vec3, device=device)
         self.status_all = wp.full(threads, STATUS_OK, dtype=wp.int32, device=device)
         self.status_of = [self.status_all[t : t + 1] for t in range(threads)]
         self.status = self.status_of[0]
@@ -193,8 +214,8 @@ class Workspace:
     def ensure_backward(self, k: int) -> None:
         """Allocate the adjoint buffers and ``k`` segment states (once)."""
         if self.adj_grid is None:
-            self.adj_grid = wp.zeros(self.dims, dtype=wp.vec4, device=self.device)
-            self.adj_grid_v = wp.zeros((self.threads, *self.dims), dtype=wp.vec3, device=self.device)
+            self.adj_grid = wp.zeros(self.field_dims, dtype=wp.vec4, device=self.device)
+            self.adj_grid_v = wp.zeros((self.threads, *self.field_dims), dtype=wp.vec3, device=self.device)
             self.adj_grid_v_of = [self.adj_grid_v[t] for t in range(self.threads)]
             self.adj_a = WarpState.empty(self.n, self.device)
             self.adj_b = WarpState.empty(self.n, self.device)

@@ -30,6 +30,7 @@ from sync4d.sim import physics
 from sync4d.sim.mpm_warp import budget
 from sync4d.sim.mpm_warp.bridge import run_rollout
 from sync4d.sim.mpm_warp.drive import DriveArrays, part_rig, substep_drive
+from sync4d.sim.mpm_warp.fields import FieldSplit, field_split
 from sync4d.sim.mpm_warp.model import STATUS_OK, MPMModel, WarpState, Workspace
 from sync4d.sim.mpm_warp.solver import Launch, RolloutPlan
 from sync4d.types import FramePose, validate_material
@@ -173,9 +174,11 @@ class MPMWarp:
                 [m^3], or None to estimate the total from the points' voxel occupancy (cells of side
                 max(dx, (8 bbox volume / P)^(1/3)), i.e. ~8 points per cell for a filled box).
             weights: (P,) shares of the total volume (e.g. Gaussians per control point); uniform if None.
-            part: (P,) part of each particle (-1: not driven), or None: the parts the drive holds (``drive``);
-                the material is one continuum, whatever the parts.
-            parent: (B,) the part each part is joined to (-1 for a root), or None (unused for now).
+            part: (P,) part of each particle (-1: not driven), or None: the parts the drive holds (``drive``).
+            parent: (B,) the part each part is joined to (-1 for a root), or None. With ``part`` it splits the grid
+                into velocity fields (:mod:`fields`): parts that touch at rest but are not parent and child get
+                different fields and do not glue; joined parts in different fields are bonded at their joint.
+                None: the tree is unknown and the material is one continuum, whatever the parts (one field).
 
         Returns:
             The immutable model.
@@ -187,17 +190,32 @@ class MPMWarp:
         mu, lam = physics.lame_parameters(config.E, config.nu)
         box = None if config.fixed_box is None else np.asarray(config.fixed_box, dtype=np.float64).reshape(2, 3)
         mass = config.density * vols
-        rig = None
-        if part is not None and config.drive == "complementary":
+        rig, fields = None, None
+        if part is not None:
             labels = np.asarray(part, dtype=np.int64)
             if labels.shape != (len(pts),):
                 raise InputError(f"sim.prepare: part must have shape ({len(pts)},), got {labels.shape}")
-            rig = part_rig(pts, labels, mass, int(labels.max()) + 1 if len(labels) else 0)
+            if config.drive == "complementary":
+                rig = part_rig(pts, labels, mass, int(labels.max()) + 1 if len(labels) else 0)
+            fields = self.fields_of(pts, labels, parent, grid.dx)
         return MPMModel(
             grid=grid, rest_points=pts, mass=mass, volume=vols, E=config.E, nu=config.nu,
             density=config.density, mu=mu, lam=lam, gravity=np.asarray(config.gravity, dtype=np.float64),
-            sticky=config.boundary == "sticky", fixed_box=box, device=self.wp_device, rig=rig,
+            sticky=config.boundary == "sticky", fixed_box=box, device=self.wp_device, rig=rig, fields=fields,
         )  # fmt: skip
+
+    def fields_of(self, pts: np.ndarray, part: np.ndarray, parent: np.ndarray | None, dx: float) -> FieldSplit | None:
+        """The velocity fields of particles ``pts`` labelled ``part`` with the part tree ``parent`` (None: one)."""
+        if parent is None or len(pts) == 0:
+            return None
+        tree = np.asarray(parent, dtype=np.int64).reshape(-1)
+        if np.any(tree >= len(tree)) or np.any(tree < -1):
+            raise InputError(f"sim.prepare: parent must hold part indices in [-1, {len(tree)}), got {tree}")
+        split = field_split(pts, part, tree, dx)
+        if split is not None:
+            log.info("sim: %d velocity fields (parts' fields %s), %d particles bonded at joints", split.num_fields,
+                     split.part_field.tolist(), int(split.bond.sum()))
+        return split
 
     def domain(self, model: MPMModel) -> tuple[np.ndarray, np.ndarray]:
         """The simulated box [m]: the grid's first and last node, (3,) each."""
@@ -306,11 +324,18 @@ class MPMWarp:
                                  f"name {len(model.rig.mass)}")
             held = substep_drive(model.rig, pose, substeps=substeps, frame_time=substeps * dt)
             drive = DriveArrays.of(model.rig, held, order, self.wp_device)
+        split = model.fields
+        field_id: wp.array | None = None
+        bond_flag: wp.array | None = None
+        if split is not None:
+            fid, flag = (split.field, split.bond) if order is None else (split.field[order], split.bond[order])
+            field_id = wp.array(fid.astype(np.int32), dtype=wp.int32, device=self.wp_device)
+            bond_flag = wp.array(flag.astype(np.float32), dtype=float, device=self.wp_device)
         launch = Launch(
-            model=model, ws=self.workspace_for(n, model.grid.dims),
+            model=model, ws=self.workspace_for(n, model.grid.dims, fields=model.num_fields, bonding=model.bonding),
             mass=wp.array(mass.astype(np.float32), dtype=float, device=self.wp_device),
             volume=wp.array(volume.astype(np.float32), dtype=float, device=self.wp_device),
-            dt=float(dt), mass_eps=float(1e-9 * mass.min()), drive=drive,
+            dt=float(dt), mass_eps=float(1e-9 * mass.min()), drive=drive, field_id=field_id, bond_flag=bond_flag,
         )  # fmt: skip
         return RolloutPlan(launch=launch, substeps=substeps, checkpoint_every=self.checkpoint_interval(n, substeps),
                            frame_index=frame_index)
@@ -356,17 +381,20 @@ class MPMWarp:
         g = ws.grids.numpy().astype(np.float64).reshape(-1, 4).sum(0)
         return float(g[3]), g[:3]
 
-    def workspace_for(self, n: int, dims: tuple[int, int, int]) -> Workspace:
-        """The scratch of a rollout of ``n`` particles on ``dims`` nodes (reused while they stay the same)."""
+    def workspace_for(self, n: int, dims: tuple[int, int, int], *, fields: int = 1, bonding: bool = False) -> Workspace:
+        """The scratch of a rollout of ``n`` particles on ``dims`` nodes with ``fields`` velocity fields (bonded at
+        joints with ``bonding``), reused while these stay the same."""
         ws = self.workspace
         threads = self.threads_for(n)
-        if ws is None or ws.n != n or ws.dims != tuple(dims) or ws.threads != threads:
+        same = ws is not None and ws.n == n and ws.dims == tuple(dims) and ws.threads == threads
+        if not same or ws is None or ws.fields != fields or ws.bonding != bonding:
             if threads > 1 and (self.pool is None or self.pool_size != threads - 1):
                 if self.pool is not None:
                     self.pool.shutdown(wait=True)
                 self.pool = ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="sync4d-mpm")
                 self.pool_size = threads - 1
-            ws = Workspace(n, tuple(dims), self.wp_device, threads, self.pool)  # type: ignore[arg-type]
+            ws = Workspace(n, tuple(dims), self.wp_device, threads, self.pool,  # type: ignore[arg-type]
+                           fields=fields, bonding=bonding)
             self.workspace = ws
         return ws
 

@@ -27,12 +27,14 @@ import warp as wp
 from sync4d.errors import SimulationDiverged
 from sync4d.sim.mpm_warp import kernels as K
 from sync4d.sim.mpm_warp.drive import DriveArrays
+from sync4d.sim.mpm_warp.fields import BOND_SHARE
 from sync4d.sim.mpm_warp.model import STATUS_OK, MPMModel, WarpState, Workspace
 
 
 @dataclass
 class Launch:
-    """Per-rollout constants of the kernels (model in sorted particle order, workspace)."""
+    """Per-rollout constants of the kernels (model in sorted particle order, workspace). ``field_id`` and
+    ``bond_flag``: (P,) each particle's velocity field (int32) and bond flag (float) in that order, zeros when None."""
 
     model: MPMModel
     ws: Workspace
@@ -41,16 +43,27 @@ class Launch:
     dt: float
     mass_eps: float
     drive: DriveArrays | None = None
+    field_id: wp.array | None = None
+    bond_flag: wp.array | None = None
     mass_of: list[wp.array] = field(default_factory=list, repr=False)
     volume_of: list[wp.array] = field(default_factory=list, repr=False)
+    field_id_of: list[wp.array] = field(default_factory=list, repr=False)
+    bond_flag_of: list[wp.array] = field(default_factory=list, repr=False)
     offset_of: list[wp.array] = field(default_factory=list, repr=False)
     part_of: list[wp.array] = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         bounds = self.ws.bounds
         one = self.ws.threads == 1
+        n, dev = self.mass.shape[0], self.ws.device
+        if self.field_id is None:
+            self.field_id = wp.zeros(n, dtype=wp.int32, device=dev)
+        if self.bond_flag is None:
+            self.bond_flag = wp.zeros(n, dtype=float, device=dev)
         self.mass_of = [self.mass] if one else [self.mass[lo:hi] for lo, hi in bounds]
         self.volume_of = [self.volume] if one else [self.volume[lo:hi] for lo, hi in bounds]
+        self.field_id_of = [self.field_id] if one else [self.field_id[lo:hi] for lo, hi in bounds]
+        self.bond_flag_of = [self.bond_flag] if one else [self.bond_flag[lo:hi] for lo, hi in bounds]
         if self.drive is not None:
             d = self.drive
             self.offset_of = [d.offset] if one else [d.offset[lo:hi] for lo, hi in bounds]
@@ -63,19 +76,22 @@ class Launch:
         """P2G of thread t's particles (``s`` is that thread's view of the state) into its own grid."""
         g = self.model.grid
         inputs = [
-            s.x, s.v, s.C, s.F, self.mass_of[t], self.volume_of[t],
+            s.x, s.v, s.C, s.F, self.mass_of[t], self.volume_of[t], self.field_id_of[t],
             float(self.model.mu), float(self.model.lam),
             wp.vec3(*g.origin), float(g.dx), float(1.0 / g.dx), float(self.dt),
             int(g.dims[0]), int(g.dims[1]), int(g.dims[2]), int(substep), int(store_rotation),
+            self.bond_flag_of[t], int(self.ws.bonding),
         ]  # fmt: skip
-        return inputs, [self.ws.grid_of[t], self.ws.status_of[t], self.ws.rotation_of[t]]
+        return inputs, [self.ws.grid_of[t], self.ws.status_of[t], self.ws.rotation_of[t], self.ws.bond_of[t]]
 
     def grid_args(self, t: int = 0) -> tuple[list[Any], list[Any]]:
         """Grid update of thread t's slab of nodes (the launch dimension is :meth:`slab_dim`)."""
         m, g = self.model, self.model.grid
         box = m.fixed_box if m.fixed_box is not None else np.zeros((2, 3))
+        ws = self.ws
         inputs = [
-            self.ws.grids, int(self.ws.slabs[t][0]), wp.vec3(*m.gravity), float(self.dt), float(self.mass_eps),
+            ws.grids, ws.bonds, int(ws.slabs[t][0]), int(ws.dims[0]), int(ws.fields), int(ws.bonding),
+            float(BOND_SHARE), wp.vec3(*m.gravity), float(self.dt), float(self.mass_eps),
             int(g.wall), int(m.sticky), wp.vec3(*g.origin), float(g.dx), wp.vec3(*box[0]), wp.vec3(*box[1]),
             int(m.fixed_box is not None),
         ]  # fmt: skip
@@ -87,7 +103,8 @@ class Launch:
 
     def g2p_args(self, s: WarpState, out: WarpState, substep: int, t: int = 0) -> tuple[list[Any], list[Any]]:
         g = self.model.grid
-        inputs = [s.x, s.F, self.ws.grid_v, wp.vec3(*g.origin), float(1.0 / g.dx), float(self.dt), int(substep)]
+        inputs = [s.x, s.F, self.ws.grid_v, self.field_id_of[t], int(self.ws.dims[0]), wp.vec3(*g.origin),
+                  float(1.0 / g.dx), float(self.dt), int(substep)]
         return inputs, [out.x, out.v, out.C, out.F, self.ws.status_of[t]]
 
     def count(self, t: int) -> int:
@@ -98,6 +115,8 @@ class Launch:
         """Zero thread t's grid and scatter its particles (``s`` the whole state) into it."""
         ws = self.ws
         ws.grid_of[t].zero_()
+        if ws.bonding:
+            ws.bond_of[t].zero_()
         i, o = self.p2g_args(s.parts(ws.bounds)[t], substep, store_rotation=store_rotation, t=t)
         wp.launch(K.p2g, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
 
@@ -282,7 +301,8 @@ def step_adjoint(
         ws.adj_grid_v_of[t].zero_()
         wp.launch(
             K.g2p_adjoint, dim=launch.count(t),
-            inputs=[sp[t].x, sp[t].F, ws.grid_v, origin, inv_dx, dt, op[t].x, op[t].v, op[t].C, op[t].F],
+            inputs=[sp[t].x, sp[t].F, ws.grid_v, launch.field_id_of[t], int(ws.dims[0]), origin, inv_dx, dt,
+                    op[t].x, op[t].v, op[t].C, op[t].F],
             outputs=[ws.adj_grid_v_of[t], ip[t].x, ip[t].F], device=dev,
         )  # fmt: skip
 
@@ -297,7 +317,7 @@ def step_adjoint(
         p2g_in, _ = launch.p2g_args(sp[t], substep, t=t)
         wp.launch(
             K.p2g_adjoint, dim=launch.count(t),
-            inputs=p2g_in[:15] + [ws.rotation_of[t], ws.adj_grid],
+            inputs=p2g_in[:16] + [ws.rotation_of[t], ws.adj_grid],
             outputs=[ip[t].x, ip[t].v, ip[t].C, ip[t].F], device=dev,
         )  # fmt: skip
         if prefetch is not None:  # after this thread's adjoint has read its chunk's rotations
