@@ -171,3 +171,17 @@ def test_unknown_pair_or_method_is_one_line():
         G.main(["--methods", "nope"])
     with pytest.raises(ConfigError, match="--pairs"):
         P.load_pair("nope", 3, 100)
+
+
+def test_follow_error_passes_the_oracle_and_kinematic_and_fails_the_frozen_target(laptop):
+    """Issue 39's follow metric on the laptop pair (both truths): the rigid oracle fitted to the truth scores
+    <= 1 deg, sim=kinematic (each part on its drive) ~0, a frozen target its drive's own angle."""
+    rows = torn_rows(laptop)
+    motion = G.pair_motion(laptop, 5)
+    drive = motion.part_transforms[1:] @ np.linalg.inv(motion.part_transforms[0])[None]
+    lid_angle = np.degrees(np.arccos(np.clip((np.trace(drive[:, 1, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    for truth in P.TRUTHS:
+        assert rows[truth]["rigid_oracle"]["follow_rotation_deg"] <= 1.0
+        assert rows[truth]["kinematic"]["follow_rotation_max_deg"] < 1e-3
+        frozen = rows[truth]["frozen"]
+        assert frozen["follow_rotation_max_deg"] == pytest.approx(lid_angle.max(), rel=1e-3)
