@@ -119,6 +119,27 @@ def _legs(n_top: int, n_leg: int, seed: int = 1):
     return np.concatenate([top, left, right]), np.repeat([0, 1, 2], [n_top, n_leg, n_leg]), np.array([-1, 0, 0])
 
 
+def test_fields_colouring_follows_the_tree_and_caps_the_count():
+    """Children take their parent's field unless a touching part they are not joined to holds it; with more
+    conflicts than fields the least shared field is used; no parent, or nothing touching, needs no split."""
+    from sync4d.sim.mpm_warp.fields import MAX_FIELDS, colour_parts, field_split
+
+    # a chain 0-1-2 plus part 3 hanging from 0 and touching 1 and 2
+    conflict = np.zeros((4, 4), dtype=bool)
+    conflict[3, [1, 2]] = conflict[[1, 2], 3] = True
+    assert colour_parts(conflict, np.array([-1, 0, 1, 0])).tolist() == [0, 0, 0, 1]
+    clique = ~np.eye(MAX_FIELDS + 2, dtype=bool)  # every part touches every other, none joined
+    colours = colour_parts(clique, np.full(MAX_FIELDS + 2, -1))
+    assert sorted(set(colours.tolist())) == list(range(MAX_FIELDS))
+    assert np.bincount(colours).max() == 2  # the two extra parts share the least used fields
+    pts, part, parent = _legs(400, 200)
+    assert field_split(pts[part < 2], part[part < 2], np.array([-1, 0]), 0.006) is None  # top and a leg, joined
+    far = pts + np.where(part[:, None] == 2, [0.05, -0.05, 0.0], 0.0)  # the right leg 5 cm from everything
+    assert field_split(far, part, np.array([-1, 0, -1]), 0.006) is None
+    split = field_split(pts, part, parent, 0.006)
+    assert split is not None and split.num_fields == 2 and split.bonding
+
+
 def test_joined_parts_in_different_fields_stay_together_at_their_joint():
     """The right leg turns 20 deg about its joint with the top. The legs touch without being joined, so they get
     two fields; the right one shares no field with the top it is joined to and is bonded to it at the joint: no gap

@@ -57,23 +57,16 @@ class FieldSplit:
         return bool(self.bond.any())
 
 
-def near_parts(points: np.ndarray, part: np.ndarray, num_parts: int, reach: float) -> np.ndarray:
-    """(P, B) bool: particle p lies within ``reach`` [m] of some particle of part b (its own part excluded)."""
+def cross_pairs(points: np.ndarray, part: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs (i, j, distance [m]) of particles of two different parts (both >= 0) within ``reach`` [m]."""
     from scipy.spatial import cKDTree
 
-    near = np.zeros((len(points), num_parts), dtype=bool)
-    for b in range(num_parts):
-        mine = part == b
-        if not mine.any():
-            continue
-        own = points[mine]
-        lo, hi = own.min(0) - reach, own.max(0) + reach
-        cand = np.flatnonzero(~mine & (part >= 0) & np.all((points >= lo) & (points <= hi), axis=1))
-        if len(cand) == 0:
-            continue
-        d, _ = cKDTree(own).query(points[cand], k=1, distance_upper_bound=reach)
-        near[cand[np.isfinite(d)], b] = True
-    return near
+    own = np.flatnonzero(part >= 0)
+    ij = cKDTree(points[own]).query_pairs(reach, output_type="ndarray")
+    i, j = own[ij[:, 0]], own[ij[:, 1]]
+    cross = part[i] != part[j]
+    i, j = i[cross], j[cross]
+    return i, j, np.linalg.norm(points[i] - points[j], axis=1)
 
 
 def colour_parts(conflict: np.ndarray, parent: np.ndarray, max_fields: int = MAX_FIELDS) -> np.ndarray:
@@ -120,25 +113,22 @@ def field_split(points: np.ndarray, part: np.ndarray, parent: np.ndarray, dx: fl
     parent = np.asarray(parent, dtype=np.int64)
     num_parts = max(len(parent), int(part.max()) + 1 if len(part) else 0)
     parent = np.concatenate([parent, np.full(num_parts - len(parent), -1)])
-    touch_near = near_parts(points, part, num_parts, TOUCH_CELLS * dx)
-    own = part >= 0
+    i, j, d = cross_pairs(points, part, max(TOUCH_CELLS, BOND_CELLS) * dx)
     touch = np.zeros((num_parts, num_parts), dtype=bool)
-    for b in range(num_parts):
-        touch[b] = touch_near[own & (part == b)].any(0)
+    close = d <= TOUCH_CELLS * dx
+    touch[part[i[close]], part[j[close]]] = True
     touch = touch | touch.T
     joined = np.zeros_like(touch)
     child = np.flatnonzero(parent >= 0)
     joined[child, parent[child]] = joined[parent[child], child] = True
-    np.fill_diagonal(touch, False)
     colour = colour_parts(touch & ~joined, parent)
     if colour.max(initial=0) == 0:
         return None
+    own = part >= 0
     field = np.where(own, colour[np.where(own, part, 0)], 0)
     # flagged: near a joined part that lies in another field
-    split_join = joined & (colour[:, None] != colour[None, :])
+    band = (d <= BOND_CELLS * dx) & joined[part[i], part[j]] & (colour[part[i]] != colour[part[j]])
     bond = np.zeros(len(points))
-    if split_join.any():
-        reach_joint = split_join[np.where(own, part, 0)] & own[:, None]  # (P, B): parts p's own part is joined to
-        bond_near = near_parts(points, part, num_parts, BOND_CELLS * dx)
-        bond = (reach_joint & bond_near).any(1).astype(np.float64)
+    bond[i[band]] = 1.0
+    bond[j[band]] = 1.0
     return FieldSplit(field.astype(np.int64), bond, colour, int(colour.max()) + 1)

@@ -16,7 +16,7 @@ import warp as wp
 
 from sync4d.sim import physics
 from sync4d.sim.mpm_warp.drive import PartRig
-from sync4d.sim.mpm_warp.fields import FieldSplit
+from sync4d.sim.mpm_warp.fields import MAX_FIELDS, FieldSplit
 
 #: The status record's value when no substep failed (a failing substep writes its index with atomic_min).
 STATUS_OK = 2147483647
@@ -165,6 +165,8 @@ class Workspace:
     ) -> None:
         self.n, self.dims, self.device, self.threads, self.pool = n, dims, device, threads, pool
         self.fields, self.bonding = fields, bonding
+        if not 1 <= fields <= MAX_FIELDS:
+            raise ValueError(f"Workspace: {fields} velocity fields, the kernels handle 1 to {MAX_FIELDS}")
         if threads > 1 and pool is None:
             raise ValueError("Workspace: a thread pool is needed for threads > 1")
         self.bounds = split_range(n, threads)
