@@ -191,7 +191,9 @@ def complete_video(clip: VideoClip, camera: Camera | None, config: FrontEndConfi
         return clip, camera
     given = clip
     if camera is not None:
-        given = replace(clip, intrinsics=camera.K, extrinsics=np.tile(camera.world_to_cam, (clip.num_frames, 1, 1)))
+        moving = clip.extrinsics is not None  # a given camera's per-frame poses are kept
+        given = replace(clip, intrinsics=camera.K, extrinsics=clip.extrinsics if moving else
+                        np.tile(camera.world_to_cam, (clip.num_frames, 1, 1)))
     found = run_front_end(given, config, prompt=prompt, masks_given=masks_given, camera_given=camera is not None)
     out = found.clip
     assert out.extrinsics is not None  # run_front_end always fills the camera
