@@ -244,16 +244,25 @@ def static_depths(uv0: np.ndarray, uv: np.ndarray, ok: np.ndarray, K: np.ndarray
 
     weight = ok.astype(np.float64)
     count = np.maximum(weight.sum(0), 1.0)
-    cost = np.stack([(((project(np.full(len(uv0), d)) - uv) ** 2).sum(-1) * weight).sum(0) / count for d in depths])
-    best = np.argmin(cost, 0)
-    lo, hi = np.clip(best - 1, 0, samples - 1), np.clip(best + 1, 0, samples - 1)
     idx = np.arange(len(uv0))
-    c0, c1, c2 = cost[lo, idx], cost[best, idx], cost[hi, idx]
-    denom = c0 - 2 * c1 + c2
-    shift = np.where((denom > 1e-12) & (lo != best) & (hi != best), 0.5 * (c0 - c2) / np.maximum(denom, 1e-12), 0.0)
-    log_d = np.log(depths)
-    step = log_d[1] - log_d[0]
-    depth = np.exp(log_d[best] + np.clip(shift, -1.0, 1.0) * step)
+
+    def search(log_d: np.ndarray) -> np.ndarray:
+        """(N,) the log depth of least cost among log_d (S, N), refined by a parabola through its neighbours."""
+        cost = np.stack([(((project(np.exp(d)) - uv) ** 2).sum(-1) * weight).sum(0) / count for d in log_d])
+        best = np.argmin(cost, 0)
+        lo, hi = np.clip(best - 1, 0, len(log_d) - 1), np.clip(best + 1, 0, len(log_d) - 1)
+        c0, c1, c2 = cost[lo, idx], cost[best, idx], cost[hi, idx]
+        denom = c0 - 2 * c1 + c2
+        inner = (denom > 1e-12) & (lo != best) & (hi != best)
+        shift = np.where(inner, 0.5 * (c0 - c2) / np.maximum(denom, 1e-12), 0.0)
+        step = log_d[1] - log_d[0]
+        return log_d[best, idx] + np.clip(shift, -1.0, 1.0) * step
+
+    coarse = np.log(depths)
+    log_depth = search(np.repeat(coarse[:, None], len(uv0), 1))
+    step = coarse[1] - coarse[0]  # then a fine grid of a tenth of the coarse step about each point's estimate
+    log_depth = search(log_depth[None] + np.linspace(-step, step, 21)[:, None])
+    depth = np.exp(log_depth)
     predicted = project(depth)
     residual = np.sqrt((((predicted - uv) ** 2).sum(-1) * weight).sum(0) / count)
     return depth, residual, predicted
