@@ -57,6 +57,7 @@ def score_seed(seed: int, cache_dir: str, overrides: list[str]) -> dict[str, Any
     """The default run's reconstruction and match at ``seed``, scored (see the module docstring)."""
     from scipy.spatial import cKDTree
 
+    from sync4d.recon.video.reconstructor import upright_frame
     from sync4d.run.pipeline import stage_match, stage_reference, stage_target
     from sync4d.scenes.laptop import laptop_reference
     from sync4d.scenes.shell import shell_mesh
@@ -79,7 +80,9 @@ def score_seed(seed: int, cache_dir: str, overrides: list[str]) -> dict[str, Any
     rel = np.einsum("tij,tjk->tik", np.linalg.inv(world[:, base]), world[:, lid])
     rel = np.einsum("ij,tjk->tik", np.linalg.inv(rel[0]), rel)
     axis, _, angle = hinge_line(rel)
-    axis_cam = loaded.camera.world_to_cam[:3, :3] @ axis
+    # the reconstruction's world is the source's turned upright (recon=video: ``upright_frame(world_up)``)
+    upright = upright_frame(loaded.world_up)[:3, :3] if loaded.world_up is not None else np.eye(3)
+    axis_cam = loaded.camera.world_to_cam[:3, :3] @ upright.T @ axis
     true_axis_cam = true_camera.world_to_cam[:3, :3] @ np.array([1.0, 0.0, 0.0])
     true_rel = truth.bone_transforms[:, 1] @ np.linalg.inv(truth.bone_transforms[0, 1])
     true_angle = hinge_line(true_rel)[2]
@@ -100,9 +103,19 @@ def score_seed(seed: int, cache_dir: str, overrides: list[str]) -> dict[str, Any
         "hinge_axis_deg": round(float(np.degrees(np.arccos(min(1.0, abs(float(axis_cam @ true_axis_cam)))))), 2),
         "hinge_motion_deg": round(float(np.degrees(np.abs(sign * angle - true_angle).mean())), 2),
         "match_labels": round(float((part_map.tgt_part == expected).mean()), 4),
+        "up_error_deg": up_error(loaded, true_camera),
         "match_top_to_lid": round(float((part_map.tgt_part[shell_half == 1] == lid).mean()), 4),
         "match_bottom_to_base": round(float((part_map.tgt_part[shell_half == 0] == base).mean()), 4),
     }
+
+
+def up_error(loaded: Any, true_camera: Any) -> float | None:
+    """Angle [deg] between the source's ``world_up`` and the true up (the film's +Y), in frame 0's camera."""
+    if loaded.world_up is None:
+        return None
+    found = loaded.camera.world_to_cam[:3, :3] @ loaded.world_up
+    true = true_camera.world_to_cam[:3, :3] @ np.array([0.0, 1.0, 0.0])
+    return round(float(np.degrees(np.arccos(np.clip(found @ true / np.linalg.norm(found), -1.0, 1.0)))), 2)
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:

@@ -244,13 +244,16 @@ class LaptopReference:
         if clip is not None and c.video_exact != "masks_camera":  # the camera (and the masks) from the film alone
             from dataclasses import replace
 
-            from sync4d.frontend import complete_video
+            from sync4d.frontend import complete_video_up
 
             masks = c.video_exact != "none"
             lens = clip.intrinsics if c.video_exact == "masks_intrinsics" else None
-            clip, camera = complete_video(replace(clip, intrinsics=lens, extrinsics=None, masks=clip.masks if masks else
-                                                  np.zeros_like(clip.masks)), None, c.frontend, masks_given=masks)
-            up = np.array([0.0, 1.0, 0.0])  # the front end's world: the first camera turned to Y up (an upright phone)
+            clip, camera, ground = complete_video_up(replace(clip, intrinsics=lens, extrinsics=None, masks=clip.masks
+                                                             if masks else np.zeros_like(clip.masks)), None, c.frontend,
+                                                     masks_given=masks)
+            # the front end's world: the first camera turned to Y up (an upright phone); up is the ground's normal
+            # when a moving camera found the floor
+            up = np.array([0.0, 1.0, 0.0]) if ground is None else ground
         return ReferenceInput(
             name="laptop",
             fps=c.fps,

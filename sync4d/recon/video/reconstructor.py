@@ -140,6 +140,10 @@ class VideoReconstructor:
         if extrinsics is not None:  # frame 0's pose of the moving camera
             camera = Camera(K=camera.K, world_to_cam=np.asarray(extrinsics[0], np.float64), width=camera.width,
                             height=camera.height).validate()
+        if source.world_up is not None:  # the reference comes out Y up (matching and the target assume it)
+            upright = np.linalg.inv(upright_frame(source.world_up))
+            camera = replace(camera, world_to_cam=camera.world_to_cam @ upright)
+            extrinsics = None if extrinsics is None else extrinsics @ upright
         masks = video_masks(clip, config.masks)
         tracks = track_grid(clip.frames, masks, config.tracks)
         if extrinsics is None:
@@ -214,6 +218,22 @@ class VideoReconstructor:
         log.warning("recon=video: the root part moves; its motion comes from PnP of its tracks on a "
                     "fronto-parallel plane (a single view cannot tell its shape)")
         return pnp_transforms(pts, tracks.uv[:, own], tracks.trusted[:, own], camera)
+
+
+def upright_frame(up: np.ndarray) -> np.ndarray:
+    """(4, 4) the least rotation taking the unit direction ``up`` (3,) to +Y (identity when it is +Y)."""
+    u = np.asarray(up, np.float64) / np.linalg.norm(up)
+    y = np.array([0.0, 1.0, 0.0])
+    axis, cos = np.cross(u, y), float(np.clip(u @ y, -1.0, 1.0))
+    out = np.eye(4)
+    if np.linalg.norm(axis) < 1e-12:
+        out[:3, :3] = np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
+        return out
+    k = axis / np.linalg.norm(axis)
+    skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    angle = np.arccos(cos)
+    out[:3, :3] = np.eye(3) + np.sin(angle) * skew + (1 - np.cos(angle)) * skew @ skew
+    return out
 
 
 def build_reference(joints: JointFit, means: np.ndarray, labels: np.ndarray, clip: VideoClip, camera: Camera,
