@@ -114,7 +114,7 @@ def load_quadruped_clip(folder: Path) -> tuple[ReferenceInput, np.ndarray, list[
         w2c = cam["world_to_cam"].astype(np.float64)
         camera = Camera(K=cam["K"].astype(np.float64), world_to_cam=w2c[0], width=w, height=h).validate()
     else:
-        camera = load_camera(folder / "camera.npz", w, h)
+        camera, _ = load_camera(folder / "camera.npz", w, h)
         w2c = np.repeat(camera.world_to_cam[None], clip.num_frames, 0)
     clip = VideoClip(clip.frames, clip.masks, clip.fps, camera.K, w2c if moving else None, str(folder)).validate()
     gt = np.load(folder / "gt.npz")

@@ -41,6 +41,7 @@ import numpy as np
 from sync4d.errors import Sync4DError
 from sync4d.frontend import FrontEndConfig, FrontEndResult, run_front_end
 from sync4d.geometry import rotation_angle_deg
+from sync4d.scenes.reference_video import room_image
 from sync4d.sources.references import camera_from_look
 from sync4d.types import Camera, VideoClip
 
@@ -130,41 +131,6 @@ def camera_path(subject: Subject, moving: bool, rng: np.random.Generator) -> lis
         up = np.array([np.sin(roll), np.cos(roll), 0.0])
         cams.append(camera_from_look(K, pos, fwd, up, WIDTH, HEIGHT))
     return cams
-
-
-def room_texture(uv: np.ndarray, salt: int, tile: float) -> np.ndarray:
-    """(N, 3) colours of a tiled pattern at plane coordinates uv (N, 2) [m]: tiles of edge ``tile`` [m] in
-    random muted colours, a checker of a third of that and a slow shading gradient."""
-    cell = np.floor(uv / tile).astype(np.int64)
-    h = (cell[:, 0] * 73856093 ^ cell[:, 1] * 19349663 ^ salt * 83492791) % 1000003
-    base = np.stack([(h % 97) / 97.0, (h % 89) / 89.0, (h % 83) / 83.0], axis=1) * 0.55 + 0.25
-    fine = np.where((np.floor(3 * uv / tile).astype(np.int64).sum(1) % 2) == 0, 1.0, 0.8)
-    shade = 0.85 + 0.15 * np.sin(uv[:, 0] / tile + salt) * np.cos(uv[:, 1] / tile)
-    return np.clip(base * (fine * shade)[:, None], 0.0, 1.0)
-
-
-def room_image(camera: Camera, centre: np.ndarray, floor_y: float, half: float) -> np.ndarray:
-    """(H, W, 3) the room behind the subject: floor at ``floor_y``, walls at centre +- ``half`` (x, z),
-    ceiling ``2 half`` above the floor; each pixel's ray hits the first plane it leaves the box through."""
-    w2c = camera.world_to_cam
-    c2w = np.linalg.inv(w2c)
-    vv, uu = np.mgrid[0:camera.height, 0:camera.width] + 0.5
-    pix = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1) @ np.linalg.inv(camera.K).T
-    d = pix @ c2w[:3, :3].T
-    o = c2w[:3, 3]
-    lo = np.array([centre[0] - half, floor_y, centre[2] - half])
-    hi = np.array([centre[0] + half, floor_y + 2 * half, centre[2] + half])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_exit = np.where(d > 0, (hi - o) / d, (lo - o) / d)
-    t_exit = np.where(np.isfinite(t_exit) & (t_exit > 0), t_exit, np.inf)
-    axis = np.argmin(t_exit, axis=1)
-    hit = o + d * t_exit[np.arange(len(d)), axis][:, None]
-    keep = [(1, 2), (0, 2), (0, 1)]  # in-plane coordinates of the plane crossed on each axis
-    colours = np.zeros((len(d), 3))
-    for a in range(3):
-        sel = axis == a
-        colours[sel] = room_texture(hit[sel][:, keep[a]], salt=a, tile=half / 6)
-    return colours.reshape(camera.height, camera.width, 3)
 
 
 def film(subject: Subject, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

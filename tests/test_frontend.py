@@ -209,3 +209,21 @@ def test_the_viewer_shows_the_masks_beside_the_video(tmp_path: Path):
     write_video_inputs(run / "recon", VideoClip(clip.frames, truth, 10.0).validate(), None)
     data = load_run(run)
     assert data.masks is not None and data.masks(0).shape == clip.frames.shape[1:]
+
+
+def test_the_ground_is_found_among_background_points_and_walls_are_not_taken() -> None:
+    """ground_up: a floor tilted 20 deg from the camera's up, a wall and noise; the floor's normal is returned
+    (oriented like the up guess); with only a wall, or too few points, None."""
+    from scipy.spatial.transform import Rotation
+
+    from sync4d.frontend.geometry import ground_up
+
+    rng = np.random.default_rng(0)
+    tilt = Rotation.from_rotvec(np.radians(20.0) * np.array([1.0, 0.0, 0.0]))
+    floor = tilt.apply(np.stack([rng.uniform(-2, 2, 200), rng.normal(0, 0.005, 200), rng.uniform(1, 4, 200)], 1))
+    wall = np.stack([rng.uniform(-2, 2, 120), rng.uniform(0, 2, 120), np.full(120, 4.0)], 1)
+    found = ground_up(np.concatenate([floor, wall]), np.array([0.0, 1.0, 0.0]))
+    true = tilt.apply([0.0, 1.0, 0.0])
+    assert found is not None and np.degrees(np.arccos(min(1.0, float(found @ true)))) < 2.0
+    assert ground_up(wall, np.array([0.0, 1.0, 0.0])) is None
+    assert ground_up(floor[:20], np.array([0.0, 1.0, 0.0])) is None

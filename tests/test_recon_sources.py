@@ -98,3 +98,92 @@ def test_video_source_with_camera(shared_data: Path) -> None:
     pc = src.camera.world_to_cam @ np.array([0.0, 0.0, 0.0, 1.0])
     u, v = (src.camera.K @ pc[:3])[:2] / pc[2]
     assert pc[2] > 0 and 0 <= u < 320 and 0 <= v < 240
+
+
+def _frames_folder(root: Path, count: int = 6, size: tuple[int, int] = (40, 32)) -> Path:
+    """A folder of ``count`` small PNG frames (a square moving right) and its masks folder beside them."""
+    import cv2
+
+    (root / "frames").mkdir(parents=True)
+    (root / "masks").mkdir()
+    for t in range(count):
+        image = np.full((size[1], size[0], 3), 200, np.uint8)
+        image[10:20, 5 + 2 * t:15 + 2 * t] = (40, 90, 160)
+        cv2.imwrite(str(root / "frames" / f"{t:04d}.png"), image)
+        cv2.imwrite(str(root / "masks" / f"{t:04d}.png"), (image[..., 0] < 100).astype(np.uint8) * 255)
+    return root / "frames"
+
+
+def _arc(count: int) -> dict[str, np.ndarray]:
+    """A camera circling the origin: K (3, 3) and cam_pos / cam_forward (count, 3), cam_up (3,)."""
+    angle = np.linspace(0.0, 0.4, count)
+    pos = np.stack([2.0 * np.sin(angle), np.full(count, 0.5), 2.0 * np.cos(angle)], 1)
+    K = np.array([[40.0, 0, 20], [0, 40.0, 16], [0, 0, 1]])
+    return {"K": K, "cam_pos": pos, "cam_forward": -pos, "cam_up": np.array([0.0, 1.0, 0.0])}
+
+
+def test_video_source_reads_a_moving_camera(tmp_path: Path) -> None:
+    """cam_pos / cam_forward (T, 3) (and world_to_cam (T, 4, 4)) give a pose per frame; stride picks the
+    clip's frames' poses from the video's; frame t's pose is the look-at of row t."""
+    frames = _frames_folder(tmp_path)
+    cam = _arc(6)
+    np.savez(tmp_path / "look.npz", **cam)
+    src = build("reference", {"type": "video", "video": str(frames), "masks": str(tmp_path / "masks"),
+                              "camera": str(tmp_path / "look.npz"), "fps": 10.0, "stride": 2}).load()
+    assert src.video.num_frames == 3 and src.video.extrinsics is not None and src.video.extrinsics.shape == (3, 4, 4)
+    for i, t in enumerate((0, 2, 4)):
+        want = camera_from_look(cam["K"], cam["cam_pos"][t], cam["cam_forward"][t], cam["cam_up"], 40, 32)
+        assert np.allclose(src.video.extrinsics[i], want.world_to_cam)
+    assert np.allclose(src.camera.world_to_cam, src.video.extrinsics[0])
+    np.savez(tmp_path / "w2c.npz", K=cam["K"], world_to_cam=src.video.extrinsics)  # (T, 4, 4), T = the clip's
+    again = build("reference", {"type": "video", "video": str(frames), "masks": str(tmp_path / "masks"),
+                                "camera": str(tmp_path / "w2c.npz"), "fps": 10.0, "stride": 2}).load()
+    assert np.allclose(again.video.extrinsics, src.video.extrinsics)
+
+
+@pytest.mark.parametrize("bad", [
+    {"cam_pos": np.zeros((6, 2))},                   # not (T, 3)
+    {"cam_pos": np.zeros((5, 3)) + [0, 0, 2]},        # 5 poses for 6 frames
+    {"world_to_cam": np.zeros((6, 3, 4))},           # not (T, 4, 4)
+    {"K": np.eye(4)},                                # K not (3, 3)
+    {"cam_forward": None},                           # a key missing
+])
+def test_a_camera_file_of_another_shape_is_refused_in_one_line(tmp_path: Path, bad: dict) -> None:
+    frames = _frames_folder(tmp_path)
+    cam = _arc(6)
+    if "world_to_cam" in bad:
+        cam = {"K": cam["K"], **bad}
+    else:
+        cam.update({k: v for k, v in bad.items() if v is not None})
+        cam = {k: v for k, v in cam.items() if bad.get(k, 0) is not None}
+    path = tmp_path / "bad.npz"
+    np.savez(path, **cam)
+    with pytest.raises(InputError) as err:
+        build("reference", {"type": "video", "video": str(frames), "masks": str(tmp_path / "masks"),
+                            "camera": str(path), "fps": 10.0}).load()
+    line = str(err.value)
+    assert "\n" not in line and str(path) in line and "(T, 3)" in line and "(T, 4, 4)" in line, line
+
+
+def test_train_and_the_evaluation_tools_refuse_a_bad_camera_file_with_exit_code_2(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    frames = _frames_folder(tmp_path)
+    cam = _arc(6)
+    cam["cam_pos"] = cam["cam_pos"][:, :2]
+    np.savez(tmp_path / "bad.npz", **cam)
+    proc = subprocess.run([sys.executable, str(root / "train.py"), "reference=video", f"reference.video={frames}",
+                           f"reference.masks={tmp_path / 'masks'}", f"reference.camera={tmp_path / 'bad.npz'}",
+                           "reference.fps=10", f"hydra.run.dir={tmp_path / 'run'}"],
+                          capture_output=True, text=True, timeout=300, cwd=root)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    lines = proc.stderr.strip().splitlines()
+    assert "bad.npz" in lines[-1] and "(T, 3)" in lines[-1], proc.stderr[-2000:]
+    from sync4d_tools.evaluate.__main__ import main
+
+    np.savez(tmp_path / "none.npz", joints=np.zeros((6, 1, 3)), names=np.array(["head"]))
+    code = main(["recon_joints", "--video", str(frames), "--camera", str(tmp_path / "bad.npz"),
+                 "--gt", str(tmp_path / "none.npz")])
+    assert code == 2

@@ -249,3 +249,44 @@ def test_tracks_on_a_plain_face_are_not_verified() -> None:
     assert not tracks.verified[-1, lid].any()
     assert tracks.verified[-1, textured].mean() > 0.9
     assert np.allclose(moved[tracks.verified[-1] & textured], 15.0, atol=1.0)
+
+
+def test_still_points_are_triangulated_under_a_moving_camera_and_a_moving_one_is_not() -> None:
+    """static_depths: points standing still are found at their true depth with no residual; a point that moves
+    on its own leaves a residual of pixels (what the parts are clustered on); camera_moves tells the cases."""
+    from sync4d.recon.video.images import camera_moves, static_depths
+    from sync4d.sources.references import camera_from_look
+
+    rng = np.random.default_rng(0)
+    Kc = np.array([[120.0, 0, 80], [0, 120.0, 60], [0, 0, 1]])
+    angles = np.linspace(0.0, 0.5, 10)
+    cams = [camera_from_look(Kc, [2.0 * np.sin(a), 0.6, 2.0 * np.cos(a)], [-np.sin(a), -0.3, -np.cos(a)],
+                             [0.0, 1.0, 0.0], 160, 120).world_to_cam for a in angles]
+    w2c = np.stack(cams)
+    points = rng.uniform(-0.3, 0.3, (40, 3))
+    motion = np.zeros((10, 40, 3))
+    motion[:, -5:, 1] = np.linspace(0.0, 0.2, 10)[:, None]  # the last five rise on their own
+    world = points[None] + motion
+    pc = np.einsum("tij,tnj->tni", w2c[:, :3, :3], world) + w2c[:, None, :3, 3]
+    uv = (pc @ Kc.T)[..., :2] / pc[..., 2:3]
+    depth, residual, predicted = static_depths(uv[0], uv, np.ones((10, 40), bool), Kc, w2c)
+    np.testing.assert_allclose(depth[:-5], pc[0, :-5, 2], rtol=2e-3)
+    assert residual[:-5].max() < 0.3 and residual[-5:].min() > 2.0, residual
+    np.testing.assert_allclose(predicted[:, :-5], uv[:, :-5], atol=0.5)
+    assert camera_moves(w2c) and not camera_moves(np.repeat(w2c[:1], 10, 0)) and not camera_moves(None)
+
+
+@pytest.mark.slow
+def test_the_hand_held_laptop_is_reconstructed_with_its_moving_camera() -> None:
+    """The default scene's hand-held film (small) with its exact per-frame camera: recon=video keeps the poses
+    (VideoFit.extrinsics), the base stays still in the world, the lid is a hinge near the true axis."""
+    from sync4d.recon.video.reconstructor import VideoReconstructor
+
+    source = build("reference", {"type": "laptop", "video_exact": "masks_camera"}, device="cpu").load()
+    fit = VideoReconstructor(VideoReconstructor.Config()).reconstruct_detailed(source)
+    assert fit.extrinsics is not None and np.allclose(fit.extrinsics, source.video.extrinsics)
+    lid = 1 - fit.joints.root
+    assert fit.joints.kinds[lid] == "hinge", fit.joints.kinds
+    assert np.allclose(fit.joints.root_motion, np.eye(4))
+    axis_error = np.degrees(np.arccos(min(1.0, abs(float(fit.joints.axes[lid][0])))))
+    assert axis_error < 5.0, axis_error

@@ -31,9 +31,14 @@ def test_filmed_laptop_masks_cover_its_projected_vertices_and_the_lid_moves() ->
     clip, camera, ref = data.video, data.camera, data.ground_truth
     assert clip.frames.shape == (4, 48, 64, 3) and clip.masks.shape == (4, 48, 64)
     np.testing.assert_allclose(clip.intrinsics, camera.K)
+    # the default film is hand-held: a pose per frame, the first one the given camera's, and it moves
+    assert clip.extrinsics is not None and clip.extrinsics.shape == (4, 4, 4)
+    np.testing.assert_allclose(clip.extrinsics[0], camera.world_to_cam)
+    assert np.abs(clip.extrinsics[-1] - clip.extrinsics[0]).max() > 1e-3
     for t in range(4):
         posed = ref.posed_vertices(t, apply_global=True)
-        cam = posed @ camera.world_to_cam[:3, :3].T + camera.world_to_cam[:3, 3]
+        w2c = clip.extrinsics[t]  # frame t's camera
+        cam = posed @ w2c[:3, :3].T + w2c[:3, 3]
         assert (cam[:, 2] > 0).all()  # in front of the camera
         uv = cam[:, :2] / cam[:, 2:] @ camera.K[:2, :2].T + camera.K[:2, 2]
         px = np.floor(uv).astype(int)
@@ -61,3 +66,21 @@ def test_filmed_part_labels_and_hinge_angles_of_the_laptop() -> None:
     # the base's pixels are the bottom of the object in the image (the lid stands up behind it)
     rows = np.arange(36)[:, None]
     assert (rows * (labels[0] == 1)).sum() / (labels[0] == 1).sum() > (rows * (labels[0] == 2)).sum() / (labels[0] == 2).sum()
+
+
+def test_the_static_film_is_kept_and_the_arc_starts_from_its_view() -> None:
+    """reference.video_camera=static films from one camera before a plain backdrop (no poses per frame); the
+    hand-held arc's first camera is that camera, its later ones turn about the up axis (about 30 deg by the
+    last frame) and its background is textured."""
+    from sync4d.geometry import rotation_angle_deg
+
+    common = {"type": "laptop", "num_frames": 6, "period_frames": 6, "subdivisions": 1, "video_width": 64,
+              "video_height": 48, "video_gaussians": 1500, "video_exact": "masks_camera"}
+    still = build("reference", {**common, "video_camera": "static"}, device="cpu").load()
+    hand = build("reference", common, device="cpu").load()
+    assert still.video.extrinsics is None
+    np.testing.assert_allclose(hand.camera.world_to_cam, still.camera.world_to_cam)
+    turn = rotation_angle_deg(hand.video.extrinsics[-1, :3, :3] @ hand.video.extrinsics[0, :3, :3].T)
+    assert 25.0 < turn < 36.0
+    background = ~hand.video.masks[0]
+    assert hand.video.frames[0][background].std() > 20.0 > still.video.frames[0][~still.video.masks[0]].std()

@@ -10,6 +10,7 @@ Modules: :mod:`~sync4d.frontend.config` (options), :mod:`~sync4d.frontend.stage`
 """
 
 from sync4d.frontend.config import CameraConfig, FrontEndConfig, SubjectConfig
-from sync4d.frontend.stage import FrontEndResult, Prompt, complete_video, run_front_end
+from sync4d.frontend.stage import FrontEndResult, Prompt, complete_video, complete_video_up, run_front_end
 
-__all__ = ["CameraConfig", "FrontEndConfig", "FrontEndResult", "Prompt", "SubjectConfig", "complete_video", "run_front_end"]
+__all__ = ["CameraConfig", "FrontEndConfig", "FrontEndResult", "Prompt", "SubjectConfig", "complete_video",
+           "complete_video_up", "run_front_end"]

@@ -17,7 +17,7 @@ from sync4d.errors import InputError
 from sync4d.frontend.camera import CameraFit, background_only, solve_camera, static_camera
 from sync4d.frontend.checks import check_clip, check_prompt, check_subject
 from sync4d.frontend.config import FrontEndConfig, SubjectConfig
-from sync4d.frontend.geometry import intrinsics_from_fov
+from sync4d.frontend.geometry import ground_up, intrinsics_from_fov
 from sync4d.frontend.motion import motion_evidence
 from sync4d.frontend.segment import (
     box_grabcut, grabcut, largest_component, propagate, seed_from_motion, seed_from_prompt,
@@ -52,6 +52,8 @@ class FrontEndResult:
         subject: how the masks were found: ``given``, ``person``, ``motion`` or ``prompt``.
         masks_given, camera_given: whether the input already had them (then they are kept as given).
         cpu_seconds: CPU time of the front end [s].
+        up: (3,) the ground's normal in the world (:func:`~sync4d.frontend.geometry.ground_up` of the
+            background points, a moving camera only), or None.
     """
 
     clip: VideoClip
@@ -60,6 +62,7 @@ class FrontEndResult:
     masks_given: bool
     camera_given: bool
     cpu_seconds: float
+    up: np.ndarray | None = None
 
 
 def scale_to(frames: np.ndarray, size: int) -> tuple[np.ndarray, float]:
@@ -179,7 +182,8 @@ def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | N
     seconds = time.process_time() - cpu
     log.info("frontend: %s masks, camera %s (focal %s, %.1f px), %.1f s CPU", method, fit.mode, fit.focal_source,
              K_full[0, 0], seconds)
-    return FrontEndResult(out, fit, method, masks_given, camera_given, seconds)
+    up = ground_up(fit.background_points, np.array([0.0, 1.0, 0.0])) if len(fit.background_points) else None
+    return FrontEndResult(out, fit, method, masks_given, camera_given, seconds, up)
 
 
 def complete_video(clip: VideoClip, camera: Camera | None, config: FrontEndConfig, *, masks_given: bool,
@@ -187,14 +191,24 @@ def complete_video(clip: VideoClip, camera: Camera | None, config: FrontEndConfi
     """A reference video with whatever it lacks found by the front end: masks when not ``masks_given``, the
     camera when ``camera`` is None. Returns the clip (masks, intrinsics, per-frame extrinsics) and the
     first frame's :class:`Camera` (the one a static-camera reconstructor uses)."""
+    clip, camera, _ = complete_video_up(clip, camera, config, masks_given=masks_given, prompt=prompt)
+    return clip, camera
+
+
+def complete_video_up(clip: VideoClip, camera: Camera | None, config: FrontEndConfig, *, masks_given: bool,
+                      prompt: Prompt | None = None) -> tuple[VideoClip, Camera, np.ndarray | None]:
+    """:func:`complete_video`, and the ground's normal in the found camera's world when the front end found
+    one (:attr:`FrontEndResult.up`), else None."""
     if masks_given and camera is not None:
-        return clip, camera
+        return clip, camera, None
     given = clip
     if camera is not None:
-        given = replace(clip, intrinsics=camera.K, extrinsics=np.tile(camera.world_to_cam, (clip.num_frames, 1, 1)))
+        moving = clip.extrinsics is not None  # a given camera's per-frame poses are kept
+        given = replace(clip, intrinsics=camera.K, extrinsics=clip.extrinsics if moving else
+                        np.tile(camera.world_to_cam, (clip.num_frames, 1, 1)))
     found = run_front_end(given, config, prompt=prompt, masks_given=masks_given, camera_given=camera is not None)
     out = found.clip
     assert out.extrinsics is not None  # run_front_end always fills the camera
     first = camera if camera is not None else Camera(K=np.asarray(out.intrinsics), world_to_cam=out.extrinsics[0],
                                                      width=out.frames.shape[2], height=out.frames.shape[1]).validate()
-    return out, first
+    return out, first, found.up if camera is None else None

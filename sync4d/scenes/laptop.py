@@ -176,14 +176,19 @@ class LaptopReference:
         period_frames: int = 24        # frames per open-close cycle
         fps: float = 12.0              # [1/s]
         subdivisions: int = 3          # mesh density (vertices grow 4x per step)
-        video: bool = True             # also film the laptop (static camera, textured) for recon=video, as the default run reconstructs from the film
+        video: bool = True             # also film the laptop (textured) for recon=video, as the default run reconstructs from the film
+        # how it is filmed: handheld = a slow 30 deg arc about it in a textured room (bob, jitter, roll; seeded by
+        # the run's seed), as a phone user films an object; static = one fixed camera before a white backdrop
+        video_camera: Literal["handheld", "static"] = "handheld"
         video_width: int = 160         # [px]
         video_height: int = 120        # [px]
         video_gaussians: int = 6000    # surface Gaussians rendered
         video_texture_cell: float = 0.02  # checker texture cell [m] (optical flow needs texture; 0 = none)
         # what the film hands recon=video besides its frames; the rest is found by the video front end:
-        # masks = the renderer's exact masks (the camera found), none = the video alone, masks_camera = both exact
-        video_exact: Literal["none", "masks", "masks_camera"] = "masks"
+        # masks_intrinsics = the renderer's exact masks and the lens's intrinsics (as a phone records its focal
+        # length; the per-frame camera poses found), masks = the masks only (the intrinsics guessed from a
+        # 66 deg field of view, then refined), none = the video alone, masks_camera = masks and camera exact
+        video_exact: Literal["none", "masks", "masks_intrinsics", "masks_camera"] = "masks_intrinsics"
         frontend: FrontEndConfig = field(default_factory=FrontEndConfig)  # the front end's options
 
         def validate(self) -> None:
@@ -199,15 +204,18 @@ class LaptopReference:
     def __init__(self, config: Config, *, device: str = "cpu", seed: int = 0) -> None:
         self.config = config
         self.device = device
+        self.seed = seed
 
     def film_settings(self) -> FilmSettings:
-        """The camera and texture the laptop is filmed with (its ``up`` is the world's up)."""
+        """The camera, background and texture the laptop is filmed with (its ``up`` is the world's up)."""
         c = self.config
+        hand = c.video_camera == "handheld"
         return FilmSettings(width=c.video_width, height=c.video_height, gaussians=c.video_gaussians,
-                            texture_cell=c.video_texture_cell)
+                            texture_cell=c.video_texture_cell, path="arc" if hand else "static",
+                            background="room" if hand else "plain", seed=self.seed)
 
     def film(self, reference: Reference) -> tuple[VideoClip, Camera]:
-        """The laptop filmed by the project's renderer from a fixed camera (see :mod:`sync4d.scenes.reference_video`)."""
+        """The laptop filmed by the project's renderer (see :mod:`sync4d.scenes.reference_video`)."""
         from sync4d.registry import build
 
         c = self.config
@@ -236,12 +244,16 @@ class LaptopReference:
         if clip is not None and c.video_exact != "masks_camera":  # the camera (and the masks) from the film alone
             from dataclasses import replace
 
-            from sync4d.frontend import complete_video
+            from sync4d.frontend import complete_video_up
 
-            masks = c.video_exact == "masks"
-            clip, camera = complete_video(replace(clip, intrinsics=None, masks=clip.masks if masks else
-                                                  np.zeros_like(clip.masks)), None, c.frontend, masks_given=masks)
-            up = np.array([0.0, 1.0, 0.0])  # the front end's world: the first camera turned to Y up (an upright phone)
+            masks = c.video_exact != "none"
+            lens = clip.intrinsics if c.video_exact == "masks_intrinsics" else None
+            clip, camera, ground = complete_video_up(replace(clip, intrinsics=lens, extrinsics=None, masks=clip.masks
+                                                             if masks else np.zeros_like(clip.masks)), None, c.frontend,
+                                                     masks_given=masks)
+            # the front end's world: the first camera turned to Y up (an upright phone); up is the ground's normal
+            # when a moving camera found the floor
+            up = np.array([0.0, 1.0, 0.0]) if ground is None else ground
         return ReferenceInput(
             name="laptop",
             fps=c.fps,

@@ -16,6 +16,7 @@ Shared data these default to (attribution, see ``../shared/data/README.md``):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -238,7 +239,8 @@ class VideoSource:
             folder beside the video if there is one, else found (so ``reference.video=<another video>``
             does not pick up the default's masks).
         camera: ``.npz`` with ``K`` and ``cam_pos``/``cam_forward``/``cam_up`` (laptop renders' layout),
-            or with ``K`` and ``world_to_cam`` (4x4): a known static camera; empty = found by the front end
+            or with ``K`` and ``world_to_cam`` (4x4): a known static camera; with a frame axis (``cam_*``
+            (T, 3), ``world_to_cam`` (T, 4, 4)) a known moving one (:func:`load_camera`); empty = found by the front end
             (intrinsics from a field-of-view guess refined when the camera moves, per-frame extrinsics,
             world = the first frame's camera); ``auto`` = ``gt.npz`` beside the video if there is one.
         prompt: where the subject is when the clip is ambiguous: a point ``[x, y]`` or a box
@@ -273,8 +275,10 @@ class VideoSource:
         )
         camera = None
         if camera_file is not None:
-            camera = load_camera(camera_file, clip.frames.shape[2], clip.frames.shape[1])
-            clip = type(clip)(clip.frames, clip.masks, clip.fps, camera.K, None, clip.source).validate()
+            select = np.arange(clip.num_frames) * max(1, int(self.config.stride))
+            camera, per_frame = load_camera(camera_file, clip.frames.shape[2], clip.frames.shape[1], clip.num_frames,
+                                            select)
+            clip = type(clip)(clip.frames, clip.masks, clip.fps, camera.K, per_frame, clip.source).validate()
         prompt = Prompt(tuple(float(v) for v in self.config.prompt), int(self.config.prompt_frame)) if self.config.prompt else None
         # the front end's world is Y up when the phone is held upright (its first camera turned to Y up)
         up = None if camera is not None else np.array([0.0, 1.0, 0.0])
@@ -294,18 +298,76 @@ def beside(video: Path, value: str, name: str, *, what: str) -> Path | None:
     return resolve_path(value, what=what) if value else None
 
 
-def load_camera(path: Path, width: int, height: int) -> Camera:
-    """A camera from an .npz holding ``K`` and either ``world_to_cam`` or ``cam_pos/cam_forward/cam_up``.
+CAMERA_SHAPES = ("'K' (3, 3) with 'world_to_cam' (4, 4) or (T, 4, 4), or with 'cam_pos', 'cam_forward', 'cam_up' "
+                 "each (3,) or (T, 3)")
+
+
+def load_camera(path: Path, width: int, height: int, frames: int | None = None,
+                select: np.ndarray | None = None) -> tuple[Camera, np.ndarray | None]:
+    """A camera from an .npz: ``K`` (3, 3) and either ``world_to_cam`` (4, 4), or ``cam_pos`` / ``cam_forward`` /
+    ``cam_up`` (3,) each (the laptop renders' layout): one static camera; or the same with a leading frame
+    axis, ``world_to_cam`` (T, 4, 4) or ``cam_*`` (T, 3) (a (3,) ``cam_up`` is shared by every frame): a camera
+    that moves.
+
+    Args:
+        path: the file.
+        width, height: the video's size [px].
+        frames: the clip's frame count; a per-frame camera must have this many poses, or as many as the
+            video before ``select`` picked its frames.
+        select: indices of the video's frames the clip kept (stride, max_frames), applied to a longer pose list.
+
+    Returns:
+        (the first frame's :class:`Camera`, (T, 4, 4) world-to-camera per frame or None when static).
 
     Raises:
-        InputError: the keys are missing.
+        InputError: a key is missing or has another shape; one line naming the file and the shapes expected.
     """
     data = np.load(path)
-    if "K" not in data:
-        raise InputError(f"{path}: camera file needs 'K' (3x3 intrinsics)")
+    got = ", ".join(f"'{k}' {tuple(data[k].shape)}" for k in data.files)
+
+    def refuse(why: str) -> InputError:
+        return InputError(f"{path}: {why}; a camera file holds {CAMERA_SHAPES} (T = the video's frames, "
+                          f"{frames}); this one has {got or 'nothing'}")
+
+    if "K" not in data or data["K"].shape != (3, 3):
+        raise refuse("'K' must be the (3, 3) intrinsics")
+    K = data["K"].astype(np.float64)
     if "world_to_cam" in data:
-        return Camera(K=data["K"].astype(np.float64), world_to_cam=data["world_to_cam"].astype(np.float64),
-                      width=width, height=height).validate()
-    if all(k in data for k in ("cam_pos", "cam_forward", "cam_up")):
-        return camera_from_look(data["K"], data["cam_pos"], data["cam_forward"], data["cam_up"], width, height)
-    raise InputError(f"{path}: camera file needs 'world_to_cam' or 'cam_pos', 'cam_forward', 'cam_up'")
+        w2c = data["world_to_cam"].astype(np.float64)
+        if w2c.shape == (4, 4):
+            return Camera(K=K, world_to_cam=w2c, width=width, height=height).validate(), None
+        if w2c.ndim != 3 or w2c.shape[1:] != (4, 4):
+            raise refuse("'world_to_cam' must be (4, 4) or (T, 4, 4)")
+        per_frame = _frames_of(w2c, frames, select, refuse)
+    elif all(k in data for k in ("cam_pos", "cam_forward", "cam_up")):
+        look = [data[k].astype(np.float64) for k in ("cam_pos", "cam_forward", "cam_up")]
+        if any(a.shape not in ((3,),) and (a.ndim != 2 or a.shape[1] != 3) for a in look):
+            raise refuse("'cam_pos', 'cam_forward', 'cam_up' must each be (3,) or (T, 3)")
+        if all(a.shape == (3,) for a in look):
+            return camera_from_look(K, look[0], look[1], look[2], width, height), None
+        counts = {len(a) for a in look if a.ndim == 2}
+        if len(counts) > 1:
+            raise refuse("'cam_pos', 'cam_forward', 'cam_up' have different frame counts")
+        n = counts.pop()
+        if n < 1:
+            raise refuse("its pose list is empty")
+        look = [a if a.ndim == 2 else np.tile(a, (n, 1)) for a in look]
+        w2c = np.stack([camera_from_look(K, p, f, u, width, height).world_to_cam for p, f, u in zip(*look)])
+        per_frame = _frames_of(w2c, frames, select, refuse)
+    else:
+        raise refuse("it needs 'world_to_cam' or 'cam_pos', 'cam_forward', 'cam_up'")
+    if not np.isfinite(per_frame).all():
+        raise refuse("its poses hold NaN or inf")
+    first = Camera(K=K, world_to_cam=per_frame[0], width=width, height=height).validate()
+    return first, per_frame
+
+
+def _frames_of(w2c: np.ndarray, frames: int | None, select: np.ndarray | None,
+               refuse: Callable[[str], InputError]) -> np.ndarray:
+    """The (T, 4, 4) poses of the clip's frames: all of ``w2c`` when it has ``frames`` poses, else the
+    ``select``-ed ones of the video's whole pose list."""
+    if frames is None or len(w2c) == frames:
+        return w2c
+    if select is not None and len(select) == frames and len(w2c) > int(np.max(select)):
+        return w2c[select]
+    raise refuse(f"it has {len(w2c)} poses but the clip has {frames} frames")

@@ -200,3 +200,70 @@ def rotation_angle_deg(rot: np.ndarray) -> np.ndarray:
     """(...,) rotation angle [deg] of (..., 3, 3) rotation matrices."""
     cos = np.clip((np.trace(rot, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     return np.degrees(np.arccos(cos))
+
+
+def camera_moves(extrinsics: np.ndarray | None, *, min_deg: float = 0.2) -> bool:
+    """Whether per-frame world-to-camera poses (T, 4, 4) move: a turn over ``min_deg`` or a shift of the camera
+    centre over 0.1 % of the first camera's distance to the world origin (None or equal poses: static)."""
+    if extrinsics is None or len(extrinsics) < 2:
+        return False
+    turn = rotation_angle_deg(np.einsum("tij,kj->tik", extrinsics[:, :3, :3], extrinsics[0, :3, :3]))
+    centres = -np.einsum("tji,tj->ti", extrinsics[:, :3, :3], extrinsics[:, :3, 3])
+    scale = max(float(np.linalg.norm(centres[0])), 1.0)
+    return bool(turn.max() > min_deg or np.linalg.norm(centres - centres[0], axis=1).max() > 1e-3 * scale)
+
+
+def static_depths(uv0: np.ndarray, uv: np.ndarray, ok: np.ndarray, K: np.ndarray, extrinsics: np.ndarray,
+                  *, samples: int = 96) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each tracked point read as standing still in the world, seen by a moving camera.
+
+    Args:
+        uv0: (N, 2) frame-0 pixels [px]; uv: (T, N, 2) their tracks [px]; ok: (T, N) bool, trusted.
+        K: (3, 3) intrinsics; extrinsics: (T, 4, 4) world-to-camera per frame.
+        samples: depths tried per point (log-spaced from 1/30 to 900 x the camera's median baseline from
+            frame 0), then refined by a parabola through the best and its neighbours.
+
+    Returns:
+        (depth (N,) frame-0 camera depth of the still point that best explains each track [world units],
+        residual (N,) its RMS reprojection error over the trusted frames [px], predicted (T, N, 2) where
+        that still point projects in every frame [px]).
+    """
+    c2w0 = np.linalg.inv(extrinsics[0])
+    rays = (np.linalg.inv(K) @ np.concatenate([uv0, np.ones((len(uv0), 1))], 1).T).T  # camera-0, unit depth
+    centres = -np.einsum("tji,tj->ti", extrinsics[:, :3, :3], extrinsics[:, :3, 3])
+    base = float(np.median(np.linalg.norm(centres - centres[0], axis=1)[1:])) if len(centres) > 1 else 0.0
+    base = max(base, 1e-6)
+    depths = base * np.geomspace(1.0 / 30.0, 30.0 * 30.0, samples)  # a baseline of 1/30 .. 1/900 of the depth
+
+    def project(depth: np.ndarray) -> np.ndarray:
+        """(T, N, 2) pixels of the still points at frame-0 depths (N,)."""
+        world = (rays * depth[:, None]) @ c2w0[:3, :3].T + c2w0[:3, 3]
+        pc = np.einsum("tij,nj->tni", extrinsics[:, :3, :3], world) + extrinsics[:, None, :3, 3]
+        pix = pc @ K.T
+        return pix[..., :2] / np.maximum(pix[..., 2:3], 1e-9)
+
+    weight = ok.astype(np.float64)
+    count = np.maximum(weight.sum(0), 1.0)
+    idx = np.arange(len(uv0))
+
+    def search(log_d: np.ndarray) -> np.ndarray:
+        """(N,) the log depth of least cost among log_d (S, N), refined by a parabola through its neighbours."""
+        cost = np.stack([(((project(np.exp(d)) - uv) ** 2).sum(-1) * weight).sum(0) / count for d in log_d])
+        best = np.argmin(cost, 0)
+        lo, hi = np.clip(best - 1, 0, len(log_d) - 1), np.clip(best + 1, 0, len(log_d) - 1)
+        c0, c1, c2 = cost[lo, idx], cost[best, idx], cost[hi, idx]
+        denom = c0 - 2 * c1 + c2
+        inner = (denom > 1e-12) & (lo != best) & (hi != best)
+        shift = np.where(inner, 0.5 * (c0 - c2) / np.maximum(denom, 1e-12), 0.0)
+        step = log_d[1] - log_d[0]
+        return log_d[best, idx] + np.clip(shift, -1.0, 1.0) * step
+
+    coarse = np.log(depths)
+    log_depth = search(np.repeat(coarse[:, None], len(uv0), 1))
+    step = coarse[1] - coarse[0]  # then a fine grid of a tenth of the coarse step about each point's estimate
+    log_depth = search(log_depth[None] + np.linspace(-step, step, 21)[:, None])
+    depth = np.exp(log_depth)
+    predicted = project(depth)
+    residual = np.sqrt((((predicted - uv) ** 2).sum(-1) * weight).sum(0) / count)
+    return depth, residual, predicted
+

@@ -39,7 +39,11 @@ log = logging.getLogger(__name__)
 
 FLOW_WEIGHT = 1.0  # frame-to-frame flow term against the chained-track term
 SLIDE_PREFERENCE = 0.05  # relative data-loss margin by which a slide beats a hinge
-SWEEP = (0.25, 0.5, 0.75)  # fractions of a joint's value whose poses also cover mask pixels
+SWEEP = (0.25, 0.5, 0.75)
+# a moving camera measures every point's depth by parallax, and the tracks' noise with it: the per-point depth
+# residual off each part's plane is held 30x harder then (the filmed laptop's lid: 1x left it 2.7-3.2x too
+# thick, 30x 0.9-1.2x, 300x flat, 0.4x; the hinge axes the same at 30x and 300x; docs/results/articulated.md)
+MOVING_RESIDUAL = 30.0  # fractions of a joint's value whose poses also cover mask pixels
 AXIS_STARTS = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 0], [1.0, 0, 1.0], [0, 1.0, 1.0]])
 
 
@@ -81,6 +85,9 @@ class Scene:
         root_motion: (T, 4, 4) the root's rigid motion (identity when static).
         flow: (T-1, 3, H, W) forward flow u, v [px] and its consistency (1 or 0), for the flow term.
         stride: grid spacing [px]; width: object width [m]; z_ref: depth that fixes the scale [m].
+        w2c_t: (T, 4, 4) world -> camera of every frame when the camera moves (None: ``w2c`` in every frame);
+            then the still root stays put in the world and the camera's own translation fixes the scale.
+        depth0: (N,) frame-0 depths to start from [m] (None: ``z_ref`` for every point).
     """
 
     rays: torch.Tensor
@@ -97,6 +104,8 @@ class Scene:
     width: float
     z_ref: float
     flow: torch.Tensor | None = None
+    w2c_t: torch.Tensor | None = None
+    depth0: torch.Tensor | None = None
 
 
 @dataclass
@@ -158,8 +167,10 @@ def _rodrigues(axis: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
 
 
 def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit, z_ref: float,
-               root_motion: np.ndarray, rng: np.random.Generator, *, cover_samples: int = 400) -> Scene:
-    """The fit's tensors: rays, tracks, distance-to-mask images and the pixels left to the moving parts."""
+               root_motion: np.ndarray, rng: np.random.Generator, *, cover_samples: int = 400,
+               extrinsics: np.ndarray | None = None, depth0: np.ndarray | None = None) -> Scene:
+    """The fit's tensors: rays, tracks, distance-to-mask images and the pixels left to the moving parts
+    (``extrinsics`` (T, 4, 4): the per-frame camera when it moves; ``depth0`` (N,) [m]: starting depths)."""
     c2w = np.linalg.inv(camera.world_to_cam)
     homo = np.concatenate([tracks.uv0, np.ones((len(tracks.uv0), 1))], 1)
     rays = (np.linalg.inv(camera.K) @ homo.T).T @ c2w[:3, :3].T
@@ -169,7 +180,9 @@ def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit
     # frame-0 surface of the moving parts; other mask pixels may show surface frame 0 never saw (a laptop's
     # keyboard under its lid), which the cover term would otherwise pull the parts over
     seen = cv2.dilate(masks[0].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    static = bool(np.allclose(root_motion, np.eye(4)))
+    # under a moving camera frame 0's mask is elsewhere in later frames: every mask pixel is sampled (carrying
+    # frame 0's surface into each frame by the still root's depths measured worse on the filmed laptop)
+    static = bool(np.allclose(root_motion, np.eye(4))) and extrinsics is None
     for m in masks:
         vv, uu = np.nonzero(m & ~seen if static else m)
         pick = rng.choice(len(vv), size=min(cover_samples, len(vv)), replace=False)
@@ -182,7 +195,9 @@ def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit
                  verified=torch.as_tensor(tracks.verified),
                  outside=torch.as_tensor(outside, dtype=d), cover_px=cover,
                  root_motion=torch.as_tensor(root_motion, dtype=d), stride=float(tracks.stride),
-                 width=float(span * z_ref / camera.K[0, 0]), z_ref=z_ref, flow=_flow_tensor(tracks))
+                 width=float(span * z_ref / camera.K[0, 0]), z_ref=z_ref, flow=_flow_tensor(tracks),
+                 w2c_t=None if extrinsics is None else torch.as_tensor(extrinsics, dtype=d),
+                 depth0=None if depth0 is None else torch.as_tensor(depth0, dtype=d))
 
 
 def _flow_tensor(tracks: Tracks) -> torch.Tensor | None:
@@ -193,10 +208,21 @@ def _flow_tensor(tracks: Tracks) -> torch.Tensor | None:
     return torch.as_tensor(both, dtype=torch.float64).permute(0, 3, 1, 2).contiguous()
 
 
-def project(scene: Scene, x: torch.Tensor) -> torch.Tensor:
-    """(..., N, 2) pixels of world points (..., N, 3)."""
-    pc = x @ scene.w2c[:3, :3].T + scene.w2c[:3, 3]
-    uv = pc @ scene.K.T
+def to_camera(scene: Scene, x: torch.Tensor, first: int = 0) -> torch.Tensor:
+    """Camera coordinates of world points: (F, N, 3) of frames first.. (each frame's camera), or (N, 3) of
+    frame ``first``."""
+    if scene.w2c_t is None:
+        return x @ scene.w2c[:3, :3].T + scene.w2c[:3, 3]
+    if x.dim() == 2:
+        w = scene.w2c_t[first]
+        return x @ w[:3, :3].T + w[:3, 3]
+    w = scene.w2c_t[first:first + x.shape[0]]
+    return torch.einsum("tij,tnj->tni", w[:, :3, :3], x) + w[:, None, :3, 3]
+
+
+def project(scene: Scene, x: torch.Tensor, first: int = 0) -> torch.Tensor:
+    """(F, N, 2) pixels of world points (F, N, 3) in frames first.. (or (N, 2) of (N, 3) in frame ``first``)."""
+    uv = to_camera(scene, x, first) @ scene.K.T
     return uv[..., :2] / uv[..., 2:3].clamp_min(1e-6)
 
 
@@ -225,6 +251,12 @@ class Articulation(torch.nn.Module):
         inv = np.exp(-np.asarray(log_depth))
         plane = np.zeros((len(kinds), 3))
         plane[:, 0] = [inv[labels == b].mean() if (labels == b).any() else inv.mean() for b in range(len(kinds))]
+        if scene.w2c_t is not None:  # a moving camera measured the depths: each part's plane fitted to them
+            coords = self.coords.numpy()
+            for b in range(len(kinds)):
+                own = labels == b
+                if own.sum() >= 3:
+                    plane[b] = np.linalg.lstsq(coords[own], inv[own], rcond=None)[0]
         self.plane = torch.nn.Parameter(torch.as_tensor(plane, dtype=d))
         self.resid = torch.nn.Parameter(torch.zeros(len(labels), dtype=d))
         self.axes = torch.nn.Parameter(torch.as_tensor(axes, dtype=d))
@@ -307,7 +339,7 @@ def flow_term(model: Articulation, posed: torch.Tensor, uv: torch.Tensor, frames
         at = uv[:-1].detach()
         grid = torch.stack([at[..., 0] / w * 2 - 1, at[..., 1] / h * 2 - 1], -1)[:, None]
         fl = torch.nn.functional.grid_sample(sc.flow[: frames - 1], grid, align_corners=False)[:, :, 0]  # (F, 3, N)
-        pc = posed[:-1].detach() @ sc.w2c[:3, :3].T + sc.w2c[:3, 3]
+        pc = to_camera(sc, posed[:-1].detach())
         ok = (fl[:, 2] > 0.99) & visible(at, pc[..., 2], sc.stride) & (model.labels != model.root)[None]
     if not ok.any():
         return torch.zeros((), dtype=uv.dtype)
@@ -331,7 +363,7 @@ def data_terms(model: Articulation, frames: int, *, with_flow: bool = True, swep
     if with_flow:
         track = track + FLOW_WEIGHT * flow_term(model, posed, uv_all, frames)
     inside = (sample_outside(sc, uv, 1) / sc.stride).clamp(max=10.0)[:, moving].mean()
-    uv = torch.cat([uv, project(sc, model.swept(swept)[1:frames])], 1)
+    uv = torch.cat([uv, project(sc, model.swept(swept)[1:frames], 1)], 1)
     cover = []
     for t in range(1, frames):
         if len(sc.cover_px[t]) and moving.any():
@@ -346,11 +378,12 @@ def data_terms(model: Articulation, frames: int, *, with_flow: bool = True, swep
 
 def prior_terms(model: Articulation, pairs: torch.Tensor) -> torch.Tensor:
     """Surfaces near their planes, joint values smooth in time, hinges near where they started."""
-    depth = (model.resid**2).mean() * 100.0
+    depth = (model.resid**2).mean() * (100.0 if model.scene.w2c_t is None else 100.0 * MOVING_RESIDUAL)
     vals = torch.cat([torch.zeros_like(model.values[:1]), model.values], 0)
     accel = ((vals[2:] - 2 * vals[1:-1] + vals[:-2]) ** 2).mean() if len(vals) > 2 else torch.zeros(())
     drift = (model.pivot_delta.norm(dim=1) - 0.5).clamp_min(0.0).pow(2).sum()
-    gauge = (model.log_depth().mean() - np.log(model.scene.z_ref)) ** 2  # the monocular scale
+    # the monocular scale (a moving camera's translation fixes it instead)
+    gauge = (model.log_depth().mean() - np.log(model.scene.z_ref)) ** 2 if model.scene.w2c_t is None else 0.0
     return depth + accel + drift + gauge
 
 
@@ -460,7 +493,7 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) 
     n_parts, n_frames = int(labels.max()) + 1, tracks.uv.shape[0]
     pivots, border = _start(scene, tracks, labels, root)
     pairs = neighbour_pairs(tracks.uv0, labels, tracks.stride)
-    log_d = np.full(len(labels), np.log(scene.z_ref))
+    log_d = np.full(len(labels), np.log(scene.z_ref)) if scene.depth0 is None else np.log(scene.depth0.numpy())
     kinds = ["root" if b == root else "hinge" for b in range(n_parts)]
     best, best_loss, history = None, np.inf, []
     for s in range(max(1, min(config.axis_starts, len(AXIS_STARTS) + 1))):
@@ -569,14 +602,19 @@ def gauss_newton_travel(x0: np.ndarray, direction: np.ndarray, target: np.ndarra
     """(T,) travel [m] along ``direction`` whose projected rest points x0 (N, 3) best match target pixels
     (T, N, 2), per frame, by a few Gauss-Newton steps on the pinhole projection."""
     w2c, K = scene.w2c.numpy(), scene.K.numpy()
-    pc0, dc = x0 @ w2c[:3, :3].T + w2c[:3, 3], w2c[:3, :3] @ direction
+    if scene.w2c_t is None:
+        pc0, dc = (x0 @ w2c[:3, :3].T + w2c[:3, 3])[None], (w2c[:3, :3] @ direction)[None, None]
+    else:  # each frame's camera
+        w2c_t = scene.w2c_t.numpy()
+        pc0 = np.einsum("tij,nj->tni", w2c_t[:, :3, :3], x0) + w2c_t[:, None, :3, 3]
+        dc = np.einsum("tij,j->ti", w2c_t[:, :3, :3], direction)[:, None]
     s = np.zeros(len(target))
     for _ in range(iters):
-        pc = pc0[None] + s[:, None, None] * dc  # (T, N, 3)
+        pc = pc0 + s[:, None, None] * dc  # (T, N, 3)
         z = np.maximum(pc[..., 2], 1e-6)
         uv = np.stack([K[0, 0] * pc[..., 0] / z + K[0, 2], K[1, 1] * pc[..., 1] / z + K[1, 2]], -1)
-        jac = np.stack([K[0, 0] * (dc[0] * z - pc[..., 0] * dc[2]) / z**2,
-                        K[1, 1] * (dc[1] * z - pc[..., 1] * dc[2]) / z**2], -1)
+        jac = np.stack([K[0, 0] * (dc[..., 0] * z - pc[..., 0] * dc[..., 2]) / z**2,
+                        K[1, 1] * (dc[..., 1] * z - pc[..., 1] * dc[..., 2]) / z**2], -1)
         s = s + ((target - uv) * jac).sum((1, 2)) / np.maximum((jac**2).sum((1, 2)), 1e-12)
     return s - s[0]
 

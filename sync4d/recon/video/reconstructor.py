@@ -20,13 +20,16 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from sync4d.errors import ConfigError, InputError
-from sync4d.recon.video.images import default_camera, pnp_transforms, sample_image
+from sync4d.recon.video.images import (
+    camera_moves, default_camera, pnp_transforms, sample_image, static_depths,
+)
 from sync4d.recon.video.joints import FitConfig, JointFit, fit_joints, make_scene
 from sync4d.recon.video.reveal import reveal
 from sync4d.recon.video.softsplat import project_points
@@ -51,6 +54,8 @@ class VideoFit:
         means: (N, 3) canonical Gaussian centres [m] (= reference.rest_vertices).
         sigma: (N,) isotropic Gaussian sizes [m]; opacity: (N,) in (0, 1).
         object_width: the object's width in frame 0 [m].
+        extrinsics: (T, 4, 4) world-to-camera of every frame when the camera moves, else None (``camera``
+            is then frame 0's).
         seconds: wall time of the reconstruction [s].
         cpu_seconds: CPU time of this process during it [s] (the wall time of an idle machine, as the fit
             runs on one thread; on a shared machine the wall time is longer).
@@ -68,6 +73,7 @@ class VideoFit:
     object_width: float
     seconds: float
     cpu_seconds: float
+    extrinsics: np.ndarray | None = None
 
 
 @register("recon", "video")
@@ -129,15 +135,28 @@ class VideoReconstructor:
         config = self.config
         start, cpu_start = time.perf_counter(), time.process_time()
         rng = np.random.default_rng(config.seed)
+        extrinsics = np.array(clip.extrinsics, np.float64) if camera_moves(clip.extrinsics) else None
         camera = source.camera if source.camera is not None else default_camera(clip, config.init.fov_deg)
+        if extrinsics is not None:  # frame 0's pose of the moving camera
+            camera = Camera(K=camera.K, world_to_cam=np.asarray(extrinsics[0], np.float64), width=camera.width,
+                            height=camera.height).validate()
+        if source.world_up is not None:  # the reference comes out Y up (matching and the target assume it)
+            upright = np.linalg.inv(upright_frame(source.world_up))
+            camera = replace(camera, world_to_cam=camera.world_to_cam @ upright)
+            extrinsics = None if extrinsics is None else extrinsics @ upright
         masks = video_masks(clip, config.masks)
         tracks = track_grid(clip.frames, masks, config.tracks)
-        init = init_parts(tracks, config.bones, config.init, static_px=config.fit.static_root_px)
-        log.info("recon=video: %d points (stride %d px), root part %d %s (median motion %s px)", len(tracks.uv0),
-                 tracks.stride, init.root, "static" if init.root_static else "moving", np.round(init.motion_px, 2))
-        z_ref = reference_depth(camera)
-        root_motion = self._root_motion(tracks, init, camera, z_ref)
-        scene = make_scene(tracks, masks, camera, init, z_ref, root_motion, rng)
+        if extrinsics is None:
+            init = init_parts(tracks, config.bones, config.init, static_px=config.fit.static_root_px)
+            z_ref, depth0 = reference_depth(camera), None
+            root_motion = self._root_motion(tracks, init, camera, z_ref)
+        else:
+            init, z_ref, depth0 = self._moving_camera_init(tracks, camera, extrinsics)
+            root_motion = np.tile(np.eye(4), (clip.num_frames, 1, 1))
+        log.info("recon=video: %d points (stride %d px), root part %d %s (median motion %s px), camera %s",
+                 len(tracks.uv0), tracks.stride, init.root, "static" if init.root_static else "moving",
+                 np.round(init.motion_px, 2), "moving" if extrinsics is not None else "static")
+        scene = make_scene(tracks, masks, camera, init, z_ref, root_motion, rng, extrinsics=extrinsics, depth0=depth0)
         threads = torch.get_num_threads()
         # the fit's tensors are small: one thread is several times faster than two fighting for a shared
         # CPU (measured 6.7 s vs 90 s for the same short fit on this machine under load)
@@ -148,7 +167,9 @@ class VideoReconstructor:
             torch.set_num_threads(threads)
         log.info("recon=video: joints %s, data loss %.4f", joints.kinds, joints.data_loss)
         means = scene.centre.numpy() + joints.depth[:, None] * scene.rays.numpy()
-        extra, extra_labels = reveal(means, joints.labels, joints.transforms(), masks, tracks, camera)
+        cameras = camera if extrinsics is None else [Camera(K=camera.K, world_to_cam=w, width=camera.width,
+                                                             height=camera.height) for w in extrinsics]
+        extra, extra_labels = reveal(means, joints.labels, joints.transforms(), masks, tracks, cameras)
         log.info("recon=video: %d points added for surfaces the first frame does not see", len(extra))
         means, labels = np.concatenate([means, extra]), np.concatenate([joints.labels, extra_labels])
         depth = means @ camera.world_to_cam[2, :3] + camera.world_to_cam[2, 3]
@@ -160,7 +181,29 @@ class VideoReconstructor:
         log.info("recon=video: %d frames reconstructed in %.1f s (%.1f s CPU)", clip.num_frames, seconds, cpu)
         return VideoFit(reference=ref, camera=camera, masks=masks, tracks=tracks, init=init, joints=joints,
                         means=means, sigma=sigma, opacity=np.full(len(means), config.opacity),
-                        object_width=scene.width, seconds=seconds, cpu_seconds=cpu)
+                        object_width=scene.width, seconds=seconds, cpu_seconds=cpu, extrinsics=extrinsics)
+
+    def _moving_camera_init(self, tracks: Tracks, camera: Camera, extrinsics: np.ndarray
+                            ) -> tuple[PartInit, float, np.ndarray]:
+        """Parts, the scale depth and starting depths under a moving camera: every track is first read as a
+        point standing still in the world (its depth by triangulation along its frame-0 ray); the parts are
+        clustered on what that leaves unexplained (a still camera leaves the whole track, so this is the
+        static camera's clustering), the root is the part that moves least, and it stands still (its tracks'
+        triangulated depths start the fit; the other parts start at the root's median depth)."""
+        config = self.config
+        depth, _, still = static_depths(tracks.uv0, tracks.uv, tracks.trusted, camera.K, extrinsics)
+        own_motion = replace(tracks, uv=tracks.uv - still + tracks.uv0[None])
+        init = init_parts(own_motion, config.bones, config.init, static_px=config.fit.static_root_px)
+        root = init.labels == init.root
+        z_ref = float(np.median(depth[root]))
+        if not init.root_static:
+            log.warning("recon=video: the root part moves %.2f px beyond the camera's motion; it is taken as still "
+                        "in the world (the camera explains the rest)", float(init.motion_px[init.root]))
+        depth0 = np.clip(depth, z_ref / 3.0, z_ref * 3.0)
+        # the moving parts start at the depth of the root point next to them in the image (a lid at its hinge)
+        near = cKDTree(tracks.uv0[root]).query(tracks.uv0[~root])[1]
+        depth0[~root] = depth0[root][near]
+        return replace(init, root_static=True), z_ref, depth0
 
     @staticmethod
     def _root_motion(tracks: Tracks, init: PartInit, camera: Camera, z_ref: float) -> np.ndarray:
@@ -175,6 +218,22 @@ class VideoReconstructor:
         log.warning("recon=video: the root part moves; its motion comes from PnP of its tracks on a "
                     "fronto-parallel plane (a single view cannot tell its shape)")
         return pnp_transforms(pts, tracks.uv[:, own], tracks.trusted[:, own], camera)
+
+
+def upright_frame(up: np.ndarray) -> np.ndarray:
+    """(4, 4) the least rotation taking the unit direction ``up`` (3,) to +Y (identity when it is +Y)."""
+    u = np.asarray(up, np.float64) / np.linalg.norm(up)
+    y = np.array([0.0, 1.0, 0.0])
+    axis, cos = np.cross(u, y), float(np.clip(u @ y, -1.0, 1.0))
+    out = np.eye(4)
+    if np.linalg.norm(axis) < 1e-12:
+        out[:3, :3] = np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
+        return out
+    k = axis / np.linalg.norm(axis)
+    skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    angle = np.arccos(cos)
+    out[:3, :3] = np.eye(3) + np.sin(angle) * skew + (1 - np.cos(angle)) * skew @ skew
+    return out
 
 
 def build_reference(joints: JointFit, means: np.ndarray, labels: np.ndarray, clip: VideoClip, camera: Camera,
