@@ -427,3 +427,19 @@ def test_the_trunk_is_the_blob_nearer_the_ground_not_a_bigger_head() -> None:
     assert raw[deepest, 1].min() > 0.69  # the head is the deepest blob
     core = trunk_on_legs(graph, pts, depth, deepest, config, 1)
     assert 0.24 < raw[core, 1].min() and raw[core, 1].max() < 0.54  # the body is the trunk
+
+
+def test_the_branches_between_the_root_and_a_matched_limb_are_trunk() -> None:
+    """A branch no limb took that lies between the root and matched branches (levels that had not yet
+    parted two legs) is trunk; an unmatched branch hanging off the root is not."""
+    from sync4d.match.skeleton import Branch, CurveSkeleton
+    from sync4d.match.structure import trunk_branches
+
+    parents = [-1, 0, 1, 1, 0, 4]  # 1 parts into 2 and 3; 4 into 5
+    branches = tuple(Branch((i,), p, (), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(3),
+                            np.zeros(3), 0.0, 1.0) for i, p in enumerate(parents))
+    skeleton = CurveSkeleton(np.zeros((1, 3)), np.zeros(1), 0, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                             branches, 0.1)
+    assert trunk_branches(skeleton, [2, 3]) == [0, 1]
+    assert trunk_branches(skeleton, [2, 4]) == [0, 1]
+    assert trunk_branches(skeleton, []) == [0]

@@ -549,6 +549,19 @@ def complete_partners(
     return sorted(held.items())
 
 
+def trunk_branches(skeleton: CurveSkeleton, matched: list[int]) -> list[int]:
+    """The branches that are trunk: the root branch and every branch between it and a matched limb's
+    branch (where the levels had not yet parted the limbs that leave there: a cross's centre above its
+    arms, a body between two legs that part low)."""
+    out = {0}
+    for b in matched:
+        a = skeleton.branches[b].parent
+        while a > 0:
+            out.add(a)
+            a = skeleton.branches[a].parent
+    return sorted(out)
+
+
 def match_structure(
     ref_points: np.ndarray,
     ref_labels: np.ndarray,
@@ -607,7 +620,8 @@ def match_structure(
                                                    config.profile_bins)) for r, t in pairs]
     in_trunk = np.isin(ref_labels, trunk)
     point_part = label_regions(
-        tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(tgt_sk.branch == 0), limbs,
+        tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [
+            int(cand[c]) for _, c in pairs]))), limbs,
         ref_sk.points[in_trunk], ref_labels[in_trunk],
         thickness=tgt_thick,
         reach=config.limb_reach,
