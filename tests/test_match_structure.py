@@ -443,3 +443,22 @@ def test_the_branches_between_the_root_and_a_matched_limb_are_trunk() -> None:
     assert trunk_branches(skeleton, [2, 3]) == [0, 1]
     assert trunk_branches(skeleton, [2, 4]) == [0, 1]
     assert trunk_branches(skeleton, []) == [0]
+
+
+def test_the_skeleton_picture_draws_what_the_structure_match_saw(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``sync4d_tools.match_labels.skeleton_picture``: reference limbs, the target's branches and its parts."""
+    import matplotlib.pyplot as plt
+
+    from sync4d_tools.match_labels.skeleton_picture import save_small, skeleton_figure
+
+    v, f, part = animal()
+    tv, tf, _ = animal(leg=0.45, head=0.15)
+    result = match_parts(box_reference(v, f, part), gaussians_at(tv), None, MatchConfig(method="structure"),
+                         target_vertices=tv, target_faces=tf)
+    fig = skeleton_figure(result.diagnostics.structure, result.diagnostics.reference_labels, PARTS, "animal")
+    path = tmp_path / "skeleton.png"
+    save_small(fig, path)
+    plt.close(fig)
+    assert path.stat().st_size > 1000
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert any(t.startswith("b1 -> ") for t in texts) and "head" in texts
