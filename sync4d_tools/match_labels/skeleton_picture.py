@@ -1,4 +1,4 @@
-"""``python -m sync4d_tools.match_labels.skeleton_picture DIR [--seed N] [PAIR ...]``: what the structure match sees.
+"""``python -m sync4d_tools.match_labels.skeleton_picture [--seed N] DIR [PAIR ...]``: what the structure match sees.
 
 One picture per labelled pair (``DIR/matching_skeleton_<pair>.png``, 64 colours), two views (front, side), three panels:
 
