@@ -400,11 +400,11 @@ def test_limb_partners_come_from_the_bone_tree_and_complete_an_unmatched_leg() -
     tgt = limbs(bases[:4] * [1.1, 1, 1.2])  # four leg branches (candidates 0-3 = branches 1-4)
     cand = np.arange(1, 5)
     chosen = [(0, 0), (2, 2), (3, 3)]  # leg b left over although the branch opposite leg a is free
-    done = complete_partners(chosen, partners, limbs(bases), tgt, skeleton, cand, np.eye(3), normal, scale)
+    done = complete_partners(chosen, partners, tgt, skeleton, cand, np.eye(3), normal, scale)
     assert done == [(0, 0), (1, 1), (2, 2), (3, 3)]
     # a branch far from the mirror image is not taken
     far = limbs(np.array([[-1.0, 0, 0.3], [0.0, 0, 0.3], [1.0, 0, 0.3], [1.0, 0, -0.3]]))
-    assert complete_partners(chosen, partners, limbs(bases), far, skeleton, cand, np.eye(3), normal, scale) == chosen
+    assert complete_partners(chosen, partners, far, skeleton, cand, np.eye(3), normal, scale) == chosen
 
 
 def test_the_trunk_is_the_blob_nearer_the_ground_not_a_bigger_head() -> None:

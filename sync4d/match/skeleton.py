@@ -16,6 +16,10 @@ RMS radius). Steps, each a small pure function:
 A branch's ``base`` is where it leaves its parent (the ring of its first level), so limb boundaries sit
 where the level sets split: at the narrowing between a limb and the trunk. Cost: a few Dijkstra runs on
 M points (~0.1 s for M = 3000 here).
+
+On a solid (a depth per point), distances are measured from the trunk's core instead of the centre point:
+the deepest blob's (:func:`trunk_core`), or another thick blob's that is nearer the ground, since the
+trunk carries the legs (:func:`trunk_on_legs`).
 """
 
 from __future__ import annotations

@@ -19,7 +19,11 @@ unit RMS radius; both upright along ``up_axis``). Then:
    proportions (:func:`transfer_along`); everything else (trunk, unmatched target branches) takes the
    part of the nearest reference trunk point in the turned frame.
 
-Unmatched reference limbs are reported (``StructureMatch.leftover``).
+Left/right: limbs hanging from the same trunk part with as many parts are partners (:func:`limb_partners`);
+a partner left over takes the free branch at the mirror image of the other's (:func:`complete_partners`),
+and a tail holding that branch hands it over (:func:`mirror_repair`). The branches between the root and
+a matched limb's branch are trunk (:func:`trunk_branches`). Unmatched reference limbs are reported
+(``StructureMatch.leftover``).
 """
 
 from __future__ import annotations
@@ -515,7 +519,6 @@ def partner_plane(base: np.ndarray, partners: list[tuple[int, int]], up: int, sc
 def complete_partners(
     pairs: list[tuple[int, int]],
     partners: list[tuple[int, int]],
-    ref: LimbSet,
     tgt: LimbSet,
     skeleton: CurveSkeleton,
     cand: np.ndarray,
@@ -615,7 +618,7 @@ def match_structure(
     if config.mirror_repair and len(pairs):
         pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, tgt_scale, symmetry)
     if symmetry is not None and len(pairs):
-        pairs = complete_partners(pairs, partners, ref_limbs, tgt_limbs, tgt_sk, cand, rot, symmetry[1], tgt_scale)
+        pairs = complete_partners(pairs, partners, tgt_limbs, tgt_sk, cand, rot, symmetry[1], tgt_scale)
     limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
                                                    config.profile_bins)) for r, t in pairs]
     in_trunk = np.isin(ref_labels, trunk)
