@@ -369,3 +369,96 @@ def test_consistency_scores_a_broken_map_lower_and_ignores_stray_points():
     stray = parts.copy()
     stray[[10, 500, 1000]] = 1
     assert consistency(pts, stray, pts, parts, 3).kept == 1.0
+
+
+def test_limb_partners_come_from_the_bone_tree_and_complete_an_unmatched_leg() -> None:
+    """Limbs off the same trunk part with as many parts pair up (of four legs off one part, the nearest
+    bases); a leg left over while its partner is matched takes the free branch at the mirror image."""
+    from sync4d.match.skeleton import Branch, CurveSkeleton
+    from sync4d.match.structure import LimbSet, complete_partners, limb_partners, partner_plane
+
+    # parts: 0 trunk, 1-2 leg a, 3-4 leg b, 5-6 leg c, 7-8 leg d, 9 head, 10 tail
+    parent = np.array([-1, 0, 1, 0, 3, 0, 5, 0, 7, 0, 0])
+    limb_parts = [[1, 2], [3, 4], [5, 6], [7, 8], [9], [10]]
+    bases = np.array([[-1.0, 0, 0.3], [-0.9, 0, -0.3], [1.0, 0, 0.3], [1.0, 0, -0.3], [-1.4, 0.3, 0], [1.3, 0.2, 0]])
+    length = np.array([1.0, 1.1, 1.0, 1.0, 1.2, 0.6])  # a head twice as long as the tail: no pair
+    partners = limb_partners(limb_parts, parent, bases, length)
+    assert sorted(partners) == [(0, 1), (2, 3)]
+    scale = np.array([1.0, 1.0, 0.3])
+    normal = partner_plane(bases, partners, 1, scale)
+    assert abs(normal[2]) > 0.99
+
+    def limbs(base: np.ndarray) -> LimbSet:
+        n = len(base)
+        empty = tuple(np.zeros(0, dtype=np.int64) for _ in range(n))
+        return LimbSet(empty, base, base, np.zeros(n), np.ones(n), np.full(n, 0.1))
+
+    branches = tuple(Branch((i,), 0 if i else -1, (), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+                            np.zeros(3), np.zeros(3), 0.0, 1.0) for i in range(5))
+    skeleton = CurveSkeleton(np.zeros((1, 3)), np.zeros(1), 0, np.zeros(1, dtype=np.int64),
+                             np.zeros(1, dtype=np.int64), branches, 0.1)
+    tgt = limbs(bases[:4] * [1.1, 1, 1.2])  # four leg branches (candidates 0-3 = branches 1-4)
+    cand = np.arange(1, 5)
+    chosen = [(0, 0), (2, 2), (3, 3)]  # leg b left over although the branch opposite leg a is free
+    done = complete_partners(chosen, partners, tgt, skeleton, cand, np.eye(3), normal, scale)
+    assert done == [(0, 0), (1, 1), (2, 2), (3, 3)]
+    # a branch far from the mirror image is not taken
+    far = limbs(np.array([[-1.0, 0, 0.3], [0.0, 0, 0.3], [1.0, 0, 0.3], [1.0, 0, -0.3]]))
+    assert complete_partners(chosen, partners, far, skeleton, cand, np.eye(3), normal, scale) == chosen
+
+
+def test_the_trunk_is_the_blob_nearer_the_ground_not_a_bigger_head() -> None:
+    """A toy whose head is thicker than its body: the skeleton's core is the body (it carries the legs),
+    so the legs and the head leave the root branch."""
+    from sync4d.match.skeleton import trunk_core, trunk_on_legs
+    from sync4d.match.skeleton import neighbour_graph as graph_of
+
+    v, f, names = box_union([
+        ("leg_l", (-0.12, 0.0, -0.05), (-0.04, 0.25, 0.05)), ("leg_r", (0.04, 0.0, -0.05), (0.12, 0.25, 0.05)),
+        ("body", (-0.17, 0.24, -0.14), (0.17, 0.54, 0.14)), ("neck", (-0.04, 0.53, -0.04), (0.04, 0.7, 0.04)),
+        ("head", (-0.25, 0.69, -0.22), (0.25, 1.14, 0.22)),
+    ], max_edge=0.03)
+    raw, depth = volume_points(v, f, 48, np.random.default_rng(0), with_depth=True)
+    centre, size = raw.mean(axis=0), np.sqrt(((raw - raw.mean(axis=0)) ** 2).sum(axis=1).mean())
+    pts, depth = (raw - centre) / size, depth / size  # normalised, as the structure match sees a shape
+    config = SkeletonConfig()
+    graph = graph_of(pts, config.neighbours, config.max_edge_factor)
+    deepest = trunk_core(graph, pts, depth, config.core_depth, config.core_reach)
+    assert raw[deepest, 1].min() > 0.69  # the head is the deepest blob
+    core = trunk_on_legs(graph, pts, depth, deepest, config, 1)
+    assert 0.24 < raw[core, 1].min() and raw[core, 1].max() < 0.54  # the body is the trunk
+
+
+def test_the_branches_between_the_root_and_a_matched_limb_are_trunk() -> None:
+    """A branch no limb took that lies between the root and matched branches (levels that had not yet
+    parted two legs) is trunk; an unmatched branch hanging off the root is not."""
+    from sync4d.match.skeleton import Branch, CurveSkeleton
+    from sync4d.match.structure import trunk_branches
+
+    parents = [-1, 0, 1, 1, 0, 4]  # 1 parts into 2 and 3; 4 into 5
+    branches = tuple(Branch((i,), p, (), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(3),
+                            np.zeros(3), 0.0, 1.0) for i, p in enumerate(parents))
+    skeleton = CurveSkeleton(np.zeros((1, 3)), np.zeros(1), 0, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                             branches, 0.1)
+    assert trunk_branches(skeleton, [2, 3]) == [0, 1]
+    assert trunk_branches(skeleton, [2, 4]) == [0, 1]
+    assert trunk_branches(skeleton, []) == [0]
+
+
+def test_the_skeleton_picture_draws_what_the_structure_match_saw(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``sync4d_tools.match_labels.skeleton_picture``: reference limbs, the target's branches and its parts."""
+    import matplotlib.pyplot as plt
+
+    from sync4d_tools.match_labels.skeleton_picture import save_small, skeleton_figure
+
+    v, f, part = animal()
+    tv, tf, _ = animal(leg=0.45, head=0.15)
+    result = match_parts(box_reference(v, f, part), gaussians_at(tv), None, MatchConfig(method="structure"),
+                         target_vertices=tv, target_faces=tf)
+    fig = skeleton_figure(result.diagnostics.structure, result.diagnostics.reference_labels, PARTS, "animal")
+    path = tmp_path / "skeleton.png"
+    save_small(fig, path)
+    plt.close(fig)
+    assert path.stat().st_size > 1000
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert any(t.startswith("b1 -> ") for t in texts) and "head" in texts

@@ -16,6 +16,10 @@ RMS radius). Steps, each a small pure function:
 A branch's ``base`` is where it leaves its parent (the ring of its first level), so limb boundaries sit
 where the level sets split: at the narrowing between a limb and the trunk. Cost: a few Dijkstra runs on
 M points (~0.1 s for M = 3000 here).
+
+On a solid (a depth per point), distances are measured from the trunk's core instead of the centre point:
+the deepest blob's (:func:`trunk_core`), or another thick blob's that is nearer the ground, since the
+trunk carries the legs (:func:`trunk_on_legs`).
 """
 
 from __future__ import annotations
@@ -373,15 +377,73 @@ def trunk_core(graph: csr_matrix, points: np.ndarray, depth: np.ndarray, fractio
     """
     d_max = float(depth.max())
     seed = int(np.argmax(depth / max(d_max, 1e-12) - 0.6 * np.linalg.norm(points, axis=1)))
-    deep = np.flatnonzero(depth >= fraction * d_max)
+    return core_around(graph, depth, seed, fraction * d_max, reach * d_max)
+
+
+def core_around(graph: csr_matrix, depth: np.ndarray, seed: int, min_depth: float, reach: float) -> np.ndarray:
+    """(C,) the core around ``seed``: the points deeper than ``min_depth``, connected to it through such
+    points and within geodesic distance ``reach`` of it (see :func:`trunk_core`)."""
+    deep = np.flatnonzero(depth >= min_depth)
     deep = np.union1d(deep, [seed])
     sub = graph[deep][:, deep]
     local = int(np.searchsorted(deep, seed))
-    dist = dijkstra(sub, directed=False, indices=local, limit=reach * d_max)
+    dist = dijkstra(sub, directed=False, indices=local, limit=reach)
     return deep[np.isfinite(dist)]
 
 
-def curve_skeleton(points: np.ndarray, config: SkeletonConfig, depth: np.ndarray | None = None) -> CurveSkeleton:
+#: a separate blob of the solid deeper than this fraction of its deepest point is a candidate trunk
+BLOB_DEPTH = 0.5
+
+
+def blob_seeds(graph: csr_matrix, depth: np.ndarray, fraction: float, *, exclude: np.ndarray,
+               min_points: int = 8) -> list[int]:
+    """The deepest point of every connected piece of the points deeper than ``fraction`` x the largest
+    depth (over ``graph``), except the pieces holding an ``exclude`` point and those of fewer than
+    ``min_points`` points."""
+    deep = np.flatnonzero(depth >= fraction * float(depth.max()))
+    _, comp = connected_components(graph[deep][:, deep], directed=False)
+    skip = set(comp[np.isin(deep, exclude)].tolist())
+    seeds = []
+    for c in np.unique(comp):
+        members = deep[comp == c]
+        if c not in skip and len(members) >= min_points:
+            seeds.append(int(members[np.argmax(depth[members])]))
+    return seeds
+
+
+#: the ground: the points in this lowest share of the shape's height
+GROUND_SHARE = 0.05
+
+
+def trunk_on_legs(graph: csr_matrix, points: np.ndarray, depth: np.ndarray, core: np.ndarray, config: SkeletonConfig,
+                  up: int) -> np.ndarray:
+    """The trunk's core among the solid's thick blobs: the one nearest the ground (by mean geodesic
+    distance to the ground points), of those not on the ground themselves.
+
+    The trunk carries the legs and the legs reach the ground: of a big head and a body (a stuffed toy),
+    the body is nearer the feet; a base plate lying on the ground (a lamp's) is no trunk. ``core`` is the
+    deepest blob's core (:func:`trunk_core`), kept when no other blob qualifies.
+    """
+    others = blob_seeds(graph, depth, BLOB_DEPTH, exclude=core)
+    if not others:
+        return core
+    h = points[:, up]
+    ground = h <= h.min() + GROUND_SHARE * float(np.ptp(h))
+    cores = [core]
+    for seed in others:
+        d = float(depth[seed])
+        other = core_around(graph, depth, seed, config.core_depth * d, config.core_reach * d)
+        if not ground[other].any():
+            cores.append(other)
+    if len(cores) == 1:
+        return core
+    seeds = [int(c[np.argmax(depth[c])]) for c in cores]
+    dist = dijkstra(graph, directed=False, indices=seeds)[:, np.flatnonzero(ground)]
+    return cores[int(np.argmin(np.where(np.isfinite(dist), dist, np.inf).mean(axis=1)))]
+
+
+def curve_skeleton(points: np.ndarray, config: SkeletonConfig, depth: np.ndarray | None = None, *, up: int = 1
+                   ) -> CurveSkeleton:
     """The curve skeleton of a normalised point set (see the module docstring).
 
     Args:
@@ -398,7 +460,9 @@ def curve_skeleton(points: np.ndarray, config: SkeletonConfig, depth: np.ndarray
         raise InputError(f"curve_skeleton: need (M >= 16, 3) finite points, got {pts.shape}")
     graph = neighbour_graph(pts, config.neighbours, config.max_edge_factor)
     if depth is not None and config.core_depth > 0 and len(depth) == len(pts):
-        core = trunk_core(graph, pts, np.asarray(depth, dtype=np.float64), config.core_depth, config.core_reach)
+        depth = np.asarray(depth, dtype=np.float64)
+        core = trunk_core(graph, pts, depth, config.core_depth, config.core_reach)
+        core = trunk_on_legs(graph, pts, depth, core, config, up)
         sk = _skeleton_from(pts, graph, core, config)
         if len(sk.branches) > 1:
             return sk

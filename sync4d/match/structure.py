@@ -19,7 +19,11 @@ unit RMS radius; both upright along ``up_axis``). Then:
    proportions (:func:`transfer_along`); everything else (trunk, unmatched target branches) takes the
    part of the nearest reference trunk point in the turned frame.
 
-Unmatched reference limbs are reported (``StructureMatch.leftover``).
+Left/right: limbs hanging from the same trunk part with as many parts are partners (:func:`limb_partners`);
+a partner left over takes the free branch at the mirror image of the other's (:func:`complete_partners`),
+and a tail holding that branch hands it over (:func:`mirror_repair`). The branches between the root and
+a matched limb's branch are trunk (:func:`trunk_branches`). Unmatched reference limbs are reported
+(``StructureMatch.leftover``).
 """
 
 from __future__ import annotations
@@ -204,6 +208,19 @@ def _depth(parent: np.ndarray, p: int) -> int:
     return d
 
 
+def bone_tree(skeleton: CurveSkeleton, labels: np.ndarray, num_parts: int, parents: np.ndarray | None
+              ) -> tuple[np.ndarray, int]:
+    """(B,) parent part of each part, one tree (further roots of a forest hang off the main root), and
+    its root part: ``parents`` if known, else from the contacts (:func:`part_tree`)."""
+    if parents is None:
+        root = int(labels[skeleton.centre])
+        return part_tree(skeleton.points, labels, num_parts, root), root
+    parent = np.asarray(parents, dtype=np.int64)
+    roots = np.flatnonzero(parent < 0)
+    root = int(labels[skeleton.centre]) if int(labels[skeleton.centre]) in roots else int(roots[0])
+    return np.where((parent < 0) & (np.arange(num_parts) != root), root, parent), root
+
+
 def reference_limbs(
     skeleton: CurveSkeleton,
     labels: np.ndarray,
@@ -222,15 +239,7 @@ def reference_limbs(
             the contacts between parts (:func:`part_tree`), which touching limbs can mislead.
         min_share: smallest share of the points a child subtree needs to count at a trunk junction.
     """
-    if parents is None:
-        root = int(labels[skeleton.centre])
-        parent = part_tree(skeleton.points, labels, num_parts, root)
-    else:
-        parent = np.asarray(parents, dtype=np.int64)
-        roots = np.flatnonzero(parent < 0)
-        root = int(labels[skeleton.centre]) if int(labels[skeleton.centre]) in roots else int(roots[0])
-        # further roots (a forest) hang off the main root
-        parent = np.where((parent < 0) & (np.arange(num_parts) != root), root, parent)
+    parent, root = bone_tree(skeleton, labels, num_parts, parents)
     present = set(np.unique(labels).tolist()) | {root}
     kids: dict[int, list[int]] = {p: [] for p in present}
     for c in present:
@@ -443,6 +452,7 @@ def mirror_repair(
     up: int,
     ref_scale: np.ndarray,
     tgt_scale: np.ndarray,
+    symmetry: tuple[list[tuple[int, int]], np.ndarray] | None = None,
 ) -> list[tuple[int, int]]:
     """Give a left/right reference limb whose partner is matched the mirror image of its partner's branch
     when a limb without a partner (a tail, a head) holds that branch.
@@ -450,9 +460,10 @@ def mirror_repair(
     A hanging tail can fit a hind leg's branch better than the reference's (posed) hind leg does; the
     body's left/right symmetry says the branch opposite the matched partner is the leg. Bases are
     compared with each horizontal axis divided by the shape's spread (``ref_scale``, ``tgt_scale``), the
-    target's turned by ``rotation``; ``pairs`` are (reference limb, target candidate).
+    target's turned by ``rotation``; ``pairs`` are (reference limb, target candidate). ``symmetry``: the
+    left/right limb pairs and the plane's normal (scaled frame), else :func:`mirror_plane_pairs`'s.
     """
-    mirror, normal = mirror_plane_pairs(ref.base, up, ref_scale)
+    mirror, normal = symmetry if symmetry is not None else mirror_plane_pairs(ref.base, up, ref_scale)
     paired = {i for p in mirror for i in p}
     held = {r: c for r, c in pairs}
     owner = {c: r for r, c in pairs}
@@ -471,6 +482,87 @@ def mirror_repair(
             owner[c] = b
             del held[q]
     return sorted(held.items())
+
+
+def limb_partners(limb_parts: list[list[int]], parent: np.ndarray, base: np.ndarray, length: np.ndarray
+                  ) -> list[tuple[int, int]]:
+    """Left/right limb pairs read off the bone tree: limbs hanging from the same trunk part with as many
+    parts and lengths within a factor 1.5 of each other (arms off the chest, legs off the pelvis); of
+    more than two such limbs (four legs off one trunk part), the two of nearest bases pair first. The
+    pose enters only there: a leg stretched forward is still the partner of the other."""
+    groups: dict[tuple[int, int], list[int]] = {}
+    for i, parts in enumerate(limb_parts):
+        groups.setdefault((int(parent[min(parts)]), len(parts)), []).append(i)
+    out = []
+    for group in groups.values():
+        close = sorted((float(np.linalg.norm(base[a] - base[b])), a, b) for k, a in enumerate(group)
+                       for b in group[k + 1:])
+        used: set[int] = set()
+        for _, a, b in close:
+            if a not in used and b not in used and max(length[a], length[b]) <= 1.5 * min(length[a], length[b]):
+                out.append((a, b))
+                used |= {a, b}
+    return out
+
+
+def partner_plane(base: np.ndarray, partners: list[tuple[int, int]], up: int, scale: np.ndarray) -> np.ndarray:
+    """(3,) unit normal of the vertical plane between left/right partners: the mean direction from one
+    base to the other (each horizontal axis divided by the shape's spread ``scale``)."""
+    flat = np.ones(3)
+    flat[up] = 0.0
+    across = np.array([base[a] - base[b] for a, b in partners]).reshape(-1, 3) * flat / scale
+    across = across * np.where(across @ across[0] < 0, -1.0, 1.0)[:, None]
+    normal = across.mean(axis=0)
+    return normal / max(float(np.linalg.norm(normal)), 1e-9)
+
+
+def complete_partners(
+    pairs: list[tuple[int, int]],
+    partners: list[tuple[int, int]],
+    tgt: LimbSet,
+    skeleton: CurveSkeleton,
+    cand: np.ndarray,
+    rotation: np.ndarray,
+    normal: np.ndarray,
+    tgt_scale: np.ndarray,
+) -> list[tuple[int, int]]:
+    """Give an unmatched limb whose partner is matched the free target branch at the mirror image of its
+    partner's branch, if there is one.
+
+    The plane of symmetry is vertical through the target's centre with the unit ``normal``
+    (:func:`partner_plane`, each horizontal axis divided by the shape's spread ``tgt_scale``). A branch
+    qualifies when its base lies nearer that mirror image than the partner's own branch does (by a
+    factor 2), and it is not nested with a matched branch: a cow's front leg whose pose puts it far from
+    the dog's reaching one.
+    """
+    tb = (tgt.base @ rotation.T) / tgt_scale
+    held = dict(pairs)
+    for a, b in partners:
+        for x, y in ((a, b), (b, a)):
+            if x not in held or y in held:
+                continue
+            here = tb[held[x]]
+            image = here - 2.0 * (here @ normal) * normal
+            dist = np.linalg.norm(tb - image, axis=1)
+            taken = [int(cand[c]) for c in held.values()]
+            free = [c for c in np.argsort(dist) if c not in held.values() and not any(
+                skeleton.is_ancestor(int(cand[c]), t) or skeleton.is_ancestor(t, int(cand[c])) for t in taken)]
+            if free and 2.0 * dist[free[0]] < float(np.linalg.norm(here - image)):
+                held[y] = int(free[0])
+    return sorted(held.items())
+
+
+def trunk_branches(skeleton: CurveSkeleton, matched: list[int]) -> list[int]:
+    """The branches that are trunk: the root branch and every branch between it and a matched limb's
+    branch (where the levels had not yet parted the limbs that leave there: a cross's centre above its
+    arms, a body between two legs that part low)."""
+    out = {0}
+    for b in matched:
+        a = skeleton.branches[b].parent
+        while a > 0:
+            out.add(a)
+            a = skeleton.branches[a].parent
+    return sorted(out)
 
 
 def match_structure(
@@ -503,7 +595,7 @@ def match_structure(
         StructureMatch (``point_part`` labels the target points).
     """
     ref_sk = curve_skeleton(ref_points, config.skeleton)
-    tgt_sk = curve_skeleton(tgt_points, config.skeleton, tgt_depth)
+    tgt_sk = curve_skeleton(tgt_points, config.skeleton, tgt_depth, up=UP_AXES[up_axis])
     limb_parts, trunk = reference_limbs(ref_sk, ref_labels, num_parts, part_parents)
     ref_sk = distance_from_trunk(ref_sk, np.isin(ref_labels, trunk), config.skeleton)
     ref_limbs = limb_descriptors(
@@ -519,13 +611,20 @@ def match_structure(
     ref_scale = horizontal_scale(ref_points, np.eye(3), up)
     turns = score_turns(ref_limbs, tgt_limbs, tgt_sk, cand, ref_sub, tgt_sub, config, up_axis, ref_scale, turn_cost)
     _, rot, pairs, total = turns[0]
+    partners = limb_partners(limb_parts, bone_tree(ref_sk, ref_labels, num_parts, part_parents)[0], ref_limbs.base,
+                             ref_limbs.length)
+    symmetry = (partners, partner_plane(ref_limbs.base, partners, up, ref_scale)) if partners else None
+    tgt_scale = horizontal_scale(tgt_points, rot, up)
     if config.mirror_repair and len(pairs):
-        pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, horizontal_scale(tgt_points, rot, up))
+        pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, tgt_scale, symmetry)
+    if symmetry is not None and len(pairs):
+        pairs = complete_partners(pairs, partners, tgt_limbs, tgt_sk, cand, rot, symmetry[1], tgt_scale)
     limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
                                                    config.profile_bins)) for r, t in pairs]
     in_trunk = np.isin(ref_labels, trunk)
     point_part = label_regions(
-        tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(tgt_sk.branch == 0), limbs,
+        tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [
+            int(cand[c]) for _, c in pairs]))), limbs,
         ref_sk.points[in_trunk], ref_labels[in_trunk],
         thickness=tgt_thick,
         reach=config.limb_reach,

@@ -465,14 +465,26 @@ def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: M
                   figures: Path | None, samples: int = LABEL_SAMPLES) -> dict[str, Any]:
     """Match one label file's target (Gaussians sampled on its surface, turned and stretched by the seed) to
     its reference body; accuracy, floors, chance-corrected accuracy, per label, and a picture."""
-    import zlib
-
-    from sync4d_tools.match_labels.labels import score, vertex_labels
-
     if spec.reference not in bodies:
         raise DataMissingError(f"--labels {spec.path}: reference {spec.reference!r}: use one of {', '.join(bodies)}")
     body = bodies[spec.reference]
     reference = body_reference(body, name=spec.reference)
+    result, numbers, seconds = labelled_match(spec, body, reference, extractor, options)
+    out = pair_summary(spec, numbers, result, body, seconds)
+    if figures is not None:
+        save_labelled_figure(figures, spec, options, result, reference, numbers)
+    log.info("%s [%s]: accuracy %.3f limb %.3f corrected %.3f (chance %.3f) %s", spec.name, options.method,
+             numbers["accuracy"], numbers["limb_accuracy"], numbers["corrected"], numbers["chance"], numbers["per_label"])
+    return out
+
+
+def labelled_match(spec: Any, body: Body, reference: Reference, extractor: Any, options: MatchConfig
+                   ) -> tuple[MatchResult, dict[str, Any], float]:
+    """The match of one label file's target at the seed (:func:`labelled_pair`), its scores and seconds."""
+    import zlib
+
+    from sync4d_tools.match_labels.labels import score, vertex_labels
+
     vertices, faces, names = load_label_target(spec)
     rng = np.random.default_rng([SEED, zlib.crc32(spec.name.encode())])
     points, point_names, _ = sampled_target(vertices, faces, names, rng, samples)
@@ -483,13 +495,7 @@ def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: M
     result = match_parts(reference, points_to_gaussians(moved_points, name=spec.name), extractor, options,
                          target_vertices=moved_vertices, target_faces=faces, seed=SEED)
     seconds = time.perf_counter() - start
-    numbers = score(spec, labels, np.ones(len(points)), result.part_map.tgt_part, body.names)
-    out = pair_summary(spec, numbers, result, body, seconds)
-    if figures is not None:
-        save_labelled_figure(figures, spec, options, result, reference, numbers)
-    log.info("%s [%s]: accuracy %.3f limb %.3f corrected %.3f (chance %.3f) %s", spec.name, options.method,
-             numbers["accuracy"], numbers["limb_accuracy"], numbers["corrected"], numbers["chance"], numbers["per_label"])
-    return out
+    return result, score(spec, labels, np.ones(len(points)), result.part_map.tgt_part, body.names), seconds
 
 
 #: the bars of a labelled pair: chance-corrected accuracy, and limb accuracy by kind of pair
