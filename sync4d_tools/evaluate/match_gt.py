@@ -469,7 +469,7 @@ def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: M
         raise DataMissingError(f"--labels {spec.path}: reference {spec.reference!r}: use one of {', '.join(bodies)}")
     body = bodies[spec.reference]
     reference = body_reference(body, name=spec.reference)
-    result, numbers, seconds = labelled_match(spec, body, reference, extractor, options)
+    result, numbers, seconds = labelled_match(spec, body, reference, extractor, options, samples)
     out = pair_summary(spec, numbers, result, body, seconds)
     if figures is not None:
         save_labelled_figure(figures, spec, options, result, reference, numbers)
@@ -478,9 +478,10 @@ def labelled_pair(spec: Any, bodies: dict[str, Body], extractor: Any, options: M
     return out
 
 
-def labelled_match(spec: Any, body: Body, reference: Reference, extractor: Any, options: MatchConfig
-                   ) -> tuple[MatchResult, dict[str, Any], float]:
-    """The match of one label file's target at the seed (:func:`labelled_pair`), its scores and seconds."""
+def labelled_match(spec: Any, body: Body, reference: Reference, extractor: Any, options: MatchConfig,
+                   samples: int = LABEL_SAMPLES) -> tuple[MatchResult, dict[str, Any], float]:
+    """The match of one label file's target (``samples`` surface points) at the seed (:func:`labelled_pair`), its
+    scores and seconds."""
     import zlib
 
     from sync4d_tools.match_labels.labels import score, vertex_labels

@@ -116,7 +116,9 @@ def save_skeleton_pictures(out: Path, seed: int, pairs: list[str]) -> dict[str, 
         title = (f"{spec.name}, seed {seed}, structure: chance-corrected {numbers['corrected']:.2f}, limbs "
                  f"{numbers['limb_accuracy']:.2f}; per label " + ", ".join(
                      f"{k} {v:.2f}" for k, v in numbers["per_label"].items()))
-        fig = skeleton_figure(result.diagnostics.structure, result.diagnostics.reference_labels, body.names, title)
+        labels = result.diagnostics.reference_labels
+        assert labels is not None, "the structure match records the reference's part labels"
+        fig = skeleton_figure(result.diagnostics.structure, labels, body.names, title)
         save_small(fig, out / f"matching_skeleton_{spec.name}.png")
         plt.close(fig)
         scores[spec.name] = {"corrected": numbers["corrected"], "limb_accuracy": numbers["limb_accuracy"]}
