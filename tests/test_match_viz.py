@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from PIL import Image
 
-from sync4d.match.pictures import OUTLIER_COLOR, label_colors, log_match_figure, match_figure, figure_to_array, part_colors
+from sync4d.match.pictures import OUTLIER_COLOR, label_colors, match_figure, figure_to_array, part_colors
 
 
 def test_colours_distinct_and_outliers_black() -> None:
@@ -33,7 +33,7 @@ def test_figure_png_and_tensorboard(tmp_path) -> None:
     Image.fromarray(image).save(tmp_path / "m.png")
     assert Image.open(tmp_path / "m.png").size == (image.shape[1], image.shape[0])
     writer = SummaryWriter(str(tmp_path / "tb"))
-    log_match_figure(writer, "match/parts", image, step=3)
+    writer.add_image("match/parts", image, global_step=3, dataformats="HWC")
     writer.close()
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

@@ -152,8 +152,3 @@ def save_match_figure(path: str | Path, diagnostics: MatchDiagnostics, num_parts
 
     Image.fromarray(image).save(path)
     return image
-
-
-def log_match_figure(writer: Any, tag: str, image: np.ndarray, step: int = 0) -> None:
-    """Log an (H, W, 3) uint8 picture to TensorBoard (``SummaryWriter.add_image``, HWC)."""
-    writer.add_image(tag, image, global_step=step, dataformats="HWC")

@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 
 from sync4d import cache
 from sync4d.errors import ConfigError, Sync4DError
+from sync4d.sim import physics
 from sync4d.frontend.outputs import write_video_inputs
 from sync4d.geometry import part_centroids
 from sync4d.interfaces import (CheckedTarget, FigureWriter, FileSourceConfig, GridSimulatorConfig, Logger,
@@ -212,7 +213,7 @@ def sized_plan(plan: RunPlan, target: TargetGaussians, motion: DrivingMotion) ->
         return plan
     c = sim.config
     chosen = choose_budget(target.means.astype(np.float64), motion, E=c.E, nu=c.nu, density=c.density,
-                           frame_time=c.frame_time or 1.0 / motion.fps, padding=c.grid_padding, wall=c.wall_cells,
+                           frame_time=physics.frame_time(c.frame_time, motion.fps), padding=c.grid_padding, wall=c.wall_cells,
                            cfl_safety=c.cfl_safety)
     atomic_write_json(plan.run_dir / "budget.json", dataclasses.asdict(chosen))
     sized = plan.with_component(sim.with_values(n_grid=chosen.n_grid, substeps=chosen.substeps))

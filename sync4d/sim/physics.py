@@ -181,3 +181,17 @@ def particle_volumes(
     if w.shape != (n,) or np.any(w < 0) or w.sum() <= 0:
         raise InputError(f"particle_volumes: weights must be ({n},) non-negative with a positive sum")
     return total_volume * w / w.sum()
+
+
+def frame_time(frame_time: float | None, fps: float | None) -> float:
+    """Simulated time of one output frame [s]: ``frame_time`` (``sim.frame_time``), or when it is null the
+    reference's frame interval 1 / ``fps`` (so that E [Pa] acts over real time); one rule for the simulator, the
+    budget and the cost model."""
+    if frame_time is not None:
+        return float(frame_time)
+    if fps is None or not fps > 0:
+        raise ConfigError(
+            "sim.frame_time is null (the reference's frame interval) but no frame rate is known; "
+            "set sim.frame_time=<seconds>"
+        )
+    return 1.0 / float(fps)

@@ -39,6 +39,7 @@ import numpy as np
 from sync4d.errors import ConfigError
 from sync4d.interfaces import GridSimulatorConfig
 from sync4d.sim import physics
+from sync4d.sim.mpm_warp import MPMWarp
 from sync4d.sim.control import make_control_points
 from sync4d.transfer.config import TransferConfig
 from sync4d.types import DrivingMotion, TargetGaussians
@@ -162,7 +163,7 @@ class SimSettings:
     substeps: int
     cfl_safety: float
     control_grid: int | None
-    checkpoint_budget_mb: float = 512.0
+    checkpoint_budget_mb: float = MPMWarp.Config.checkpoint_budget_mb  # its one owner: the simulator's Config
 
     @staticmethod
     def fields() -> tuple[str, ...]:
@@ -252,7 +253,7 @@ def estimate_cost(
     p = len(points)
     grid = physics.fit_grid(points, n_grid=sim.n_grid, padding=sim.grid_padding, wall=sim.wall_cells)
     nodes = int(np.prod(grid.dims))
-    frame_time = float(sim.frame_time) if sim.frame_time is not None else 1.0 / motion.fps
+    frame_time = physics.frame_time(sim.frame_time, motion.fps)
     sample = points[:: max(1, p // 500)]
     v_max = SPEED_HEADROOM * motion_speed(motion, sample, frame_time)
     mu, lam = physics.lame_parameters(sim.E, sim.nu)

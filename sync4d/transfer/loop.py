@@ -28,6 +28,7 @@ import torch
 from sync4d.interfaces import GridModel, Simulator, VelocityField
 from sync4d.rng import deterministic_torch
 from sync4d.sim.control import ControlPoints, with_control
+from sync4d.transfer.budget import SPEED_HEADROOM
 from sync4d.transfer.config import TransferConfig
 from sync4d.transfer.loss import PartLoss, anchor_targets, anchor_weights, initial_velocity
 from sync4d.transfer.particles import Particles, make_particles
@@ -169,7 +170,7 @@ def advance(transfer: Transfer, state: ParticleState, t: int) -> tuple[ParticleS
     v0_t, C0_t = torch.as_tensor(v0, dtype=dtype), torch.as_tensor(C0, dtype=dtype)
     part_t = torch.as_tensor(particles.part)
     # Headroom for the delta velocities the optimiser may add on top of the reference's.
-    v_expected = float(np.linalg.norm(v0, axis=1).max()) * max(abs(velocity.velocity_scale), 1.0) * 2.0
+    v_expected = float(np.linalg.norm(v0, axis=1).max()) * max(abs(velocity.velocity_scale), 1.0) * SPEED_HEADROOM
     substeps, dt = sim.substeps_for(transfer.model, v_expected, fps=motion.fps)
     pose = frame_pose(transfer, t)
     loss_fn = frame_loss(transfer, x_np, t)

@@ -132,13 +132,6 @@ def background_masks(frames: np.ndarray, *, threshold: float = 30.0, open_px: in
     return np.stack([cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_OPEN, kernel) > 0 for m in masks])
 
 
-def box_blur(masks: np.ndarray, size: int) -> np.ndarray:
-    """(T, H, W) float masks averaged over ``size`` x ``size`` boxes (the coarse levels' targets)."""
-    if size <= 1:
-        return masks.astype(np.float32)
-    return np.stack([cv2.blur(m.astype(np.float32), (size, size)) for m in masks])
-
-
 def default_camera(clip: VideoClip, fov_deg: float) -> Camera:
     """Camera at the origin looking down +z (OpenCV axes) with the clip's K or a ``fov_deg`` guess."""
     h, w = clip.frames.shape[1:3]
@@ -266,4 +259,3 @@ def static_depths(uv0: np.ndarray, uv: np.ndarray, ok: np.ndarray, K: np.ndarray
     predicted = project(depth)
     residual = np.sqrt((((predicted - uv) ** 2).sum(-1) * weight).sum(0) / count)
     return depth, residual, predicted
-

@@ -54,11 +54,6 @@ def splat_alpha(
     return (opacity[None, :, None] * torch.exp(-0.5 * d2 / sigma_px[..., None] ** 2)).clamp_max(0.99)
 
 
-def soft_silhouette(alpha: torch.Tensor) -> torch.Tensor:
-    """(F, P) coverage 1 - prod_i (1 - alpha_i) from (F, N, P) alphas."""
-    return 1.0 - torch.exp(torch.log1p(-alpha).sum(1))
-
-
 def front_weights(alpha: torch.Tensor, z: torch.Tensor, tau: float) -> torch.Tensor:
     """(F, N, P) soft front-most weights: alpha_i exp(-(z_i - z_min) / tau), normalised over i.
 

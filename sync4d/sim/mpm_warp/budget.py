@@ -8,7 +8,7 @@ import math
 import os
 from typing import Protocol
 
-from sync4d.errors import ConfigError, SimulationUnstable
+from sync4d.errors import SimulationUnstable
 from sync4d.sim import physics
 from sync4d.sim.mpm_warp.model import MPMModel
 
@@ -39,14 +39,7 @@ def max_stable_dt(settings: StepSettings, model: MPMModel, v_max: float = 0.0) -
 
 def frame_time_for(settings: StepSettings, fps: float | None) -> float:
     """Simulated time of one frame [s]: ``sim.frame_time``, or 1 / ``fps`` when it is null."""
-    if settings.frame_time is not None:
-        return float(settings.frame_time)
-    if fps is None or not fps > 0:
-        raise ConfigError(
-            "sim.frame_time is null (the reference's frame interval) but no frame rate is known; "
-            "set sim.frame_time=<seconds>"
-        )
-    return 1.0 / float(fps)
+    return physics.frame_time(settings.frame_time, fps)
 
 
 def unstable(settings: StepSettings, model: MPMModel, dt: float, v_max: float, substeps: int) -> SimulationUnstable:
