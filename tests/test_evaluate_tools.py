@@ -530,3 +530,20 @@ def test_every_tool_module_is_imported_by_a_test() -> None:
     named = named_by_tests()
     missing = [m for m in tool_modules() if m not in named]
     assert not missing, f"no test imports {missing}"
+
+
+def test_default_scene_spans_are_a_box_s_extents() -> None:
+    """sync4d_tools.default_scene measures a lid's thickness by the 5-95 % spans along its principal axes."""
+    from sync4d_tools.default_scene import spans
+
+    box = np.random.default_rng(0).uniform(0.0, 1.0, (20000, 3)) * [0.4, 0.02, 0.3]
+    np.testing.assert_allclose(spans(box), [0.36, 0.27, 0.018], rtol=0.03)
+
+
+@pytest.mark.slow
+def test_default_scene_scores_the_default_run(tmp_path: Path) -> None:
+    """The default run's own stages at seed 0: the shell's top goes to the reconstructed lid."""
+    from sync4d_tools.default_scene import main as default_scene
+
+    (row,) = default_scene(["--seeds", "0", "--cache-dir", str(tmp_path / "cache")])
+    assert row["match_labels"] >= 0.9 and 0.5 <= row["lid_thickness_x"] <= 2.0
