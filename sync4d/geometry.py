@@ -114,6 +114,14 @@ def matrix_to_rotation_vector(R: np.ndarray) -> np.ndarray:
     return q[..., 1:] * scale[..., None]
 
 
+def skew_matrices(w: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) cross-product matrices [w]x of (..., 3) vectors: [w]x a = w x a."""
+    w = np.asarray(w, dtype=np.float64)
+    out = np.zeros((*w.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    return out - np.swapaxes(out, -1, -2)
+
+
 def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
     """(..., 3, 3) the rotations closest to ``matrix`` (..., 3, 3) in the Frobenius norm: the R of the polar
     decomposition F = R U (U symmetric positive semi-definite).

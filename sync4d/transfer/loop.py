@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from sync4d.geometry import skew_matrices
 from sync4d.interfaces import GridModel, Simulator, VelocityField
 from sync4d.rng import deterministic_torch
 from sync4d.sim.control import ControlPoints, with_control
@@ -215,7 +216,7 @@ def complementary_motion(x: np.ndarray, v: np.ndarray, C: np.ndarray, part: np.n
         inertia = np.eye(3) * (r * r).sum() - r.T @ r
         w = np.linalg.lstsq(inertia, np.cross(r, v[idx] - a).sum(axis=0), rcond=1e-9)[0]
         dv[idx] -= a + np.cross(w, r)
-        dC[idx] -= np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+        dC[idx] -= skew_matrices(w)
     return dv, dC
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from sync4d.geometry import apply_rigid, matrix_to_rotation_vector, nearest_rotation, part_centroids
+from sync4d.geometry import apply_rigid, matrix_to_rotation_vector, nearest_rotation, part_centroids, skew_matrices
 
 
 def anchor_weights(x: np.ndarray, part: np.ndarray, num_parts: int, mode: str) -> list[np.ndarray | None]:
@@ -106,6 +106,4 @@ def drive_velocity(x: np.ndarray, part: np.ndarray, relative: np.ndarray, frame_
     moved = np.einsum("bij,bj->bi", relative[:, :3, :3], centre) + relative[:, :3, 3]
     spin = matrix_to_rotation_vector(nearest_rotation(relative[:, :3, :3])) / frame_time  # (B, 3)
     velocity = (moved - centre)[part] / frame_time + np.cross(spin[part], x - centre[part])
-    skew = np.zeros((num_parts, 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -spin[:, 2], spin[:, 1], -spin[:, 0]
-    return velocity, (skew - np.swapaxes(skew, 1, 2))[part]
+    return velocity, skew_matrices(spin)[part]
