@@ -227,3 +227,27 @@ def test_the_ground_is_found_among_background_points_and_walls_are_not_taken() -
     assert found is not None and np.degrees(np.arccos(min(1.0, float(found @ true)))) < 2.0
     assert ground_up(wall, np.array([0.0, 1.0, 0.0])) is None
     assert ground_up(floor[:20], np.array([0.0, 1.0, 0.0])) is None
+
+
+def test_the_clip_colour_model_tells_the_subject_from_the_background():
+    from sync4d.frontend.segment import clip_colour_model
+
+    frames = np.zeros((2, 8, 8, 3), np.uint8)
+    frames[:, :, :4] = [200, 40, 40]  # subject: red
+    frames[:, :, 4:] = [40, 40, 200]  # background: blue
+    subject = np.zeros((2, 8, 8), bool)
+    subject[:, :, :4] = True
+    model = clip_colour_model(frames, subject, ~subject)
+    like = model.likeness(frames[0])
+    assert model.support == 1.0 and (like[:, :4] > 0.9).all() and (like[:, 4:] < 0.1).all()
+
+
+def test_a_static_camera_mask_drops_what_shows_the_background_plate():
+    from sync4d.frontend.segment import drop_plate
+
+    clip, truth = square_clip(n_frames=10, speed=8.0, start=10.0)
+    padded = np.stack([m | np.roll(m, -6, 1) for m in truth])  # the mask drags floor behind it
+    kept = drop_plate(clip.frames, padded)
+    assert np.median([iou(a, b) for a, b in zip(kept, truth)]) > 0.9 > np.median([iou(a, b) for a, b in zip(padded, truth)])
+    still = drop_plate(np.repeat(clip.frames[:1], 10, 0), truth)  # a subject that never moves is kept whole
+    assert np.array_equal(still, truth)
