@@ -251,3 +251,25 @@ def test_a_static_camera_mask_drops_what_shows_the_background_plate():
     assert np.median([iou(a, b) for a, b in zip(kept, truth)]) > 0.9 > np.median([iou(a, b) for a, b in zip(padded, truth)])
     still = drop_plate(np.repeat(clip.frames[:1], 10, 0), truth)  # a subject that never moves is kept whole
     assert np.array_equal(still, truth)
+
+
+def test_small_holes_are_filled_and_open_gaps_kept():
+    from sync4d.frontend.segment import fill_holes
+
+    mask = np.zeros((40, 40), bool)
+    mask[5:35, 5:35] = True
+    mask[10:12, 10:12] = False  # a speckle inside: filled
+    mask[20:35, 18:22] = False  # a gap open to the outside (between legs): kept
+    filled = fill_holes(mask, 0.01)
+    assert filled[10:12, 10:12].all() and not filled[25, 20]
+
+
+def test_the_background_a_still_camera_sees_is_explained_and_the_square_is_not():
+    from sync4d.frontend.motion import motion_evidence
+
+    clip, truth = square_clip()
+    grey = clip.frames.mean(axis=3).astype(np.uint8)
+    evidence = motion_evidence(grey, static=True, sigma=4.0, min_px=0.6)
+    assert evidence.explained is not None
+    far = ~truth  # the background of each frame
+    assert evidence.explained[3][far[3]].mean() > 0.8 and evidence.explained[3][truth[3]].mean() < 0.2
