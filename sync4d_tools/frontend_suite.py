@@ -6,8 +6,10 @@
         --max-frames 27 --picture docs/results/img/video_frontend_bear.jpg   # a real clip: picture, no truth
 
 Each subject is made by the project with exact truth: the procedural laptop (an object, its hinge angles
-known), a mannequin posed by CMU mocap (a person, :mod:`sync4d_tools.body_clips`) and the capsule dog
-posed by the AI4Animation trot (a quadruped). Each stands in a textured room (floor and walls, a tiled
+known), two procedural objects of the articulated suite rebuilt as textured boxes (a chest whose lid
+closes and opens, an appliance whose door swings: objects whose body never moves), a mannequin posed by
+CMU mocap (a person, :mod:`sync4d_tools.body_clips`) and the capsule dog posed by the AI4Animation trot
+(a quadruped). Each stands in a textured room (floor and walls, a tiled
 pattern, so a moving camera has a background to be found from) and is filmed twice by the project's
 splatting renderer: from a static camera and from a hand-held one (an arc of about 20 deg around the
 subject, with bob, jitter and roll). Truth masks are the subject's rendered opacity > 0.5, the truth
@@ -21,7 +23,8 @@ Measured per clip, the front end given the video only (no masks, no intrinsics, 
     * laptop clips: ``recon=video``'s hinge-angle error from the video alone against the same clip with
       the exact masks and camera (``sync4d_tools.evaluate.recon_hinge.evaluate``).
 Bars (issue 32): IoU >= 0.9 median per kind; rotation error <= 2 deg median on moving-camera clips;
-recon error from the video alone <= 1.5 x the exact-input error.
+recon error from the video alone <= 1.5 x the exact-input error. Issues 40 and 41: objects' and
+quadrupeds' IoU >= 0.8 median.
 
 Data (attribution): CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu; NSF EIA-0196217) via
 yuki-koyama/bvh11; AI4Animation dog trot via erwincoumans/motion_imitation (CC BY-NC 4.0).
@@ -353,6 +356,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         ious = [r["iou"] for r in rows if r["kind"] == kind]
         out[f"iou_{kind}"] = round(float(np.median(ious)), 4)
         out[f"iou_{kind}_pass"] = bool(np.median(ious) >= 0.9)
+        out[f"iou_{kind}_pass_0.8"] = bool(np.median(ious) >= 0.8)  # issues 40 (objects), 41 (quadrupeds)
     moving = [r["rot_err_deg"] for r in rows if r["camera"] == "moving"]
     if moving:
         out["rot_err_moving_deg"] = round(float(np.median(moving)), 3)

@@ -273,3 +273,13 @@ def test_the_background_a_still_camera_sees_is_explained_and_the_square_is_not()
     assert evidence.explained is not None
     far = ~truth  # the background of each frame
     assert evidence.explained[3][far[3]].mean() > 0.8 and evidence.explained[3][truth[3]].mean() < 0.2
+
+
+def test_the_suites_box_objects_move_one_part_and_hold_their_body():
+    from sync4d_tools.frontend_suite import BOX_OBJECTS, box_subject
+
+    for name in BOX_OBJECTS:
+        subject = box_subject(name, seed=0)
+        step = np.linalg.norm(subject.means - subject.means[:1], axis=-1).max(axis=0)  # (N,) [m]
+        assert subject.means.shape[0] == 16 and subject.colours.shape == subject.means.shape
+        assert (step < 1e-9).mean() > 0.5 and step.max() > 0.1  # the body holds still, the lid/door moves
