@@ -6,8 +6,10 @@
         --max-frames 27 --picture docs/results/img/video_frontend_bear.jpg   # a real clip: picture, no truth
 
 Each subject is made by the project with exact truth: the procedural laptop (an object, its hinge angles
-known), a mannequin posed by CMU mocap (a person, :mod:`sync4d_tools.body_clips`) and the capsule dog
-posed by the AI4Animation trot (a quadruped). Each stands in a textured room (floor and walls, a tiled
+known), two procedural objects of the articulated suite rebuilt as textured boxes (a chest whose lid
+closes and opens, an appliance whose door swings: objects whose body never moves), a mannequin posed by
+CMU mocap (a person, :mod:`sync4d_tools.body_clips`) and the capsule dog posed by the AI4Animation trot
+(a quadruped). Each stands in a textured room (floor and walls, a tiled
 pattern, so a moving camera has a background to be found from) and is filmed twice by the project's
 splatting renderer: from a static camera and from a hand-held one (an arc of about 20 deg around the
 subject, with bob, jitter and roll). Truth masks are the subject's rendered opacity > 0.5, the truth
@@ -21,7 +23,8 @@ Measured per clip, the front end given the video only (no masks, no intrinsics, 
     * laptop clips: ``recon=video``'s hinge-angle error from the video alone against the same clip with
       the exact masks and camera (``sync4d_tools.evaluate.recon_hinge.evaluate``).
 Bars (issue 32): IoU >= 0.9 median per kind; rotation error <= 2 deg median on moving-camera clips;
-recon error from the video alone <= 1.5 x the exact-input error.
+recon error from the video alone <= 1.5 x the exact-input error. Issues 40 and 41: objects' and
+quadrupeds' IoU >= 0.8 median.
 
 Data (attribution): CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu; NSF EIA-0196217) via
 yuki-koyama/bvh11; AI4Animation dog trot via erwincoumans/motion_imitation (CC BY-NC 4.0).
@@ -45,10 +48,10 @@ from sync4d.scenes.reference_video import room_image
 from sync4d.sources.references import camera_from_look
 from sync4d.types import Camera, VideoClip
 
-KINDS = {"laptop": "object", "person": "person", "dog": "quadruped"}
+KINDS = {"laptop": "object", "chest": "object", "appliance": "object", "person": "person", "dog": "quadruped"}
 CASES = tuple(f"{s}_{c}" for s in KINDS for c in ("static", "moving"))
 WIDTH, HEIGHT, FRAMES = 192, 144, 16
-FOV = {"laptop": 40.0, "person": 50.0, "dog": 55.0}  # true vertical fields of view [deg] (the front end guesses)
+FOV = {"laptop": 40.0, "chest": 40.0, "appliance": 40.0, "person": 50.0, "dog": 55.0}  # true vertical fields of view [deg] (the front end guesses)
 
 
 @dataclass(frozen=True)
@@ -83,6 +86,77 @@ def laptop_subject() -> Subject:
     colours = np.clip(rest.colors(), 0.0, 1.0)
     return Subject("laptop", means, covs, np.broadcast_to(colours, (FRAMES, *colours.shape)), rest.opacities,
                    onehot, {"hinge_angle_rad": hinge_angles_rad(reference)}, reference.fps)
+
+
+@dataclass(frozen=True)
+class Box:
+    """A textured box of an articulated object: half extents and centre [m] in its part's frame (MuJoCo's
+    Z up, as :mod:`sync4d_tools.articulated.objects`), two checker colours (RGB in [0, 1]), its part (0 the
+    body, 1 the moving part)."""
+
+    half: tuple[float, float, float]
+    centre: tuple[float, float, float]
+    colours: tuple[tuple[float, float, float], tuple[float, float, float]]
+    part: int
+
+
+#: two procedural objects of the articulated suite (``_chest``, ``_appliance``) as boxes: the boxes, the
+#: moving part's hinge (pivot [m], axis) and its angle start -> turn -> start [deg]
+BOX_OBJECTS: dict[str, tuple[tuple[Box, ...], tuple[float, float, float], tuple[float, float, float], float, float]] = {
+    "chest": ((Box((0.18, 0.12, 0.08), (0.0, 0.0, 0.08), ((0.6, 0.35, 0.2), (0.45, 0.25, 0.14)), 0),
+               Box((0.18, 0.12, 0.01), (0.0, 0.0, 0.17), ((0.8, 0.6, 0.3), (0.6, 0.45, 0.22)), 1)),
+              (0.0, 0.12, 0.16), (1.0, 0.0, 0.0), -80.0, -10.0),
+    "appliance": ((Box((0.2, 0.16, 0.22), (0.0, 0.0, 0.22), ((0.75, 0.75, 0.7), (0.55, 0.55, 0.5)), 0),
+                   Box((0.2, 0.012, 0.21), (0.0, -0.17, 0.22), ((0.3, 0.45, 0.7), (0.15, 0.25, 0.45)), 1),
+                   Box((0.012, 0.02, 0.08), (0.16, -0.2, 0.22), ((0.75, 0.75, 0.7), (0.55, 0.55, 0.5)), 1)),
+                  (-0.2, -0.17, 0.22), (0.0, 0.0, -1.0), 0.0, 100.0),
+}
+
+
+def box_points(box: Box, rng: np.random.Generator, density: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points on a box's surface (uniform by area, ``density`` per m^2) [m], their normals and checker colours."""
+    half, centre = np.asarray(box.half), np.asarray(box.centre)
+    areas = np.array([half[1] * half[2], half[0] * half[2], half[0] * half[1]]) * 8.0  # two faces per axis
+    n = max(64, int(areas.sum() * density))
+    axis = rng.choice(3, n, p=areas / areas.sum())
+    sign = rng.choice([-1.0, 1.0], n)
+    local = rng.uniform(-1.0, 1.0, (n, 3)) * half
+    local[np.arange(n), axis] = sign * half[axis]
+    normals = np.zeros((n, 3))
+    normals[np.arange(n), axis] = sign
+    cell = 0.04
+    odd = np.floor((local + centre) / cell).astype(np.int64).sum(1) % 2 == 1
+    colours = np.where(odd[:, None], np.asarray(box.colours[1]), np.asarray(box.colours[0]))
+    return local + centre, normals, colours
+
+
+def box_subject(name: str, seed: int) -> Subject:
+    """A procedural articulated object of the articulated suite (a chest whose lid closes and opens, an
+    appliance whose door swings open and shut) as shaded, checker-textured surface Gaussians, Y up."""
+    from scipy.spatial.transform import Rotation
+
+    boxes, pivot, axis, start, turn = BOX_OBJECTS[name]
+    rng = np.random.default_rng(seed)
+    pts, nrm, col, part = [], [], [], []
+    for box in boxes:
+        p, n, c = box_points(box, rng, density=9000.0)
+        pts.append(p)
+        nrm.append(n)
+        col.append(c)
+        part.append(np.full(len(p), box.part))
+    points, normals, colours, parts = (np.concatenate(a) for a in (pts, nrm, col, part))
+    to_yup = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])  # MuJoCo's Z up to Y up
+    light = np.array([0.3, 0.8, 0.6]) / np.linalg.norm([0.3, 0.8, 0.6])
+    phase = (1.0 - np.cos(2.0 * np.pi * np.arange(FRAMES) / (FRAMES - 1))) / 2.0
+    means, shaded = [], []
+    for t in range(FRAMES):
+        R = Rotation.from_rotvec(np.radians(start + (turn - start) * phase[t]) * np.asarray(axis)).as_matrix()
+        moved = np.where(parts[:, None] == 1, (points - pivot) @ R.T + pivot, points)
+        turned = np.where(parts[:, None] == 1, normals @ R.T, normals)
+        means.append(moved @ to_yup.T)
+        shaded.append(colours * (0.35 + 0.65 * np.clip((turned @ to_yup.T) @ light, 0, None))[:, None])
+    covs = np.broadcast_to(np.eye(3) * 0.008**2, (FRAMES, len(points), 3, 3))
+    return Subject(name, np.stack(means), covs, np.stack(shaded), np.full(len(points), 0.9))
 
 
 def capsule_subject(name: str, seed: int) -> Subject:
@@ -242,7 +316,8 @@ def run_case(case: str, *, seed: int, recon: bool, pictures: str = "") -> dict[s
     """Film one case and measure the front end on it."""
     name, motion = case.split("_")
     rng = np.random.default_rng(seed)
-    subject = laptop_subject() if name == "laptop" else capsule_subject(name, seed)
+    subject = laptop_subject() if name == "laptop" else box_subject(name, seed) if name in BOX_OBJECTS \
+        else capsule_subject(name, seed)
     cameras = camera_path(subject, motion == "moving", rng)
     frames, masks, labels = film(subject, cameras)
     clip = VideoClip(frames, np.zeros_like(masks), subject.fps, source=f"suite:{case}").validate()
@@ -281,6 +356,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         ious = [r["iou"] for r in rows if r["kind"] == kind]
         out[f"iou_{kind}"] = round(float(np.median(ious)), 4)
         out[f"iou_{kind}_pass"] = bool(np.median(ious) >= 0.9)
+        out[f"iou_{kind}_pass_0.8"] = bool(np.median(ious) >= 0.8)  # issues 40 (objects), 41 (quadrupeds)
     moving = [r["rot_err_deg"] for r in rows if r["camera"] == "moving"]
     if moving:
         out["rot_err_moving_deg"] = round(float(np.median(moving)), 3)

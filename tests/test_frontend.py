@@ -227,3 +227,59 @@ def test_the_ground_is_found_among_background_points_and_walls_are_not_taken() -
     assert found is not None and np.degrees(np.arccos(min(1.0, float(found @ true)))) < 2.0
     assert ground_up(wall, np.array([0.0, 1.0, 0.0])) is None
     assert ground_up(floor[:20], np.array([0.0, 1.0, 0.0])) is None
+
+
+def test_the_clip_colour_model_tells_the_subject_from_the_background():
+    from sync4d.frontend.segment import clip_colour_model
+
+    frames = np.zeros((2, 8, 8, 3), np.uint8)
+    frames[:, :, :4] = [200, 40, 40]  # subject: red
+    frames[:, :, 4:] = [40, 40, 200]  # background: blue
+    subject = np.zeros((2, 8, 8), bool)
+    subject[:, :, :4] = True
+    model = clip_colour_model(frames, subject, ~subject)
+    like = model.likeness(frames[0])
+    assert model.support == 1.0 and (like[:, :4] > 0.9).all() and (like[:, 4:] < 0.1).all()
+
+
+def test_a_static_camera_mask_drops_what_shows_the_background_plate():
+    from sync4d.frontend.segment import drop_plate
+
+    clip, truth = square_clip(n_frames=10, speed=8.0, start=10.0)
+    padded = np.stack([m | np.roll(m, -6, 1) for m in truth])  # the mask drags floor behind it
+    kept = drop_plate(clip.frames, padded)
+    assert np.median([iou(a, b) for a, b in zip(kept, truth)]) > 0.9 > np.median([iou(a, b) for a, b in zip(padded, truth)])
+    still = drop_plate(np.repeat(clip.frames[:1], 10, 0), truth)  # a subject that never moves is kept whole
+    assert np.array_equal(still, truth)
+
+
+def test_small_holes_are_filled_and_open_gaps_kept():
+    from sync4d.frontend.segment import fill_holes
+
+    mask = np.zeros((40, 40), bool)
+    mask[5:35, 5:35] = True
+    mask[10:12, 10:12] = False  # a speckle inside: filled
+    mask[20:35, 18:22] = False  # a gap open to the outside (between legs): kept
+    filled = fill_holes(mask, 0.01)
+    assert filled[10:12, 10:12].all() and not filled[25, 20]
+
+
+def test_the_background_a_still_camera_sees_is_explained_and_the_square_is_not():
+    from sync4d.frontend.motion import motion_evidence
+
+    clip, truth = square_clip()
+    grey = clip.frames.mean(axis=3).astype(np.uint8)
+    evidence = motion_evidence(grey, static=True, sigma=4.0, min_px=0.6)
+    assert evidence.explained is not None
+    far = ~truth  # the background of each frame
+    assert evidence.explained[3][far[3]].mean() > 0.8 and evidence.explained[3][truth[3]].mean() < 0.2
+
+
+def test_the_suites_box_objects_move_one_part_and_hold_their_body():
+    from sync4d_tools.frontend_suite import BOX_OBJECTS, box_subject
+
+    for name in BOX_OBJECTS:
+        subject = box_subject(name, seed=0)
+        step = np.linalg.norm(subject.means - subject.means[:1], axis=-1).max(axis=0)  # (N,) [m]
+        assert subject.means.shape[0] == 16 and subject.colours.shape == subject.means.shape
+        assert (step < 1e-9).mean() > 0.5 and step.max() > 0.1  # the body holds still, the lid/door moves

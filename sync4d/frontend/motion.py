@@ -130,11 +130,14 @@ class MotionEvidence:
             (flow within ``STILL_PX`` and picture within ``PHOTOMETRIC_LEVELS``): surely background unless a
             known subject part holds still there.
         flows: ``{(t, s): (H, W, 2) flow from t to s [px]}`` for |t - s| = 1.
+        explained: (T, H, W) bool, pixels (textured or not) the background's motion explains in every
+            neighbouring pair, as ``still`` without asking for texture (a plain floor tile included).
     """
 
     moving: np.ndarray
     still: np.ndarray
     flows: dict[tuple[int, int], np.ndarray]
+    explained: np.ndarray | None = None
 
 
 def textured(grey: np.ndarray) -> np.ndarray:
@@ -160,10 +163,11 @@ def motion_evidence(grey: np.ndarray, *, static: bool, sigma: float, min_px: flo
     n_frames, h, w = grey.shape
     moving = np.zeros((n_frames, h, w), bool)
     still = np.zeros((n_frames, h, w), bool)
+    explained = np.zeros((n_frames, h, w), bool)
     flows: dict[tuple[int, int], np.ndarray] = {}
     for t in range(n_frames):
         both = np.ones((h, w), bool)
-        calm = textured(grey[t])
+        calm = np.ones((h, w), bool)
         for s in (t - 1, t + 1):
             if not 0 <= s < n_frames:
                 continue
@@ -174,5 +178,6 @@ def motion_evidence(grey: np.ndarray, *, static: bool, sigma: float, min_px: flo
             both &= (score > sigma) & (pixels > min_px) & changed
             calm &= (pixels < STILL_PX) & (change < PHOTOMETRIC_LEVELS)
         moving[t] = both if 0 < t < n_frames - 1 else False
-        still[t] = calm
-    return MotionEvidence(moving, still, flows)
+        still[t] = calm & textured(grey[t])
+        explained[t] = calm
+    return MotionEvidence(moving, still, flows, explained)

@@ -16,6 +16,16 @@ BGD, FGD, PR_BGD, PR_FGD = 0, 1, 2, 3
 GROWTH = 0.1
 #: colour histogram levels per RGB channel of the subject's colour model
 BINS = 16
+#: under a static camera a pixel within this colour distance (RGB levels of 255) of the clip's background
+#: plate (the per-pixel median over the frames) shows the background there
+PLATE_LEVELS = 10.0
+#: a pixel whose colour is at least this much more the subject's than the background's is surely the subject's
+SURE_LIKENESS = 0.9
+#: patches the background's motion explains (of colours not surely the subject's) leave a carried mask
+#: unless fewer than this share of it would remain
+EXPLAINED_KEEP = 0.75
+#: holes in a mask smaller than this share of its area are filled (colour speckles inside the subject)
+HOLE_SHARE = 0.01
 #: a carried mask is the subject lost when less than this share of the first frame's colour support remains
 LOST_SUPPORT = 0.5
 
@@ -209,21 +219,66 @@ def colour_model(image: np.ndarray, mask: np.ndarray) -> ColourModel:
     return ColourModel(fg, bg, float((likeness > 0.5).mean()) if mask.any() else 0.0)
 
 
+def clip_colour_model(frames: np.ndarray, subject: np.ndarray, background: np.ndarray) -> ColourModel:
+    """Colour histograms pooled over the clip: the subject's from ``subject`` (T, H, W) bool pixels, the
+    background's from ``background`` (T, H, W) bool (support over the subject pixels, as :func:`colour_model`)."""
+    index = colour_bins(frames)
+    fg = np.bincount(index[subject], minlength=BINS**3) / max(int(subject.sum()), 1) + 1e-4
+    bg = np.bincount(index[background], minlength=BINS**3) / max(int(background.sum()), 1) + 1e-4
+    likeness = fg[index[subject]] / (fg[index[subject]] + bg[index[subject]])
+    return ColourModel(fg, bg, float((likeness > 0.5).mean()) if subject.any() else 0.0)
+
+
+def fill_holes(mask: np.ndarray, share: float) -> np.ndarray:
+    """(H, W) bool ``mask`` with its holes (background components not touching the image border) smaller
+    than ``share`` of its area filled."""
+    labels, areas = components(~mask)
+    h, w = mask.shape
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    small = np.flatnonzero(areas < share * mask.sum())
+    small = np.setdiff1d(small[small > 0], border)
+    return mask | np.isin(labels, small)
+
+
+def follow(frames: np.ndarray, start: int, first: np.ndarray, evidence: MotionEvidence,
+           iterations: int) -> np.ndarray:
+    """(T, H, W) bool masks of the subject: :func:`propagate` twice. The first pass's colour model learns
+    the subject from every moving pixel, floor between a small animal's legs included; the second learns it
+    from the moving pixels within the first pass's masks against everything outside them (every frame), so
+    a floor tile of the subject's shade that the flow dragged along is the background's colour there.
+    Holes under ``HOLE_SHARE`` of a mask are filled."""
+    masks = propagate(frames, start, first, evidence, iterations)
+    subject = masks & evidence.moving
+    if subject.sum() >= first.sum():
+        outside = ~np.stack([morph(m, "dilate", 2) for m in masks])
+        masks = propagate(frames, start, first, evidence, iterations, clip_colour_model(frames, subject, outside))
+    return np.stack([fill_holes(m, HOLE_SHARE) for m in masks])
+
+
 def propagate(frames: np.ndarray, start: int, first: np.ndarray, evidence: MotionEvidence,
-              iterations: int) -> np.ndarray:
+              iterations: int, model: ColourModel | None = None) -> np.ndarray:
     """(T, H, W) bool masks carried from frame ``start`` (mask ``first``) forwards and backwards along the
     flow, each carried mask joined by what moves just around it and refined by GrabCut.
 
-    The subject's colours on frame ``start`` keep the carried masks honest: only pixels of the subject's
-    colours are sure foreground, and a mask whose colours stop being the subject's (less than half the
-    first frame's support) is the subject lost (it left the frame): that frame and those beyond stay empty.
+    The subject's colours keep the carried masks honest: ``model``, or learnt over the whole clip from what
+    moves against what the background's motion surely explains (:func:`clip_colour_model`; the first mask's
+    own colours when little moves); a mask keeps only pixels of the subject's colours (the floor the flow
+    drags along falls off), and loses the patches the background's motion explains
+    (:attr:`MotionEvidence.explained`) whose colours are not surely the subject's; a mask whose colours stop being the subject's (less than half the model's support) is
+    the subject lost (it left the frame): that frame and those beyond stay empty.
     A mask grows only where the background's motion does not surely explain the picture (``still``).
     """
     moving, flows = evidence.moving, evidence.flows
     n_frames = len(frames)
     masks = np.zeros(moving.shape, bool)
+    if model is None and moving.sum() >= first.sum():  # the subject's colours are what moves
+        model = clip_colour_model(frames, moving, evidence.still & ~moving)
+    if model is None:  # a prompted subject that hardly moves: its first mask's colours
+        model = colour_model(frames[start], first)
+    else:
+        kept = largest_component(first & (model.likeness(frames[start]) > 0.5))
+        first = kept if kept.sum() >= LOST_SUPPORT * first.sum() else first
     masks[start] = first
-    model = colour_model(frames[start], first)
     for step in (1, -1):
         t = start + step
         while 0 <= t < n_frames:
@@ -235,9 +290,35 @@ def propagate(frames: np.ndarray, start: int, first: np.ndarray, evidence: Motio
             sure = morph(carried, "erode", int(0.15 * size_of(carried))) & like
             refined = grabcut(frames[t], joined, sure=sure, iterations=iterations)
             refined &= carried | ~evidence.still[t]
+            refined &= like
+            if evidence.explained is not None:  # a patch of floor dragged along, not a lone pixel, not surely subject
+                doubtful = morph(evidence.explained[t], "open", 1) & (model.likeness(frames[t]) < SURE_LIKENESS)
+                trimmed = refined & ~doubtful
+                # ... unless that is much of the mask: the subject holding still against the background
+                refined = trimmed if trimmed.sum() >= EXPLAINED_KEEP * refined.sum() else refined
             mask = largest_component(refined) if refined.any() else carried
             if like[mask].mean() < LOST_SUPPORT * model.support:
                 break
             masks[t] = mask
             t += step
     return masks
+
+
+def drop_plate(frames: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """(T, H, W) bool masks without the pixels that show the background, for a static camera.
+
+    The background plate is the per-pixel median of the frames (T, H, W, 3): wherever the subject moves it
+    uncovers the background in most frames (the floor between a trotting dog's legs). A mask pixel whose
+    colour (and its neighbours', within 1 px) is within ``PLATE_LEVELS`` of the plate is background; a frame
+    that would lose more than half its mask keeps it (the subject held still there, so the plate shows it).
+    """
+    plate = np.median(frames, axis=0).astype(np.float32)
+    out = masks.copy()
+    for t, mask in enumerate(masks):
+        if not mask.any():
+            continue
+        differs = morph(np.linalg.norm(frames[t].astype(np.float32) - plate, axis=-1) > PLATE_LEVELS, "dilate", 1)
+        kept = largest_component(mask & differs)
+        if kept.sum() >= LOST_SUPPORT * mask.sum():
+            out[t] = kept
+    return out

@@ -20,7 +20,7 @@ from sync4d.frontend.config import FrontEndConfig, SubjectConfig
 from sync4d.frontend.geometry import ground_up, intrinsics_from_fov
 from sync4d.frontend.motion import motion_evidence
 from sync4d.frontend.segment import (
-    box_grabcut, grabcut, largest_component, propagate, seed_from_motion, seed_from_prompt,
+    box_grabcut, drop_plate, follow, grabcut, largest_component, seed_from_motion, seed_from_prompt,
 )
 from sync4d.frontend.tracks import track_corners
 from sync4d.types import Camera, VideoClip
@@ -133,7 +133,9 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, config: Subje
         first = largest_component(grabcut(work[start], region, sure=np.zeros_like(region),
                                           iterations=max(config.grabcut_iters, 1)))
     log.info("frontend: subject seeded in frame %d (%d px at work size)", start, int(first.sum()))
-    return propagate(work, start, first, evidence, config.grabcut_iters)
+    masks = follow(work, start, first, evidence, config.grabcut_iters)
+    # a subject found by its motion under a static camera: what shows the clip's background plate is floor
+    return drop_plate(work, masks) if static and method == "motion" else masks
 
 
 def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | None = None, masks_given: bool = False,
@@ -150,8 +152,11 @@ def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | N
         InputError: too short, a still image, a prompt outside the image, no subject, a subject leaving
             the frame.
     """
+    import cv2
+
     cpu = time.process_time()
     config.validate()
+    cv2.setRNGSeed(0)  # GrabCut's k-means draws from OpenCV's global generator: the same clip, the same masks
     n_frames, height, width = clip.frames.shape[:3]
     check_clip(clip.frames, clip.source)
     if prompt is not None:
