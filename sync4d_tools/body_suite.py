@@ -3,7 +3,10 @@
     python -m sync4d_tools.body_suite --out outputs/body_suite [--only cmu,deepmimic,dog,shiba,fox_walk,fox_walk_orbit]
 
 Humans are scored twice: with the renders' camera (``--camera``) and with the camera unknown (the fit's
-assumed field of view), through ``recon_joints``. Quadrupeds are fitted with their true masks and true camera
+assumed field of view), through ``recon_joints``. The people clips are also filmed hand-held in a textured
+room (:data:`HANDHELD`: each clip and view at two seeds, ``<clip>_<view>_handheld<seed>``; ``--only handheld``
+runs these alone) and scored by :func:`score_handheld`: from the mp4 alone (the video front end's masks and
+camera), with the true per-frame camera, with the camera taken as static, and the do-nothing floor. Quadrupeds are fitted with their true masks and true camera
 (per frame when it moves: :func:`load_quadruped_clip` hands ``VideoClip.extrinsics`` to the fit) and scored
 here (:func:`score_quadruped`), the floor beside (:func:`floor_joints`: the template's rest pose at each
 mask's centroid): the dog trot (capsules around the AI4Animation trot), the Lab4D shiba-haru-1002 export
