@@ -2,12 +2,14 @@
 
 A body of shaded capsules (skin, shirt, trousers, shoes; a sphere for the head) is posed per frame by a
 mocap clip (CMU BVH, DeepMimic) and splatted by the project's renderer (``render=splat_torch``) from a
-static look-at camera. Written per clip: ``rgb.mp4``, ``masks/%05d.png`` (rendered opacity > 0.5),
-``camera.npz`` (``K, cam_pos, cam_forward, cam_up``; the laptop renders' layout) and ``gt.npz``
-(``joints`` (T, J, 3) [m] in the world frame, ``names`` (J,) from the ``recon_joints`` vocabulary, and
-the camera again, so that ``reference=video`` finds it beside the video).
+static look-at camera on a plain backdrop, or (``--handheld SEED``) from a hand-held one in a textured
+room (:func:`handheld_cameras`: a slow pan after the walker, an arc, drift and shake, seeded). Written per
+clip: ``rgb.mp4``, ``masks/%05d.png`` (rendered opacity > 0.5), ``camera.npz`` (``K, cam_pos, cam_forward,
+cam_up``, the laptop renders' layout; hand-held: ``K, world_to_cam`` (T, 4, 4)) and ``gt.npz`` (``joints``
+(T, J, 3) [m] in the world frame, ``names`` (J,) from the ``recon_joints`` vocabulary, and the camera again,
+so that ``reference=video`` finds it beside the video).
 
-    python -m sync4d_tools.body_clips --out outputs/body_clips --clip cmu --view front
+    python -m sync4d_tools.body_clips --out outputs/body_clips --clip cmu --view front [--handheld 0]
 
 Data (attribution): CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu; created with funding from
 NSF EIA-0196217) via yuki-koyama/bvh11; DeepMimic humanoid walk (MIT) from pybullet_data (zlib).
@@ -19,6 +21,7 @@ import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -221,11 +224,18 @@ def capsule_gaussians(
     return a + pts_local @ rot.T, local @ rot.T
 
 
-def render_clip(tracks: dict[str, np.ndarray], camera: Camera, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(T, H, W, 3) uint8 frames and (T, H, W) bool masks of the mannequin posed by ``tracks``."""
+def render_clip(tracks: dict[str, np.ndarray], camera: Camera | list[Camera], *, seed: int = 0,
+                room: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(T, H, W, 3) uint8 frames and (T, H, W) bool masks of the mannequin posed by ``tracks``, seen by one
+    camera or one per frame; ``room``: in a textured room (a background a moving camera can be found from)
+    instead of the plain backdrop."""
     from sync4d.render.splat_torch import SplatTorch
+    from sync4d.scenes.reference_video import room_image
 
-    renderer = SplatTorch(SplatTorch.Config(background=[0.78, 0.78, 0.76], num_threads=1))
+    renderer = SplatTorch(SplatTorch.Config(background=[0.0] * 3 if room else [0.78, 0.78, 0.76], num_threads=1))
+    allp = np.concatenate(list(tracks.values()))
+    centre, floor_y = 0.5 * (allp.min(0) + allp.max(0)), float(allp[:, 1].min()) - 0.04
+    half = 1.5 * float(np.ptp(allp, axis=0).max()) + 1.5
     light = np.array([0.3, 0.8, 0.6])
     light /= np.linalg.norm(light)
     rng = np.random.default_rng(seed)
@@ -240,9 +250,13 @@ def render_clip(tracks: dict[str, np.ndarray], camera: Camera, *, seed: int = 0)
         means = np.concatenate(pts)
         sigma = 0.008
         covs = np.tile(np.eye(3) * sigma**2, (len(means), 1, 1))
-        out = renderer.render_full(means, covs, np.concatenate(cols), np.full(len(means), 0.9), camera)
-        frames.append((np.clip(out["rgb"], 0, 1) * 255).astype(np.uint8))
-        masks.append(out["alpha"] > 0.5)
+        cam = camera[t] if isinstance(camera, list) else camera
+        out = renderer.render_full(means, covs, np.concatenate(cols), np.full(len(means), 0.9), cam)
+        rgb, alpha = np.asarray(out["rgb"]), np.asarray(out["alpha"]).reshape(cam.height, cam.width)
+        if room:
+            rgb = rgb + (1.0 - alpha[..., None]) * room_image(cam, centre, floor_y, half)
+        frames.append((np.clip(rgb, 0, 1) * 255).astype(np.uint8))
+        masks.append(alpha > 0.5)
     return np.stack(frames), np.stack(masks)
 
 
@@ -273,32 +287,73 @@ def clip_camera(tracks: dict[str, np.ndarray], view: str, width: int, height: in
     return camera_from_look(K, pos, fwd, up, width, height), K, pos, fwd, up
 
 
+def handheld_cameras(tracks: dict[str, np.ndarray], view: str, width: int, height: int, fov_deg: float,
+                     seed: int) -> list[Camera]:
+    """Per-frame cameras of a hand-held film of the clip, around :func:`clip_camera`'s static framing.
+
+    Over the clip the camera walks a 20 deg arc around the clip's centre (smoothstep, direction by the seed)
+    and bobs 5 cm; it pans after the walker (aims at the point halfway between the clip's centre and the
+    pelvis), drifts (a seeded random walk of the aim, 3 cm a frame) and shakes (0.7 deg of aim and 1 deg of
+    roll a frame, white).
+    """
+    from sync4d.sources.references import camera_from_look
+
+    rng = np.random.default_rng(seed)
+    _, K, pos, _, up = clip_camera(tracks, view, width, height, fov_deg)
+    allp = np.concatenate(list(tracks.values()))
+    centre = 0.5 * (allp.min(0) + allp.max(0))
+    count = len(tracks["pelvis"])
+    s = np.linspace(0.0, 1.0, count)
+    sweep = np.radians(20.0) * (3 * s**2 - 2 * s**3 - 0.5) * (1 if rng.uniform() < 0.5 else -1)
+    drift = np.cumsum(rng.normal(0.0, 0.03, (count, 3)), axis=0) * np.array([1.0, 0.5, 1.0])
+    cams = []
+    for t in range(count):
+        c, sn = np.cos(sweep[t]), np.sin(sweep[t])
+        arm = pos - centre
+        p = centre + np.array([c * arm[0] + sn * arm[2], arm[1], -sn * arm[0] + c * arm[2]])
+        p = p + np.array([0.0, 0.05 * np.sin(2 * np.pi * s[t]), 0.0])
+        aim = centre + 0.5 * (tracks["pelvis"][t] - centre) + drift[t]
+        fwd = aim - p
+        dist = float(np.linalg.norm(fwd))
+        fwd = fwd + rng.normal(0.0, np.radians(0.7) * dist, 3)
+        roll = np.radians(rng.normal(0.0, 1.0))
+        side = np.cross(fwd / np.linalg.norm(fwd), up)
+        side /= np.linalg.norm(side)
+        cams.append(camera_from_look(K, p, fwd, np.cos(roll) * up + np.sin(roll) * side, width, height))
+    return cams
+
+
 def write_clip(
-    out: Path, clip: str, view: str, *, frames: int, stride: int, width: int, height: int, fov_deg: float
+    out: Path, clip: str, view: str, *, frames: int, stride: int, width: int, height: int, fov_deg: float,
+    handheld: int | None = None,
 ) -> dict:
-    """Render one clip into ``out`` and return a summary."""
+    """Render one clip into ``out`` (static camera, or hand-held with seed ``handheld``) and return a summary."""
     import imageio.v2 as imageio
 
     from sync4d.io.video import write_video
 
     tracks, fps = load_clip(clip, frames, stride)
     camera, K, pos, fwd, up = clip_camera(tracks, view, width, height, fov_deg)
-    rgb, masks = render_clip(tracks, camera)
+    if handheld is not None:
+        cameras = handheld_cameras(tracks, view, width, height, fov_deg, handheld)
+        rgb, masks = render_clip(tracks, cameras, room=True)
+    else:
+        rgb, masks = render_clip(tracks, camera)
     out.mkdir(parents=True, exist_ok=True)
     write_video(out / "rgb.mp4", rgb, fps)
     (out / "masks").mkdir(exist_ok=True)
     for t, m in enumerate(masks):
         imageio.imwrite(out / "masks" / f"{t:05d}.png", (m * 255).astype(np.uint8))
-    np.savez(out / "camera.npz", K=K, cam_pos=pos, cam_forward=fwd, cam_up=up)
+    cam_fields: dict[str, Any] = ({"world_to_cam": np.stack([c.world_to_cam for c in cameras])} if handheld is not None else
+                  {"cam_pos": pos, "cam_forward": fwd, "cam_up": up})
+    np.savez(out / "camera.npz", K=K, **cam_fields)
     from sync4d_tools.evaluate.recon_joints import HUMAN_VOCABULARY
 
     names = DOG_TRUTH if clip == "dog" else HUMAN_VOCABULARY
     joints = np.stack([tracks[n] for n in names], axis=1)
     # the camera again in gt.npz: reference=video's camera 'auto' reads gt.npz beside the video (laptop layout)
-    np.savez(
-        out / "gt.npz", joints=joints, names=np.array(names), fps=fps, K=K, cam_pos=pos, cam_forward=fwd, cam_up=up
-    )
-    return {"clip": clip, "view": view, "frames": len(rgb), "fps": fps, "out": str(out)}
+    np.savez(out / "gt.npz", joints=joints, names=np.array(names), fps=fps, K=K, **cam_fields)
+    return {"clip": clip, "view": view, "frames": len(rgb), "fps": fps, "out": str(out), "handheld": handheld}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -311,6 +366,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--fov", type=float, default=50.0, help="vertical field of view [deg]")
+    parser.add_argument("--handheld", type=int, default=None, metavar="SEED",
+                        help="film hand-held in a textured room with this seed (default: static camera, plain backdrop)")
     args = parser.parse_args(argv)
     result = write_clip(
         Path(args.out),
@@ -321,6 +378,7 @@ def main(argv: list[str] | None = None) -> dict:
         width=args.width,
         height=args.height,
         fov_deg=args.fov,
+        handheld=args.handheld,
     )
     print(json.dumps(result))
     return result

@@ -3,7 +3,10 @@
     python -m sync4d_tools.body_suite --out outputs/body_suite [--only cmu,deepmimic,dog,shiba,fox_walk,fox_walk_orbit]
 
 Humans are scored twice: with the renders' camera (``--camera``) and with the camera unknown (the fit's
-assumed field of view), through ``recon_joints``. Quadrupeds are fitted with their true masks and true camera
+assumed field of view), through ``recon_joints``. The people clips are also filmed hand-held in a textured
+room (:data:`HANDHELD`: each clip and view at two seeds, ``<clip>_<view>_handheld<seed>``; ``--only handheld``
+runs these alone) and scored by :func:`score_handheld`: from the mp4 alone (the video front end's masks and
+camera), with the true per-frame camera, with the camera taken as static, and the do-nothing floor. Quadrupeds are fitted with their true masks and true camera
 (per frame when it moves: :func:`load_quadruped_clip` hands ``VideoClip.extrinsics`` to the fit) and scored
 here (:func:`score_quadruped`), the floor beside (:func:`floor_joints`: the template's rest pose at each
 mask's centroid): the dog trot (capsules around the AI4Animation trot), the Lab4D shiba-haru-1002 export
@@ -31,6 +34,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sync4d.errors import Sync4DError
+from sync4d.recon.body_video import BodyVideoFit
 from sync4d.types import Camera, ReferenceInput, VideoClip
 from sync4d_tools import camera_of, video_of
 from sync4d_tools.body_clips import write_clip
@@ -66,6 +71,9 @@ CLIPS = (
     ("fox_survey", "oblique", 0, 1),
 )
 QUADRUPEDS = ("dog", "shiba", "fox_walk", "fox_run", "fox_survey")
+# people filmed hand-held in a textured room (sync4d_tools.body_clips.handheld_cameras): clip, view, seed
+HANDHELD = tuple((clip, view, seed + 6 * rep) for rep in range(2) for seed, (clip, view) in enumerate(
+    (c, v) for c in ("cmu", "deepmimic") for v in ("front", "oblique", "side")))
 
 
 def render_clip(folder: Path, clip: str, view: str, frames: int, stride: int) -> None:
@@ -80,6 +88,102 @@ def render_clip(folder: Path, clip: str, view: str, frames: int, stride: int) ->
         human = clip not in QUADRUPEDS
         width, height = (320, 480) if human else (480, 320)
         write_clip(folder, clip, view, frames=frames, stride=stride, width=width, height=height, fov_deg=50.0)
+
+
+def run_handheld(out: Path, clip: str, view: str, seed: int) -> dict:
+    """Render (if absent) and score one hand-held people clip (:func:`score_handheld`)."""
+    folder = out / f"{clip}_{view}_handheld{seed}"
+    if not (folder / "gt.npz").is_file():
+        frames, stride = next((f, s) for c, v, f, s in CLIPS if c == clip and v == view)
+        write_clip(folder, clip, view, frames=frames, stride=stride, width=320, height=480, fov_deg=50.0,
+                   handheld=seed)
+    return {"clip": clip, "view": view, "seed": seed, **score_handheld(folder)}
+
+
+def score_handheld(folder: Path) -> dict:
+    """One hand-held people clip fitted three ways from the same frames, scored as ``recon_joints`` does:
+    ``alone`` (the mp4 only: masks, intrinsics and per-frame camera from the video front end), ``given`` (the
+    true intrinsics and per-frame camera), ``identity`` (the front end's intrinsics, the camera taken as
+    static: its motion read as the body's), and the do-nothing floor (:func:`human_floor`)."""
+    from sync4d.frontend import FrontEndConfig, complete_video
+    from sync4d.io.video import read_video_clip
+
+    video = read_video_clip(folder / "rgb.mp4", folder / "masks")
+    h, w = video.frames.shape[1:3]
+    gt = np.load(folder / "gt.npz")
+    truth, names = np.asarray(gt["joints"], dtype=np.float64), [str(n) for n in gt["names"]]
+    cam = np.load(folder / "camera.npz")
+    K, w2c = cam["K"].astype(np.float64), cam["world_to_cam"].astype(np.float64)
+    bare = VideoClip(video.frames, np.zeros_like(video.masks), video.fps, source=str(folder)).validate()
+    given = Camera(K=K, world_to_cam=w2c[0], width=w, height=h).validate()
+    inputs = {"given": (VideoClip(video.frames, np.zeros_like(video.masks), video.fps, K, w2c, str(folder)).validate(),
+                        given)}
+    row: dict = {}
+    cpu = time.process_time()
+    try:
+        found, first = complete_video(bare, None, FrontEndConfig(), masks_given=False)
+    except Sync4DError as err:  # a refusal is a result: no mp4-alone row
+        row["front_end_error"] = str(err)
+    else:
+        assert found.extrinsics is not None and found.intrinsics is not None  # the front end fills the camera
+        still = Camera(K=found.intrinsics, world_to_cam=np.eye(4), width=w, height=h).validate()
+        inputs["alone"] = (found, first)
+        inputs["identity"] = (VideoClip(video.frames, found.masks, video.fps, found.intrinsics, None,
+                                        str(folder)).validate(), still)
+    front_cpu = time.process_time() - cpu
+    for key, (clip, camera) in inputs.items():
+        fit, cpu_s = human_fit(ReferenceInput(name=folder.name, fps=video.fps, video=clip, camera=camera))
+        score = joint_score(fit.joints[:, [fit.names.index(n) for n in names]], truth[: len(fit.joints)])
+        row[f"{key}_mpjpe_pct_height"], row[f"{key}_pck10"] = score["mpjpe_pct_height"], score["pck10"]
+        row[f"{key}_cpu_seconds"] = round(cpu_s, 2)
+        if key == "alone":
+            row["mask_iou"] = round(mask_iou(fit.masks, video.masks), 4)
+            row["front_end_mask_iou"] = round(mask_iou(found.masks, video.masks), 4)
+    floor = joint_score(human_floor(video.masks, K, w2c, names), truth)
+    rot = np.einsum("tij,kj->tik", w2c[:, :3, :3], w2c[0, :3, :3])  # each camera relative to the first
+    turn = np.degrees(np.arccos(np.clip((np.trace(rot, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    return {**row, "floor_mpjpe_pct_height": floor["mpjpe_pct_height"], "floor_pck10": floor["pck10"],
+            "ratio_alone_given": (round(row["alone_mpjpe_pct_height"] / max(row["given_mpjpe_pct_height"], 1e-9), 3)
+                                  if "alone_mpjpe_pct_height" in row else None),
+            "camera_turn_max_deg": round(float(turn.max()), 2), "front_end_cpu_seconds": round(front_cpu, 2),
+            "frames": len(truth), "height_m": floor["height_m"]}
+
+
+def human_fit(source: ReferenceInput) -> tuple[BodyVideoFit, float]:
+    """``recon=body_video`` (human, defaults) on ``source``: the fit and its CPU seconds."""
+    from sync4d.recon.body_video import BodyVideoReconstructor
+
+    cpu = time.process_time()
+    fit = BodyVideoReconstructor(BodyVideoReconstructor.Config(subject="human", figures=False)).fit(source)
+    return fit, time.process_time() - cpu
+
+
+# a person standing, arms down, facing +z, y up, pelvis at the origin [m] (1.7 m tall; recon_joints' names)
+STANDING = {
+    "head": (0.0, 0.62, 0.0), "l_shoulder": (0.19, 0.46, 0.0), "r_shoulder": (-0.19, 0.46, 0.0),
+    "l_elbow": (0.22, 0.17, 0.0), "r_elbow": (-0.22, 0.17, 0.0), "l_wrist": (0.23, -0.09, 0.03),
+    "r_wrist": (-0.23, -0.09, 0.03), "l_hip": (0.1, -0.02, 0.0), "r_hip": (-0.1, -0.02, 0.0),
+    "l_knee": (0.1, -0.46, 0.02), "r_knee": (-0.1, -0.46, 0.02), "l_ankle": (0.1, -0.88, 0.0),
+    "r_ankle": (-0.1, -0.88, 0.0),
+}
+
+
+def human_floor(masks: np.ndarray, K: np.ndarray, w2c: np.ndarray, names: list[str]) -> np.ndarray:
+    """The do-nothing baseline (T, J, 3) [m, world]: a person standing (:data:`STANDING`) facing each frame's
+    camera, at its mask's centroid at the depth a 1.7 m person of the mask's height is at, taken to the
+    world by the true camera of each frame."""
+    out: list[np.ndarray] = []
+    pose = np.array([STANDING[n] for n in names]) * np.array([1.0, -1.0, -1.0])  # y down, facing the camera
+    for t, mask in enumerate(masks):
+        ys, xs = np.nonzero(mask)
+        if len(ys) == 0:
+            out.append(out[-1] if out else np.zeros((len(names), 3)))
+            continue
+        depth = K[1, 1] * 1.7 / max(float(np.ptp(ys)), 1.0)
+        centre = np.linalg.inv(K) @ np.array([xs.mean(), ys.mean(), 1.0]) * depth
+        c2w = np.linalg.inv(w2c[t])
+        out.append((pose + centre) @ c2w[:3, :3].T + c2w[:3, 3])
+    return np.stack(out)
 
 
 def run_clip(out: Path, clip: str, view: str, frames: int, stride: int) -> list[dict]:
@@ -289,9 +393,36 @@ def main(argv: list[str] | None = None) -> dict:
             f"| {r['clip']} | {r['view']} | {r['camera']} | {r['mpjpe_pct_height']:.2f} | {r['pck10']:.3f} | {floor} | "
             f"{r['mask_iou']:.3f} | {r['frames']} | {r['cpu_seconds']:.0f} |"
         )
+    handheld = []
+    for clip, view, seed in HANDHELD:
+        if keep is None or clip in keep or f"{clip}_{view}_handheld{seed}" in keep or "handheld" in keep:
+            handheld.append(run_handheld(out, clip, view, seed))
+            print(json.dumps(handheld[-1]), flush=True)
+    if handheld:
+        print(handheld_table(handheld, rows))
     out.mkdir(parents=True, exist_ok=True)
-    (out / "suite.json").write_text(json.dumps(rows, indent=1))
-    return {"rows": rows}
+    (out / "suite.json").write_text(json.dumps(rows + handheld, indent=1))
+    return {"rows": rows, "handheld": handheld}
+
+
+def handheld_table(handheld: list[dict], rows: list[dict]) -> str:
+    """Markdown: each hand-held row beside the same clip and view filmed by the static camera (known)."""
+    static = {(r["clip"], r["view"]): r for r in rows if r["camera"] == "known"}
+    lines = ["| clip | view | seed | camera turn [deg] | mp4 alone % (pck10) | camera given % (pck10) | alone / given | "
+             "camera as static % (pck10) | floor % (pck10) | static camera, known % (pck10) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in handheld:
+        st = static.get((r["clip"], r["view"]))
+        ref = f"{st['mpjpe_pct_height']:.2f} ({st['pck10']:.3f})" if st else "-"
+        def cell(key: str, r: dict = r) -> str:
+            if f"{key}_mpjpe_pct_height" not in r:
+                return "front end refused"
+            return f"{r[key + '_mpjpe_pct_height']:.2f} ({r[key + '_pck10']:.3f})"
+
+        ratio = "-" if r["ratio_alone_given"] is None else f"{r['ratio_alone_given']:.2f}"
+        lines.append(f"| {r['clip']} | {r['view']} | {r['seed']} | {r['camera_turn_max_deg']:.1f} | {cell('alone')} | "
+                     f"{cell('given')} | {ratio} | {cell('identity')} | {cell('floor')} | {ref} |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ person (``subject: human``) or a four-legged animal (``subject: quadruped``).
 * human: BlazePose (MediaPipe's legacy models under LiteRT, :mod:`sync4d.recon.pose.blazepose`) gives 2D
   landmarks, metric 3D world landmarks and a person mask per frame; a 17-joint skeleton is fitted to
   them over the clip (:mod:`sync4d.recon.pose.human_fit`: reprojection, world pose, shared bone lengths,
-  joint limits, smoothness).
+  joint limits, smoothness), seen by the clip's per-frame camera when it moves (``VideoClip.extrinsics``,
+  e.g. the video front end's: its rotations, with its path re-measured in metres from the ground beside
+  the feet, :func:`ground_camera`).
 * quadruped: a skinned body template (the glTF fox by default, :mod:`sync4d.recon.pose.templates`) fitted to
   the masks (input, or a static-camera background model) by its soft mesh silhouette with bone length and
   girth priors, seen by the clip's per-frame camera when it moves (``VideoClip.extrinsics``); several
@@ -42,6 +44,7 @@ from sync4d.types import Camera, Reference, ReferenceInput, VideoClip
 log = logging.getLogger(__name__)
 
 DEFAULT_BONES = {"human": 11, "quadruped": 13}
+FEET = ("l_ankle", "r_ankle", "l_toe", "r_toe")
 # camera (OpenCV: x right, y down, z forward) -> a y-up world when the camera pose is unknown
 CAM_TO_YUP = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -60,7 +63,8 @@ class BodyVideoFit:
         landmarks_2d: (T, L, 2) detected image landmarks [px] (humans), or None.
         seconds: wall time of detection and fit [s].
         silhouettes: (T, H, W) bool the fitted body seen by each frame's camera (quadrupeds), or None.
-        extrinsics: (T, 4, 4) world-to-camera per frame when the camera moves, else None.
+        extrinsics: (T, 4, 4) world-to-camera per frame when the camera moves, else None (humans: the
+            clip's rotations with translations in metres from :func:`ground_camera`).
     """
 
     joints: np.ndarray
@@ -145,7 +149,21 @@ class BodyVideoReconstructor:
 
             detector, landmarks = load_models(self.config.model_dir)
             track = track_video(clip.frames, detector, landmarks, source=clip.source or source.name)
-            fit = fit_human(track, camera.K, self.config.human, fps=float(source.fps or clip.fps))
+            fps = float(source.fps or clip.fps)
+            fit = fit_human(track, camera.K, self.config.human, fps=fps)
+            if moving_camera(clip.extrinsics):
+                # a moving camera (given, or the front end's, whose translations are in units of the background's
+                # depth or missing when it found turns only): its turns are kept, its path is re-measured in
+                # metres from the ground at the feet, and its pan and shake are then not the body's motion
+                assert clip.extrinsics is not None
+                feet = fit.joints[:, [fit.names.index(n) for n in FEET]]
+                up = np.array([0.0, 1.0, 0.0]) if source.world_up is None else source.world_up
+                metric = ground_camera(clip.frames, track.masks, camera.K, clip.extrinsics[:, :3, :3], feet, up)
+                if metric is None:
+                    log.warning("body_video: too little ground beside the feet to measure the moving camera's path; "
+                                "the body is fitted as if the camera stood still")
+                else:
+                    fit = fit_human(track, camera.K, self.config.human, fps=fps, extrinsics=metric)
             return BodyVideoFit(
                 fit.joints,
                 fit.names,
@@ -154,6 +172,7 @@ class BodyVideoReconstructor:
                 track.masks,
                 track.landmarks_2d,
                 time.perf_counter() - started,
+                extrinsics=fit.extrinsics,
             )
         masks = clip.masks
         if not masks.any():
@@ -218,6 +237,120 @@ class BodyVideoReconstructor:
         paths = write_fit_pictures(folder, pic.clip, pic.fit, pic.reference, pic.world_to_cam)
         log.info("body_video: pictures of the fit in %s", ", ".join(str(p) for p in paths))
         return paths
+
+
+def moving_camera(extrinsics: np.ndarray | None) -> bool:
+    """Whether (T, 4, 4) world-to-camera poses move at all (a static camera's are one pose repeated)."""
+    return extrinsics is not None and bool(np.ptp(extrinsics[:, :3], axis=0).max() > 1e-9)
+
+
+def ground_tracks(grey: list[np.ndarray], masks: np.ndarray, K: np.ndarray, feet: np.ndarray, normal: np.ndarray,
+                  t: int, r: int, *, above: float = 0.04) -> tuple[np.ndarray, np.ndarray] | None:
+    """Corners of the ground around the feet in frame ``t``, placed in 3D and tracked to frame ``r``:
+    ((N, 3) points in camera t [m], (N, 2) their pixels in frame r), or None.
+
+    The lowest foot point in the image (ankles and toes, ``feet`` (T, F, 3) in each frame's camera [m])
+    stands on the ground, the plane through it with the ``normal`` (3,) (the world's up in camera t). Corners
+    from ``above`` x the image height over its row down to the image's bottom, off the person, are on that
+    plane (the floor in front of and beside the person; walls start behind it), placed on it, and tracked
+    (forward-backward checked).
+    """
+    import cv2
+
+    height, width = grey[t].shape
+    z = feet[t, :, 2]
+    if not (z > 1e-3).all():
+        return None
+    uv = feet[t, :, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
+    low = int(np.argmax(uv[:, 1]))
+    v = uv[low, 1]
+    if not 0 <= v < height:
+        return None
+    region = np.zeros((height, width), np.uint8)
+    region[max(0, int(v - above * height)):] = 255
+    region[cv2.dilate(masks[t].astype(np.uint8), np.ones((9, 9), np.uint8)) > 0] = 0
+    corners = cv2.goodFeaturesToTrack(grey[t], 120, 0.01, 4, mask=region)
+    if corners is None:
+        return None
+    ahead, ok1, _ = cv2.calcOpticalFlowPyrLK(grey[t], grey[r], corners, None, winSize=(15, 15), maxLevel=3)
+    back, ok2, _ = cv2.calcOpticalFlowPyrLK(grey[r], grey[t], ahead, None, winSize=(15, 15), maxLevel=3)
+    good = (ok1[:, 0] == 1) & (ok2[:, 0] == 1) & (np.linalg.norm((back - corners)[:, 0], axis=1) < 1.0)
+    rays = np.concatenate([corners[:, 0], np.ones((len(corners), 1))], 1) @ np.linalg.inv(K).T
+    along = rays @ normal
+    depth = (feet[t, low] @ normal) / np.where(np.abs(along) > 1e-9, along, np.nan)
+    good &= np.isfinite(depth) & (depth > 0) & (depth < 20 * z[low])
+    if good.sum() < 3:
+        return None
+    return rays[good] * depth[good, None], ahead[good, 0].astype(np.float64)
+
+
+def ground_camera(frames: np.ndarray, masks: np.ndarray, K: np.ndarray, rotations: np.ndarray, feet: np.ndarray,
+                  up: np.ndarray, *, gaps: tuple[int, ...] = (2, 4), smooth: float = 10.0, huber: float = 2.0) -> np.ndarray | None:
+    """(T, 4, 4) world-to-camera with the given rotations and metric translations from the ground at the feet
+    (the first camera's centre at the world's origin), or None with too little ground.
+
+    The ground around the feet (:func:`ground_tracks`: the plane through the lowest foot, normal to the
+    world's ``up``) gives known points of camera t [m]; where it is seen in frame r (``gaps`` frames on) places camera r's centre C_r
+    relative to C_t: ``[q]x R_r (C_t - C_r) = -[q]x R_r R_t^T X`` for the ray q of the tracked pixel. All pairs
+    are solved at once by least squares (IRLS, Huber at ``huber`` px), with a weak second-difference prior
+    (``smooth``, [1/m] per frame at the focal's unit) bridging frames without ground.
+
+    Args:
+        frames: (T, H, W, 3) uint8 RGB.
+        masks: (T, H, W) bool person masks.
+        K: (3, 3) intrinsics [px].
+        rotations: (T, 3, 3) world-to-camera rotations.
+        feet: (T, F, 3) ankle and toe positions in each frame's camera [m] (a fit with the camera still).
+        up: (3,) the world's up (the ground's normal; its sign does not matter).
+    """
+    import cv2
+
+    count = len(frames)
+    grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
+    k_inv = np.linalg.inv(K)
+    rows, rhs, pairs = [], [], []
+    for t in range(count):
+        for gap in gaps:
+            r = t + gap
+            tracks = ground_tracks(grey, masks, K, feet, rotations[t] @ up, t, r) if r < count else None
+            if tracks is None:
+                continue
+            x_t, b = tracks  # (N, 3) in camera t [m], (N, 2) pixels in r
+            q = np.concatenate([b, np.ones((len(b), 1))], 1) @ k_inv.T  # (N, 3) rays in camera r
+            cross = np.zeros((len(q), 3, 3))
+            cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -q[:, 2], q[:, 1], -q[:, 0]
+            cross = cross - np.swapaxes(cross, 1, 2)
+            coef = cross @ rotations[r]  # (N, 3, 3) acting on C_t - C_r
+            rhs.append(-(cross @ (rotations[r] @ rotations[t].T @ x_t.T).T[..., None])[..., 0].reshape(-1))
+            rows.append(coef.reshape(-1, 3))
+            pairs.append(np.repeat([[t, r]], 3 * len(q), axis=0))
+    if not rows or sum(len(x) for x in rows) < 3 * 20:
+        return None
+    coef_all, b_all, idx = np.concatenate(rows), np.concatenate(rhs), np.concatenate(pairs)
+    n = 3 * count
+    a_all = np.zeros((len(b_all), n))
+    for k in range(3):
+        a_all[np.arange(len(b_all)), 3 * idx[:, 0] + k] += coef_all[:, k]
+        a_all[np.arange(len(b_all)), 3 * idx[:, 1] + k] -= coef_all[:, k]
+    prior = np.zeros((3 * max(count - 2, 0) + 3, n))
+    for t in range(count - 2):
+        for k in range(3):
+            prior[3 * t + k, [3 * t + k, 3 * (t + 1) + k, 3 * (t + 2) + k]] = np.array([1.0, -2.0, 1.0]) * smooth
+    prior[-3:, :3] = np.eye(3) * 1e3  # the first camera's centre at the origin
+    weight = np.ones(len(b_all))
+    delta = huber / float(K[0, 0])
+    for _ in range(4):
+        sw = np.sqrt(weight)[:, None]
+        system = np.concatenate([a_all * sw, prior])
+        target = np.concatenate([b_all * sw[:, 0], np.zeros(len(prior))])
+        centres = np.linalg.lstsq(system, target, rcond=None)[0]
+        resid = np.abs(a_all @ centres - b_all)
+        weight = np.where(resid < delta, 1.0, delta / np.maximum(resid, 1e-12))
+    centres = centres.reshape(count, 3)
+    out = np.tile(np.eye(4), (count, 1, 1))
+    out[:, :3, :3] = rotations
+    out[:, :3, 3] = -np.einsum("tij,tj->ti", rotations, centres)
+    return out
 
 
 @dataclass(frozen=True)

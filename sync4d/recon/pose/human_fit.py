@@ -17,6 +17,11 @@ camera frame are optimised jointly over the clip against:
 
 The clip's depth comes from the metric world landmarks and the focal length (a 1.7 m person spanning
 h pixels is at z = f 1.7 / h), so the assumed field of view sets the distance, not the pose.
+
+A moving camera (per-frame world-to-camera poses [m]; the video front end's are put in metres by
+:func:`sync4d.recon.body_video.ground_camera`): each frame's joints stay in that frame's camera (the image
+terms are unchanged), but the smoothness acts on the body in the world, ``R_t^T (X_t - c_t)``, so a pan or
+a shake is the camera's motion, not the body's; the result is given in the first frame's camera.
 """
 
 from __future__ import annotations
@@ -91,11 +96,12 @@ class HumanFit:
     """The fitted body motion.
 
     Attributes:
-        joints: (T, J, 3) joint positions in the camera frame (OpenCV axes, y down) [m].
+        joints: (T, J, 3) joint positions in the (first frame's) camera frame (OpenCV axes, y down) [m].
         names: (J,) joint names (:data:`JOINT_NAMES`).
         parents: (J,) parent index, -1 for the pelvis.
         bone_lengths: (J,) length of the segment ending at each joint (0 for the root) [m].
         reprojection_px: (T,) mean visible-landmark reprojection error per frame [px].
+        extrinsics: (T, 4, 4) the per-frame world-to-camera poses the fit was seen by [m], or None (static).
     """
 
     joints: np.ndarray
@@ -103,6 +109,7 @@ class HumanFit:
     parents: np.ndarray
     bone_lengths: np.ndarray
     reprojection_px: np.ndarray
+    extrinsics: np.ndarray | None = None
 
 
 def gather_joints(points: np.ndarray) -> np.ndarray:
@@ -155,7 +162,8 @@ def _hinge_losses(x: torch.Tensor, min_cos: float) -> torch.Tensor:
     return loss
 
 
-def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: float = 10.0) -> HumanFit:
+def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: float = 10.0,
+              extrinsics: np.ndarray | None = None) -> HumanFit:
     """Fit the 17-joint skeleton to a :class:`PoseTrack` seen by a camera with intrinsics ``K``.
 
     Args:
@@ -163,6 +171,8 @@ def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: floa
         K: (3, 3) intrinsics [px].
         config: weights and schedule.
         fps: the video's frame rate [1/s]; the smoothness acts on accelerations.
+        extrinsics: (T, 4, 4) world-to-camera per frame of a moving camera, translations in metres (the
+            front end's are not: :func:`sync4d.recon.body_video.ground_camera`), or None for a static camera.
     """
     world = gather_joints(track.world)
     world = world - world[:, :1]
@@ -184,7 +194,15 @@ def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: floa
     focal = float(K[0, 0])
     flow = flow_targets(track, vis)
     min_cos = float(np.cos(np.radians(config.min_hinge_deg)))
+    moving = extrinsics is not None
+    rot_np = np.asarray(extrinsics)[:, :3, :3] if moving else np.tile(np.eye(3), (len(x0), 1, 1))
+    cam_t_np = np.asarray(extrinsics)[:, :3, 3] if moving else np.zeros((len(x0), 3))
+    rot, cam_t = torch.tensor(rot_np, dtype=dt), torch.tensor(cam_t_np, dtype=dt)
     opt = torch.optim.LBFGS([x, log_len], lr=1.0, max_iter=config.iterations, line_search_fn="strong_wolfe")
+
+    def in_world(points: torch.Tensor) -> torch.Tensor:
+        """(T, J, 3) camera-frame points -> the world, R_t^T (X - c_t)."""
+        return torch.einsum("tji,tkj->tki", rot, points - cam_t[:, None])
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
@@ -197,7 +215,8 @@ def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: floa
         seg_len = (x[:, seg_t] - x[:, par_t]).norm(dim=-1)
         lengths = 0.5 * (log_len.exp() + log_len.exp()[mir_t])
         l_bone = (seg_len - lengths).pow(2).mean()
-        second = (x[2:] - 2 * x[1:-1] + x[:-2]) * (fps / SMOOTH_FPS) ** 2  # acceleration x (0.1 s)^2
+        xw = in_world(x) if moving else x
+        second = (xw[2:] - 2 * xw[1:-1] + xw[:-2]) * (fps / SMOOTH_FPS) ** 2  # acceleration x (0.1 s)^2
         l_smooth = second.pow(2).sum(-1).mean() if len(x) > 2 else x.new_zeros(())
         l_limit = _hinge_losses(x, min_cos)
         l_flow = _flow_loss(proj, flow, focal, hub) if flow is not None else x.new_zeros(())
@@ -216,10 +235,14 @@ def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: floa
     with torch.no_grad():
         joints = x.detach().numpy()
         err_px = (_project(x, K_t) - uv_t).norm(dim=-1).numpy()
+        if moving:
+            first = np.asarray(extrinsics, dtype=np.float64)[0]
+            joints = in_world(x).numpy() @ first[:3, :3].T + first[:3, 3]  # the first frame's camera
     bone = np.zeros(len(PARENTS))
     bone[seg] = np.linalg.norm(joints[:, seg] - joints[:, PARENTS[seg]], axis=-1).mean(0)
     rep = (err_px * vis).sum(1) / np.maximum(vis.sum(1), 1e-9)
-    return HumanFit(joints=joints, names=JOINT_NAMES, parents=PARENTS.copy(), bone_lengths=bone, reprojection_px=rep)
+    return HumanFit(joints=joints, names=JOINT_NAMES, parents=PARENTS.copy(), bone_lengths=bone, reprojection_px=rep,
+                    extrinsics=None if extrinsics is None else np.asarray(extrinsics, dtype=np.float64))
 
 
 def flow_targets(track: PoseTrack, vis: np.ndarray) -> tuple[torch.Tensor, torch.Tensor] | None:
