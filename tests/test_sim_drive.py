@@ -48,7 +48,7 @@ def test_part_rig_and_substep_drive_end_on_the_pose():
     part = (pts[:, 0] > 0.05).astype(int)
     rig = part_rig(pts, part, np.full(200, 2.0), 2)
     assert rig.mass == pytest.approx([2.0 * (part == 0).sum(), 2.0 * (part == 1).sum()])
-    assert np.abs(rig.offset[part == 1].sum(0)).max() < 1e-12  # offsets about the part's own centroid
+    assert np.abs(rig.slot_offset[part == 1, 0].sum(0)).max() < 1e-12  # offsets about the part's own centroid
     end = np.stack([turn_about(rig.centroid[0], 40.0), shift([0.02, 0, 0])])
     drive = substep_drive(rig, FramePose(np.stack([np.eye(4)] * 2), end), substeps=8, frame_time=0.04)
     assert drive.turn.shape == (8, 2, 3, 3)
@@ -252,7 +252,7 @@ def test_the_drive_removes_the_rigid_part_of_the_velocity_gradient():
     whole part changes nothing at the end."""
     sim, model, pose, v0, half = _adjoint_scene(None)
     st = sim.initial_state(model)
-    part = torch.as_tensor(model.rig.part)
+    part = torch.as_tensor(model.rig.slot_part[:, 0])
     push = torch.zeros_like(v0)
     push[part == 1] = torch.tensor([0.5, -0.2, 0.1])
     a, *_ = sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=8, dt=1e-3, pose=pose)
