@@ -216,7 +216,9 @@ def test_drive_adjoint_matches_finite_differences(scene, threads):
     base = {"x": st["x"], "v": v0, "F": F0, "C": C0}
     leaves = {k: t.clone().requires_grad_(True) for k, t in base.items()}
     loss(**leaves).backward()
-    for which, eps in (("v", 3e-3), ("x", 1e-4), ("F", 3e-4), ("C", 3e-2)):
+    # steps large enough that float32 rounding of the loss stays well below the tolerance (F at 3e-4 was off by 8 %
+    # on the fields scene by rounding alone: 1e-3 and 3e-3 agree to 0.5 %)
+    for which, eps in (("v", 3e-3), ("x", 1e-4), ("F", 1e-3), ("C", 3e-2)):
         d = torch.tensor(rng.normal(size=base[which].shape), dtype=torch.float32)
         with torch.no_grad():
             fd = (float(loss(**dict(base, **{which: base[which] + eps * d})))
