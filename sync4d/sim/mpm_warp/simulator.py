@@ -25,7 +25,7 @@ import warp as wp
 
 from sync4d.device import torch_device, warp_device
 from sync4d.errors import ConfigError, InputError, SimulationDiverged
-from sync4d.run.metrics import SEAM_BAND_OF_DIAGONAL
+from sync4d.geometry import SEAM_BAND_OF_DIAGONAL
 from sync4d.registry import register
 from sync4d.sim import physics
 from sync4d.sim.mpm_warp import budget
@@ -83,7 +83,7 @@ class MPMWarp:
                 parts over which each particle's rig blends the two parts' motions (equal shares on the seam, its
                 own part's alone at the band's edge; :func:`drive.blend_weights`), as a share of the particles'
                 bounding-box diagonal; 0 = part-wise rigid. The default is the seam band the follow error leaves
-                out (:data:`sync4d.run.metrics.SEAM_BAND_OF_DIAGONAL`): a part's core is driven by its part alone.
+                out (:data:`sync4d.geometry.SEAM_BAND_OF_DIAGONAL`): a part's core is driven by its part alone.
             cpu_threads: threads of a rollout on the CPU (each launch split into particle chunks that
                 scatter into their own grids; equal to one thread up to float rounding); null = the usable
                 cores, one per 8192 particles at most. Ignored on CUDA.
