@@ -19,6 +19,12 @@ ArrayT = TypeVar("ArrayT", bound=Any)
 SH_C0 = 0.28209479177387814
 
 
+#: The band either side of a seam between two parts, as a share of the target's bounding-box diagonal, that is the
+#: joint's rather than either part's: the held drive's rig blends the two parts' motions over it
+#: (``sim.blend_band``), and a part's follow fit leaves it out (:func:`sync4d.run.metrics.follow_error`).
+SEAM_BAND_OF_DIAGONAL = 0.03
+
+
 def rgb_to_sh_dc(rgb: ArrayT) -> ArrayT:
     """(N, 3) RGB in [0, 1] -> (N, 1, 3) degree-0 SH coefficients (inverse of 0.5 + SH_C0 * c); NumPy arrays
     and torch tensors alike (differentiable)."""

@@ -48,7 +48,7 @@ def test_part_rig_and_substep_drive_end_on_the_pose():
     part = (pts[:, 0] > 0.05).astype(int)
     rig = part_rig(pts, part, np.full(200, 2.0), 2)
     assert rig.mass == pytest.approx([2.0 * (part == 0).sum(), 2.0 * (part == 1).sum()])
-    assert np.abs(rig.offset[part == 1].sum(0)).max() < 1e-12  # offsets about the part's own centroid
+    assert np.abs(rig.slot_offset[part == 1, 0].sum(0)).max() < 1e-12  # offsets about the part's own centroid
     end = np.stack([turn_about(rig.centroid[0], 40.0), shift([0.02, 0, 0])])
     drive = substep_drive(rig, FramePose(np.stack([np.eye(4)] * 2), end), substeps=8, frame_time=0.04)
     assert drive.turn.shape == (8, 2, 3, 3)
@@ -216,7 +216,9 @@ def test_drive_adjoint_matches_finite_differences(scene, threads):
     base = {"x": st["x"], "v": v0, "F": F0, "C": C0}
     leaves = {k: t.clone().requires_grad_(True) for k, t in base.items()}
     loss(**leaves).backward()
-    for which, eps in (("v", 3e-3), ("x", 1e-4), ("F", 3e-4), ("C", 3e-2)):
+    # steps large enough that float32 rounding of the loss stays well below the tolerance (F at 3e-4 was off by 8 %
+    # on the fields scene by rounding alone: 1e-3 and 3e-3 agree to 0.5 %)
+    for which, eps in (("v", 3e-3), ("x", 1e-4), ("F", 1e-3), ("C", 3e-2)):
         d = torch.tensor(rng.normal(size=base[which].shape), dtype=torch.float32)
         with torch.no_grad():
             fd = (float(loss(**dict(base, **{which: base[which] + eps * d})))
@@ -252,7 +254,7 @@ def test_the_drive_removes_the_rigid_part_of_the_velocity_gradient():
     whole part changes nothing at the end."""
     sim, model, pose, v0, half = _adjoint_scene(None)
     st = sim.initial_state(model)
-    part = torch.as_tensor(model.rig.part)
+    part = torch.as_tensor(model.rig.slot_part[:, 0])
     push = torch.zeros_like(v0)
     push[part == 1] = torch.tensor([0.5, -0.2, 0.1])
     a, *_ = sim.rollout(model, st["x"], v0, st["F"], st["C"], substeps=8, dt=1e-3, pose=pose)
@@ -396,3 +398,84 @@ def test_parts_of_one_two_or_three_particles_are_held_without_blowing_up():
     substeps, dt = sim.substeps_for(model, 2.0, fps=30.0)
     x, v, *_ = run(sim, model, FramePose(np.tile(np.eye(4), (4, 1, 1)), end), substeps=substeps, dt=dt)
     assert torch.isfinite(x).all() and float(v.norm(dim=1).max()) < 10.0
+
+
+# --------------------------------------------------------------------------------------------------
+# the blended rig: seams between joined parts follow a blend of the two parts' motions
+# --------------------------------------------------------------------------------------------------
+
+
+def test_blend_weights_share_the_seam_and_leave_cores_and_unjoined_parts_alone():
+    from sync4d.sim.mpm_warp.drive import blend_weights
+
+    pts, part, parent = _legs(400, 200, seed=4)
+    w = blend_weights(pts, part, 3, 0.02, parent)
+    np.testing.assert_allclose(w.sum(1), 1.0)
+    assert (w[np.arange(len(part)), part] >= 0.5 - 1e-12).all()  # a particle keeps at least half of its own part
+    top_bottom = (part == 0) & (pts[:, 1] < 0.054)  # the top's particles on the seam with the legs
+    assert 0.3 < w[top_bottom, 0].mean() < 0.8
+    far = (part == 0) & (pts[:, 1] > 0.08)
+    np.testing.assert_allclose(w[far, 0], 1.0)  # the core moves with its own part alone
+    legs = np.flatnonzero(part == 1)
+    assert np.all(w[legs, 2] == 0.0)  # the two legs touch but are not joined: never blended
+    np.testing.assert_allclose(blend_weights(pts, part, 3, 0.0, parent), np.eye(3)[part])  # band 0: hard labels
+
+
+def test_blend_band_of_a_small_part_scales_with_its_size():
+    """A 5 mm part on a 10 cm block keeps most of its own motion although the band is 3 cm."""
+    from sync4d.sim.mpm_warp.drive import blend_weights
+
+    block = box(2000, [0.0, 0.0, 0.0], [0.1, 0.1, 0.1], 5)
+    tip = box(60, [0.1, 0.045, 0.045], [0.105, 0.055, 0.055], 6)
+    pts, part = np.concatenate([block, tip]), np.repeat([0, 1], [2000, 60])
+    w = blend_weights(pts, part, 2, 0.03, np.array([-1, 0]))
+    assert w[part == 1, 1].mean() > 0.75
+
+
+def test_normal_matrix_is_the_rigs_jacobian_product_and_constant_for_hard_labels():
+    from sync4d.geometry import rotation_vector_to_matrix, skew_matrices
+    from sync4d.sim.mpm_warp.drive import blend_weights, normal_matrix
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0.0, 0.1, (600, 3))
+    part = np.minimum((pts[:, 0] / 0.034).astype(int), 2)
+    mass = rng.uniform(0.5, 1.5, 600)
+    turn = rotation_vector_to_matrix(rng.normal(0.0, 0.5, (3, 3)))
+    for band in (0.0, 0.02):
+        rig = part_rig(pts, part, mass, 3, blend_weights(pts, part, 3, band, np.array([-1, 0, 1])))
+        J = np.zeros((600, 3, 3, 6))  # d(rig displacement)/d(t_b, w'_b), w_b = turn_b w'_b
+        for k in range(rig.slot_part.shape[1]):
+            idx = np.flatnonzero(rig.slot_part[:, k] >= 0)
+            b, w = rig.slot_part[idx, k], rig.slot_weight[idx, k]
+            J[idx, :, b, :3] += w[:, None, None] * np.eye(3)
+            J[idx, :, b, 3:] -= w[:, None, None] * (turn[b] @ skew_matrices(rig.slot_offset[idx, k]))
+        J = J.reshape(600, 3, 18)
+        np.testing.assert_allclose(normal_matrix(rig, turn), np.einsum("p,pia,pib->ab", mass, J, J), atol=1e-12)
+    hard = part_rig(pts, part, mass, 3)
+    np.testing.assert_allclose(normal_matrix(hard, turn), normal_matrix(hard, np.stack([np.eye(3)] * 3)), atol=1e-12)
+
+
+def test_a_bent_joint_strains_less_with_the_blended_rig():
+    """Two joined blocks, the child bent 35 deg about the joint in one frame: a wide blend (capped at half each
+    block's radius of gyration) spreads the seam's shear, so the worst neighbour strain falls against the part-wise
+    rigid rig; both hold the child's rigid motion to its drive."""
+    from sync4d.run.metrics import pair_strain, rest_neighbour_pairs
+
+    base = box(1200, [0.0, 0.0, 0.0], [0.1, 0.05, 0.05], 7)
+    arm = box(1200, [0.1, 0.0, 0.0], [0.2, 0.05, 0.05], 8)
+    pts, part = np.concatenate([base, arm]), np.repeat([0, 1], 1200)
+    pairs = rest_neighbour_pairs(pts)
+    end = np.stack([np.eye(4), turn_about(np.array([0.1, 0.025, 0.025]), 35.0)])
+    worst = {}
+    for band in (0.0, 0.15):
+        sim = make_sim(E=3e4, n_grid=32, blend_band=band)
+        model = sim.prepare(pts, volume=0.2 * 0.05 * 0.05, part=part, parent=np.array([-1, 0]))
+        substeps, dt = sim.substeps_for(model, 2.0, fps=30.0)
+        spin = np.cross([0.0, 0.0, np.deg2rad(35.0) * 30.0], pts - [0.1, 0.025, 0.025]) * (part == 1)[:, None]
+        v0 = torch.tensor(spin, dtype=torch.float32)  # launched on its drive, as transfer.init=drive launches it
+        x, *_ = run(sim, model, FramePose(np.stack([np.eye(4)] * 2), end), substeps=substeps, dt=dt, v=v0)
+        x = x.double().numpy()
+        worst[band] = pair_strain(pts, x, pairs).max()
+        fit = rigid_fit(pts[part == 1], x[part == 1])
+        assert rotation_angle_deg(fit[:3, :3] @ end[1, :3, :3].T) < 0.5, band
+    assert worst[0.15] < 0.85 * worst[0.0], worst

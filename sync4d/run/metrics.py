@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sync4d.geometry import part_centroids, rigid_fit, rotation_angle_deg
+from sync4d.geometry import SEAM_BAND_OF_DIAGONAL, part_centroids, rigid_fit, rotation_angle_deg
 
 
 def displacement_error(
@@ -398,9 +398,6 @@ def fit_is_determined(points: np.ndarray, *, min_points: int = 4) -> bool:
     return bool(s[1] > 1e-3 * s[0])
 
 
-#: The seam band a part's follow fit leaves out: points within this share of the target's diagonal of another
-#: part's points (a joint's blend belongs to neither part's rigid motion).
-SEAM_BAND_OF_DIAGONAL = 0.03
 
 
 @dataclass(frozen=True)

@@ -63,6 +63,8 @@ class Method:
 METHODS: dict[str, Method | None] = {
     "default": None,
     "mpm_none": Method({"type": "mpm_warp"}),
+    # the held drive with a part-wise rigid rig (no blend at the seams): the former default
+    "mpm_rigid": Method({"type": "mpm_warp", "blend_band": 0.0}),
     # the former default: launched once a frame towards its pose, then free through the frame (no held drive)
     "mpm_launch": Method({"type": "mpm_warp", "drive": "launch"}, transfer={"init": "pose"}),
     "mpm_triplane": Method({"type": "mpm_warp"}, {"type": "triplane"}),

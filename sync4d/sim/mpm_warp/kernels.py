@@ -759,9 +759,11 @@ def kirchhoff_stress_adjoint(
 
 # ----------------------------------------------------------------------------------------------------
 # The drive held through the frame (complementary dynamics, Zhang et al. 2020, in velocity and position
-# form): after every G2P, each part's rigid (6-DOF, mass-weighted) deviation from its drive is removed from
-# the particles' positions and velocities; what the rig does not control stays with the physics.
-# Adjoints: Warp's generated ones, launched with ``adjoint=True`` by the solver.
+# form): after every G2P, the particles' deviation from the rig (each particle the blend of its parts' driven
+# motions) is removed within the rig's degrees of freedom (a translation and a small rotation per part, a
+# least-squares fit in the mass metric), from positions and velocities; what the rig does not control stays with
+# the physics. Adjoints: Warp's generated ones for drive_sums and drive_apply, launched with ``adjoint=True`` by the
+# solver; drive_solve is a symmetric matrix product and is its own adjoint.
 # ----------------------------------------------------------------------------------------------------
 
 
@@ -786,8 +788,9 @@ def rotation_from_vector(w: wp.vec3) -> wp.mat33:
 def drive_sums(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    offset: wp.array(dtype=wp.vec3),
-    part: wp.array(dtype=wp.int32),
+    slot_part: wp.array2d(dtype=wp.int32),
+    slot_weight: wp.array2d(dtype=float),
+    slot_offset: wp.array2d(dtype=wp.vec3),
     mass: wp.array(dtype=float),
     turn: wp.array(dtype=wp.mat33),
     centre: wp.array(dtype=wp.vec3),
@@ -795,27 +798,68 @@ def drive_sums(
     angular: wp.array(dtype=wp.vec3),
     sums: wp.array2d(dtype=wp.vec3),
 ):
-    """Per part b, the mass-weighted rigid moments of the particles' deviation from their drive.
+    """Per part b, the rig's generalised forces J^T M u of the particles' deviation from the rig.
 
     Args:
         x, v: (P,) positions [m] and velocities [m/s] after G2P.
-        offset: (P,) rest position minus the part's rest mass centroid [m]; part: (P,) part (< 0: free).
+        slot_part, slot_weight, slot_offset: (P, 4) each particle's blended parts (< 0: an empty slot), their
+            weights and the rest offsets from those parts' rest mass centroids [m].
         mass: (P,) [kg]. turn: (B,) the drive's rest -> now rotation; centre: (B,) the driven centroid [m];
         linear, angular: (B,) the drive's centroid velocity [m/s] and angular velocity [rad/s].
-        sums: (B, 4) accumulates sum m u, sum m r x u, sum m w, sum m r x w, with r = turn offset, u = x - (centre
-            + r) and w = v - (linear + angular x r) (must be zeroed).
+        sums: (B, 4) accumulates sum m w_b u, sum m w_b r_b x u, sum m w_b e, sum m w_b r_b x e, with r_b = turn_b
+            offset_b, u = x - sum_b w_b (centre_b + r_b) and e = v - sum_b w_b (linear_b + angular_b x r_b)
+            (must be zeroed).
     """
     p = wp.tid()
-    b = part[p]
-    if b >= 0:
-        r = turn[b] * offset[p]
-        m = mass[p]
-        u = x[p] - (centre[b] + r)
-        w = v[p] - (linear[b] + wp.cross(angular[b], r))
-        wp.atomic_add(sums, b, 0, m * u)
-        wp.atomic_add(sums, b, 1, m * wp.cross(r, u))
-        wp.atomic_add(sums, b, 2, m * w)
-        wp.atomic_add(sums, b, 3, m * wp.cross(r, w))
+    if slot_part[p, 0] < 0:
+        return
+    x_rig = wp.vec3(0.0)
+    v_rig = wp.vec3(0.0)
+    for k in range(4):
+        b = slot_part[p, k]
+        if b >= 0:
+            r = turn[b] * slot_offset[p, k]
+            x_rig = x_rig + slot_weight[p, k] * (centre[b] + r)
+            v_rig = v_rig + slot_weight[p, k] * (linear[b] + wp.cross(angular[b], r))
+    u = x[p] - x_rig
+    e = v[p] - v_rig
+    for k in range(4):
+        b = slot_part[p, k]
+        if b >= 0:
+            r = turn[b] * slot_offset[p, k]
+            m = mass[p] * slot_weight[p, k]
+            wp.atomic_add(sums, b, 0, m * u)
+            wp.atomic_add(sums, b, 1, m * wp.cross(r, u))
+            wp.atomic_add(sums, b, 2, m * e)
+            wp.atomic_add(sums, b, 3, m * wp.cross(r, e))
+
+
+@wp.kernel
+def drive_solve(
+    solve: wp.array2d(dtype=float),
+    turn: wp.array(dtype=wp.mat33),
+    sums: wp.array2d(dtype=wp.vec3),
+    theta: wp.array2d(dtype=wp.vec3),
+):
+    """theta = G solve G^T sums per (part b, column j): j = 0, 1 the translation [m] and rotation vector [rad] of the
+    positions' fit, 2, 3 those of the velocities'; G turns each part's rotation unknowns into the world by ``turn``
+    (``solve`` works in the parts' turned frames, :func:`drive.normal_matrix`). G solve G^T is symmetric, so the
+    same product takes dL/dtheta back to dL/dsums."""
+    b, j = wp.tid()
+    q = j // 2
+    row = 6 * b + 3 * (j % 2)
+    out = wp.vec3(0.0)
+    for c in range(sums.shape[0]):
+        for kind in range(2):
+            g = sums[c, 2 * q + kind]
+            if kind == 1:
+                g = wp.transpose(turn[c]) * g
+            col = 6 * c + 3 * kind
+            for i in range(3):
+                out[i] = out[i] + solve[row + i, col] * g[0] + solve[row + i, col + 1] * g[1] + solve[row + i, col + 2] * g[2]
+    if j % 2 == 1:
+        out = turn[b] * out
+    theta[b, j] = out
 
 
 @wp.kernel
@@ -834,42 +878,40 @@ def drive_apply(
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
     F: wp.array(dtype=wp.mat33),
-    offset: wp.array(dtype=wp.vec3),
-    part: wp.array(dtype=wp.int32),
+    slot_part: wp.array2d(dtype=wp.int32),
+    slot_weight: wp.array2d(dtype=float),
+    slot_offset: wp.array2d(dtype=wp.vec3),
     turn: wp.array(dtype=wp.mat33),
-    inertia_inv: wp.array(dtype=wp.mat33),
-    inv_part_mass: wp.array(dtype=float),
-    sums: wp.array2d(dtype=wp.vec3),
+    theta: wp.array2d(dtype=wp.vec3),
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
     C_out: wp.array(dtype=wp.mat33),
     F_out: wp.array(dtype=wp.mat33),
 ):
-    """Remove each part's rigid deviation (from :func:`drive_sums`'s totals): the M-orthogonal projection.
-
-    The translation t = sum m u / M and the rotation vector w = I^-1 sum m r x u (I the part's driven inertia
-    about its centroid) are taken off every particle of the part as t + w x r; likewise for the velocity, whose
-    angular part also leaves the affine matrix C; F turns with the positions' rotation.
+    """Remove the rig's fit of the deviation (:func:`drive_solve`'s ``theta``) from every particle: its blend of
+    the parts' t + w x r from positions and velocities; the blended rotation of the velocities' fit also leaves the
+    affine matrix C, and F turns with the positions' blended rotation.
 
     Args:
-        x, v, C, F: (P,) the state after G2P; offset, part, turn: as in :func:`drive_sums`.
-        inertia_inv: (B,) inverse (pseudo-inverse) inertia of each driven part [1/(kg m^2)];
-        inv_part_mass: (B,) 1 / M_b [1/kg]; sums: (B, 4) totals of :func:`drive_sums`.
+        x, v, C, F: (P,) the state after G2P; slot_part, slot_weight, slot_offset, turn: as in :func:`drive_sums`;
+        theta: (B, 4) the fits of :func:`drive_solve`.
         x_out, v_out, C_out, F_out: (P,) the corrected state (never the input arrays).
     """
     p = wp.tid()
-    b = part[p]
-    if b < 0:
-        x_out[p] = x[p]
-        v_out[p] = v[p]
-        C_out[p] = C[p]
-        F_out[p] = F[p]
-        return
-    r = turn[b] * offset[p]
-    im = inv_part_mass[b]
-    w_x = inertia_inv[b] * sums[b, 1]
-    w_v = inertia_inv[b] * sums[b, 3]
-    x_out[p] = x[p] - (im * sums[b, 0] + wp.cross(w_x, r))
-    v_out[p] = v[p] - (im * sums[b, 2] + wp.cross(w_v, r))
+    dx = wp.vec3(0.0)
+    dv = wp.vec3(0.0)
+    w_x = wp.vec3(0.0)
+    w_v = wp.vec3(0.0)
+    for k in range(4):
+        b = slot_part[p, k]
+        if b >= 0:
+            r = turn[b] * slot_offset[p, k]
+            w = slot_weight[p, k]
+            dx = dx + w * (theta[b, 0] + wp.cross(theta[b, 1], r))
+            dv = dv + w * (theta[b, 2] + wp.cross(theta[b, 3], r))
+            w_x = w_x + w * theta[b, 1]
+            w_v = w_v + w * theta[b, 3]
+    x_out[p] = x[p] - dx
+    v_out[p] = v[p] - dv
     C_out[p] = C[p] - skew(w_v)
     F_out[p] = rotation_from_vector(-w_x) * F[p]

@@ -198,7 +198,8 @@ class Workspace:
 
     def ensure_drive(self, num_parts: int) -> None:
         """Allocate the drive's scratch for ``num_parts`` parts (once per part count): the state after G2P
-        and its adjoint, the threads' partial moments (T, B, 4) and their totals (B, 4), forward and adjoint."""
+        and its adjoint, the threads' partial moments (T, B, 4), their totals and the rig's fit of them (B, 4),
+        forward and adjoint."""
         if self.drive_parts == num_parts:
             return
         self.drive_parts = num_parts
@@ -212,6 +213,8 @@ class Workspace:
         self.adj_drive_sums_of = [self.adj_drive_sums_all[t] for t in range(self.threads)]
         self.drive_total = wp.zeros(shape[1:], dtype=wp.vec3, device=self.device)
         self.adj_drive_total = wp.zeros(shape[1:], dtype=wp.vec3, device=self.device)
+        self.drive_theta = wp.zeros(shape[1:], dtype=wp.vec3, device=self.device)
+        self.adj_drive_theta = wp.zeros(shape[1:], dtype=wp.vec3, device=self.device)
 
     def ensure_backward(self, k: int) -> None:
         """Allocate the adjoint buffers and ``k`` segment states (once)."""

@@ -25,11 +25,12 @@ import warp as wp
 
 from sync4d.device import torch_device, warp_device
 from sync4d.errors import ConfigError, InputError, SimulationDiverged
+from sync4d.geometry import SEAM_BAND_OF_DIAGONAL
 from sync4d.registry import register
 from sync4d.sim import physics
 from sync4d.sim.mpm_warp import budget
 from sync4d.sim.mpm_warp.bridge import run_rollout
-from sync4d.sim.mpm_warp.drive import DriveArrays, part_rig, substep_drive
+from sync4d.sim.mpm_warp.drive import DriveArrays, blend_weights, part_rig, substep_drive
 from sync4d.sim.mpm_warp.fields import FieldSplit, field_split
 from sync4d.sim.mpm_warp.model import STATUS_OK, MPMModel, WarpState, Workspace
 from sync4d.sim.mpm_warp.solver import Launch, RolloutPlan
@@ -78,6 +79,11 @@ class MPMWarp:
                 et al. 2020): the parts follow their drive by construction and the material is free only in what
                 the rig does not control (closing the seams). ``launch`` (the paper's form): the material starts
                 each frame with the velocities it is given and flies freely through the frame.
+            blend_band: with ``drive=complementary``, the width of the band either side of a seam between joined
+                parts over which each particle's rig blends the two parts' motions (equal shares on the seam, its
+                own part's alone at the band's edge; :func:`drive.blend_weights`), as a share of the particles'
+                bounding-box diagonal; 0 = part-wise rigid. The default is the seam band the follow error leaves
+                out (:data:`sync4d.geometry.SEAM_BAND_OF_DIAGONAL`): a part's core is driven by its part alone.
             cpu_threads: threads of a rollout on the CPU (each launch split into particle chunks that
                 scatter into their own grids; equal to one thread up to float rounding); null = the usable
                 cores, one per 8192 particles at most. Ignored on CUDA.
@@ -102,11 +108,14 @@ class MPMWarp:
         sort_particles: bool = True
         refit_grid: bool = True
         drive: Literal["complementary", "launch"] = "complementary"
+        blend_band: float = SEAM_BAND_OF_DIAGONAL
         cpu_threads: int | None = None
 
         def validate(self) -> None:
             """Raise :class:`ConfigError` naming the offending ``sim.*`` key."""
             validate_material(self.E, self.nu, self.density, where="sim")
+            if not (np.isfinite(self.blend_band) and self.blend_band >= 0.0):
+                raise ConfigError(f"sim.blend_band must be a finite share of the diagonal >= 0, got {self.blend_band}")
             if self.n_grid < 2 * self.wall_cells + 4:
                 raise ConfigError(
                     f"sim.n_grid={self.n_grid}: needs >= {2 * self.wall_cells + 4} (2 walls of sim.wall_cells + 4)"
@@ -196,7 +205,10 @@ class MPMWarp:
             if labels.shape != (len(pts),):
                 raise InputError(f"sim.prepare: part must have shape ({len(pts)},), got {labels.shape}")
             if config.drive == "complementary":
-                rig = part_rig(pts, labels, mass, int(labels.max()) + 1 if len(labels) else 0)
+                num_parts = int(labels.max()) + 1 if len(labels) else 0
+                band = config.blend_band * float(np.linalg.norm(pts.max(0) - pts.min(0)))
+                blend = blend_weights(pts, labels, num_parts, band, parent)
+                rig = part_rig(pts, labels, mass, num_parts, blend)
             fields = self.fields_of(pts, labels, parent, grid.dx)
         return MPMModel(
             grid=grid, rest_points=pts, mass=mass, volume=vols, E=config.E, nu=config.nu,

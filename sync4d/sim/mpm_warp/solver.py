@@ -49,8 +49,9 @@ class Launch:
     volume_of: list[wp.array] = field(default_factory=list, repr=False)
     field_id_of: list[wp.array] = field(default_factory=list, repr=False)
     bond_flag_of: list[wp.array] = field(default_factory=list, repr=False)
-    offset_of: list[wp.array] = field(default_factory=list, repr=False)
-    part_of: list[wp.array] = field(default_factory=list, repr=False)
+    slot_part_of: list[wp.array] = field(default_factory=list, repr=False)
+    slot_weight_of: list[wp.array] = field(default_factory=list, repr=False)
+    slot_offset_of: list[wp.array] = field(default_factory=list, repr=False)
 
     def __post_init__(self) -> None:
         bounds = self.ws.bounds
@@ -66,8 +67,9 @@ class Launch:
         self.bond_flag_of = [self.bond_flag] if one else [self.bond_flag[lo:hi] for lo, hi in bounds]
         if self.drive is not None:
             d = self.drive
-            self.offset_of = [d.offset] if one else [d.offset[lo:hi] for lo, hi in bounds]
-            self.part_of = [d.part] if one else [d.part[lo:hi] for lo, hi in bounds]
+            self.slot_part_of = [d.slot_part] if one else [d.slot_part[lo:hi] for lo, hi in bounds]
+            self.slot_weight_of = [d.slot_weight] if one else [d.slot_weight[lo:hi] for lo, hi in bounds]
+            self.slot_offset_of = [d.slot_offset] if one else [d.slot_offset[lo:hi] for lo, hi in bounds]
             self.ws.ensure_drive(d.num_parts)
 
     def p2g_args(
@@ -134,15 +136,15 @@ class Launch:
     def drive_sums_args(self, s: WarpState, substep: int, t: int) -> tuple[list[Any], list[Any]]:
         d = self.drive
         assert d is not None
-        inputs = [s.x, s.v, self.offset_of[t], self.part_of[t], self.mass_of[t], d.turn[substep], d.centre[substep],
-                  d.linear, d.angular]
+        inputs = [s.x, s.v, self.slot_part_of[t], self.slot_weight_of[t], self.slot_offset_of[t], self.mass_of[t],
+                  d.turn[substep], d.centre[substep], d.linear, d.angular]
         return inputs, [self.ws.drive_sums_of[t]]
 
     def drive_apply_args(self, s: WarpState, out: WarpState, substep: int, t: int) -> tuple[list[Any], list[Any]]:
         d = self.drive
         assert d is not None
-        inputs = [s.x, s.v, s.C, s.F, self.offset_of[t], self.part_of[t], d.turn[substep], d.inertia_inv[substep],
-                  d.inv_part_mass, self.ws.drive_total]
+        inputs = [s.x, s.v, s.C, s.F, self.slot_part_of[t], self.slot_weight_of[t], self.slot_offset_of[t],
+                  d.turn[substep], self.ws.drive_theta]
         return inputs, [out.x, out.v, out.C, out.F]
 
     def drive_sums(self, s: WarpState, substep: int, t: int) -> None:
@@ -157,11 +159,14 @@ class Launch:
         self.g2p(s, mid, substep, t)
         self.drive_sums(mid, substep, t)
 
-    def drive_total(self) -> None:
-        """The threads' partial moments summed (``ws.drive_total``)."""
+    def drive_total(self, substep: int) -> None:
+        """The threads' partial moments summed (``ws.drive_total``) and the rig's fit of them (``ws.drive_theta``)."""
         ws = self.ws
+        assert self.drive is not None
         wp.launch(K.sum_slices, dim=ws.drive_total.shape, inputs=[ws.drive_sums_all], outputs=[ws.drive_total],
                   device=ws.device)
+        wp.launch(K.drive_solve, dim=ws.drive_theta.shape, inputs=[self.drive.solve, self.drive.turn[substep],
+                  ws.drive_total], outputs=[ws.drive_theta], device=ws.device)
 
     def drive_apply(self, s: WarpState, out: WarpState, substep: int, t: int) -> None:
         """Thread t's particles with their part's rigid deviation removed: ``s`` -> ``out``."""
@@ -171,8 +176,8 @@ class Launch:
 
     def drive_adjoint(self, s: WarpState, adj_out: WarpState, adj_mid: WarpState, substep: int) -> None:
         """dL/d(state after G2P) into ``adj_mid`` from dL/d(state after the drive) ``adj_out``: Warp's generated
-        adjoints of :func:`K.drive_apply`, then of :func:`K.drive_sums` (``s`` is the state after G2P and the
-        moments ``ws.drive_total`` are its own)."""
+        adjoints of :func:`K.drive_apply`, the solve (its own adjoint), then :func:`K.drive_sums`'s (``s`` is the
+        state after G2P and the fit ``ws.drive_theta`` is its own)."""
         ws = self.ws
         sp, op, mp = s.parts(ws.bounds), adj_out.parts(ws.bounds), adj_mid.parts(ws.bounds)
         scratch = ws.drive_scratch.parts(ws.bounds)
@@ -182,19 +187,22 @@ class Launch:
                 a.zero_()
             ws.adj_drive_sums_of[t].zero_()
             i, o = self.drive_apply_args(sp[t], scratch[t], substep, t)
-            adj_i = [*mp[t].arrays(), None, None, None, None, None, ws.adj_drive_sums_of[t]]
+            adj_i = [*mp[t].arrays(), None, None, None, None, ws.adj_drive_sums_of[t]]
             wp.launch(K.drive_apply, dim=self.count(t), inputs=i, outputs=o, adj_inputs=adj_i,
                       adj_outputs=list(op[t].arrays()), adjoint=True, device=ws.device)
 
         def sums_adjoint(t: int) -> None:
             i, o = self.drive_sums_args(sp[t], substep, t)
-            adj_i = [mp[t].x, mp[t].v, None, None, None, None, None, None, None]
+            adj_i = [mp[t].x, mp[t].v, None, None, None, None, None, None, None, None]
             wp.launch(K.drive_sums, dim=self.count(t), inputs=i, outputs=o, adj_inputs=adj_i,
                       adj_outputs=[ws.adj_drive_total], adjoint=True, device=ws.device)
 
         ws.run(apply_adjoint)
-        wp.launch(K.sum_slices, dim=ws.adj_drive_total.shape, inputs=[ws.adj_drive_sums_all],
-                  outputs=[ws.adj_drive_total], device=ws.device)
+        wp.launch(K.sum_slices, dim=ws.adj_drive_theta.shape, inputs=[ws.adj_drive_sums_all],
+                  outputs=[ws.adj_drive_theta], device=ws.device)
+        assert self.drive is not None
+        wp.launch(K.drive_solve, dim=ws.adj_drive_total.shape, inputs=[self.drive.solve, self.drive.turn[substep],
+                  ws.adj_drive_theta], outputs=[ws.adj_drive_total], device=ws.device)
         ws.run(sums_adjoint)
 
 def step(
@@ -257,7 +265,7 @@ def step(
     else:  # G2P into the scratch state, then each part's rigid deviation from its drive taken off
         ws.run(lambda t: launch.g2p_and_sums(state_in, ws.drive_mid, substep, t))
         mark()
-        launch.drive_total()
+        launch.drive_total(substep)
         ws.run(held)
         mark()
     if timers is not None:
@@ -325,7 +333,7 @@ def step_adjoint(
 
     if launch.drive is not None:  # the drive's adjoint first: adj_out then stands for the state after G2P
         ws.run(lambda t: launch.g2p_and_sums(s, ws.drive_mid, substep, t))
-        launch.drive_total()
+        launch.drive_total(substep)
         launch.drive_adjoint(ws.drive_mid, adj_out, ws.adj_drive_mid, substep)
         op = ws.adj_drive_mid.parts(ws.bounds)
     ws.run(g2p_adjoint)
