@@ -20,6 +20,13 @@ a slide from five 3D direction starts (the hinge's 3D displacement, the image mo
 image motion; the two best are fitted, relabelled and refined the same way, and the slide wins unless the
 hinge explains the images 5 % better. A slide's path (its outline extruded along its direction: a
 drawer's box) also covers mask pixels. The winner is refined, relabelled and refined again.
+
+Then the joint stage: every hinge is set beside its depth reversal (its surface, axis and pivot reflected
+through the fronto-parallel plane at its depth, its angles negated: nearly the same images under
+near-affine viewing, a basin the search can settle in) and the reading the data terms prefer is kept; each
+part is freed (a rigid motion per frame on top of its joint, fitted to the same terms), and its joint is fitted
+to that motion relative to the root over the whole clip (:mod:`sync4d.recon.video.screw`: hinge, slide or
+fixed by penalised residual, robust over frames), the part re-posed on it and refined.
 """
 
 from __future__ import annotations
