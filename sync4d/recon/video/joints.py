@@ -621,7 +621,7 @@ def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list
             continue
         screw = fit_screw(inv_root @ motions[:, b], rest[own], project_np, sc.stride)
         log.info("recon=video: part %d's joint from its whole motion: %s (costs %s; was a %s)", b, screw.kind,
-                 {k: round(v, 1) for k, v in screw.costs.items()}, kinds[b])
+                 {k: round(float(v), 1) for k, v in screw.costs.items()}, kinds[b])
         kinds[b], axes[b] = screw.kind, screw.axis if screw.kind != "fixed" else axes[b]
         if screw.kind == "hinge":
             pivots[b] = screw.pivot

@@ -14,7 +14,9 @@ A frame's residual r_t is the RMS distance between the part's points under M_t a
 pixels of the frame's camera divided by the tracking stride (the unit of the image terms the motions came
 from). The cost of a kind is sum_t log(1 + r_t^2) (a Cauchy likelihood of one stride: a bad frame costs
 little more than a poor one and cannot turn the axis, yet a still joint on a part that turns keeps paying)
-plus ``PENALTY`` per parameter (hinge 4 + T - 1, slide 2 + T - 1, fixed 0: a BIC charge, log(T) / 2). RANSAC
+plus log(T) / 2 per parameter of the joint's line (hinge 4, slide 2, fixed 0: a BIC charge). The values per
+frame are charged to no kind: they are what the motion is, and fixed is the joint whose values are all
+zero (charging them, T - 1 each, made a plate turning 40 deg over 6 frames read as fixed). RANSAC
 hypotheses are scored by the same sum, their inliers are the frames within ``OUTLIER``. The kind of least
 cost wins.
 """
@@ -29,7 +31,6 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 OUTLIER = 2.0  # a residual [strides] beyond which a frame is an outlier of a joint (for the refinement)
-PENALTY = 1.6  # cost per parameter of a joint: log(T) / 2 at T = 24 frames (BIC)
 MIN_ANGLE = np.radians(2.0)  # frames turned less give no axis hypothesis
 
 Project = Callable[[np.ndarray], np.ndarray]  # (T, N, 3) world points -> (T, N, 2) pixels [px] of each frame
@@ -200,8 +201,8 @@ def fit_screw(motions: np.ndarray, x0: np.ndarray, project: Project, stride: flo
     axis, pivot, angles, res_h = fit_hinge(motions, x0, target, project, stride)
     direction, travel, res_s = fit_slide(motions, x0, target, project, stride)
     res_f = frame_residuals(np.broadcast_to(x0, (n_frames,) + x0.shape), target, project, stride)
-    costs = {"hinge": robust_cost(res_h) + PENALTY * (4 + n_frames - 1),
-             "slide": robust_cost(res_s) + PENALTY * (2 + n_frames - 1),
+    penalty = 0.5 * np.log(n_frames)  # per parameter of the joint's line (BIC)
+    costs = {"hinge": robust_cost(res_h) + 4 * penalty, "slide": robust_cost(res_s) + 2 * penalty,
              "fixed": robust_cost(res_f)}
     kind = min(costs, key=lambda k: costs[k])
     if kind == "hinge":
