@@ -594,7 +594,7 @@ def free_motions(model: Articulation, config: FitConfig, steps: int) -> np.ndarr
     return out
 
 
-def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list[ScrewFit]:
+def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list[ScrewFit | None]:
     """Every moving part's joint fitted to its freely recovered motion relative to the root over the whole
     clip (:func:`~sync4d.recon.video.screw.fit_screw`: kind by evidence, robust over frames), the model
     set to those joints and refined; returns the screw fits (root: None)."""
