@@ -20,6 +20,13 @@ a slide from five 3D direction starts (the hinge's 3D displacement, the image mo
 image motion; the two best are fitted, relabelled and refined the same way, and the slide wins unless the
 hinge explains the images 5 % better. A slide's path (its outline extruded along its direction: a
 drawer's box) also covers mask pixels. The winner is refined, relabelled and refined again.
+
+Then the joint stage: every hinge is set beside its depth reversal (its surface, axis and pivot reflected
+through the fronto-parallel plane at its depth, its angles negated: nearly the same images under
+near-affine viewing, a basin the search can settle in) and the reading the data terms prefer is kept; each
+part is freed (a rigid motion per frame on top of its joint, fitted to the same terms), and its joint is fitted
+to that motion relative to the root over the whole clip (:mod:`sync4d.recon.video.screw`: hinge, slide or
+fixed by penalised residual, robust over frames), the part re-posed on it and refined.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from sync4d.recon.video.screw import ScrewFit, fit_screw
 from sync4d.recon.video.stages import PartInit, Tracks
 from sync4d.types import Camera
 
@@ -166,6 +174,20 @@ def _rodrigues(axis: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
     return torch.eye(3, dtype=a.dtype)[None] + s * k[None] + (1 - c) * (k @ k)[None]
 
 
+def _rodrigues_batch(rotvec: torch.Tensor) -> torch.Tensor:
+    """(M, 3, 3) rotations of rotation vectors (M, 3) [rad] (smooth at zero)."""
+    theta2 = (rotvec**2).sum(1)
+    theta = torch.sqrt(theta2 + 1e-24)
+    zero = torch.zeros_like(rotvec[:, 0])
+    k = torch.stack([torch.stack([zero, -rotvec[:, 2], rotvec[:, 1]], 1),
+                     torch.stack([rotvec[:, 2], zero, -rotvec[:, 0]], 1),
+                     torch.stack([-rotvec[:, 1], rotvec[:, 0], zero], 1)], 1)
+    small = theta2 < 1e-8
+    a = torch.where(small, 1.0 - theta2 / 6.0, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24.0, (1.0 - torch.cos(theta)) / theta2.clamp_min(1e-24))
+    return torch.eye(3, dtype=rotvec.dtype)[None] + a[:, None, None] * k + b[:, None, None] * (k @ k)
+
+
 def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit, z_ref: float,
                root_motion: np.ndarray, rng: np.random.Generator, *, cover_samples: int = 400,
                extrinsics: np.ndarray | None = None, depth0: np.ndarray | None = None) -> Scene:
@@ -263,6 +285,9 @@ class Articulation(torch.nn.Module):
         self.pivot0 = torch.as_tensor(pivots, dtype=d)
         self.pivot_delta = torch.nn.Parameter(torch.zeros_like(self.pivot0))  # [object widths]
         self.values = torch.nn.Parameter(torch.as_tensor(values[1:], dtype=d))  # frame 0 is the rest
+        # a free rigid motion per frame and part on top of the joint (rotation vector, translation in object
+        # widths, about the part's posed centroid): the per-part fit whose motions the joint is fitted to
+        self.free: torch.nn.Parameter | None = None
 
     def log_depth(self) -> torch.Tensor:
         """(N,) log camera depth of every point in frame 0 [log m]."""
@@ -292,7 +317,22 @@ class Articulation(torch.nn.Module):
                 trans = (vals[:, b] * self.scene.width if kind == "slide" else 0.0 * vals[:, b])[:, None] * unit
             g = self.scene.root_motion
             out.append(torch.cat([g[:, :3, :3] @ rot, (g[:, :3, :3] @ trans[..., None])[..., 0:1] + g[:, :3, 3:]], -1))
-        return torch.stack(out, 1)
+        motion = torch.stack(out, 1)
+        return motion if self.free is None or fraction != 1.0 else self._freed(motion)
+
+    def _freed(self, motion: torch.Tensor) -> torch.Tensor:
+        """(T, B, 3, 4) ``motion`` with each frame's free motion of every part applied after it."""
+        assert self.free is not None
+        still = torch.as_tensor([b != self.root for b in range(len(self.kinds))], dtype=self.free.dtype)
+        free = torch.cat([torch.zeros_like(self.free[:1]), self.free], 0) * still[None, :, None]  # (T, B, 6)
+        n_frames, n_parts = free.shape[:2]
+        rest = self.rest()
+        centre0 = torch.stack([rest[self.labels == b].mean(0) if bool((self.labels == b).any())
+                               else rest.mean(0) for b in range(n_parts)])  # (B, 3)
+        centre = torch.einsum("tbij,bj->tbi", motion[..., :3], centre0) + motion[..., 3]
+        rot = _rodrigues_batch(free[..., :3].reshape(-1, 3)).reshape(n_frames, n_parts, 3, 3)
+        shift = centre - torch.einsum("tbij,tbj->tbi", rot, centre) + free[..., 3:] * self.scene.width
+        return torch.cat([rot @ motion[..., :3], (rot @ motion[..., 3:])+ shift[..., None]], -1)
 
     def swept(self, kinds: tuple[str, ...] = ("slide",)) -> torch.Tensor:
         """(T, M, 3) world points of the parts of ``kinds`` at fractions SWEEP of each frame's joint value. A
@@ -513,7 +553,119 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) 
     best_loss = optimise(best, config, config.steps // 2, pairs, windows=1)
     for _ in range(config.relabel_rounds):
         best_loss = relabel_and_refine(best, tracks, config, config.steps // 2)
+    best = depth_reversals(best, tracks, config)
+    refit_joints(best, tracks, config)
+    best_loss = optimise(best, config, config.steps // 4, neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride),
+                         windows=1)
     return joint_fit_of(best, best_loss, history)
+
+
+def depth_reversals(model: Articulation, tracks: Tracks, config: FitConfig) -> Articulation:
+    """Each hinge part against its depth reversal (:func:`mirrored`), refined the same way; the reading the
+    data terms (:func:`kind_loss`) prefer is kept."""
+    pairs = neighbour_pairs(tracks.uv0, model.labels.numpy(), tracks.stride)
+    best, best_kind = model, kind_loss(model, config)
+    for b in [b for b, kind in enumerate(model.kinds) if kind == "hinge"]:
+        trial = mirrored(best, b)
+        optimise(trial, config, config.steps // 4, pairs, windows=1)
+        trial_kind = kind_loss(trial, config)
+        log.info("recon=video: part %d reversed in depth: kind loss %.4f (as found %.4f)", b, trial_kind, best_kind)
+        if trial_kind < best_kind:
+            best, best_kind = trial, trial_kind
+    return best
+
+
+def free_motions(model: Articulation, config: FitConfig, steps: int) -> np.ndarray:
+    """(T, B, 4, 4) every part's rest -> frame t world motion, each frame's free: the model's joints with a
+    rigid motion per frame and part fitted on top (Adam on the data terms, depths and joints held)."""
+    n_frames, n_parts = model.values.shape[0] + 1, len(model.kinds)
+    model.free = torch.nn.Parameter(torch.zeros(n_frames - 1, n_parts, 6, dtype=torch.float64))
+    opt = torch.optim.Adam([model.free], lr=config.lr)
+    for _ in range(steps):
+        opt.zero_grad(set_to_none=True)
+        track, inside, cover = data_terms(model, n_frames)
+        (track + config.inside_weight * inside + config.cover_weight * cover).backward()
+        opt.step()
+    with torch.no_grad():
+        motion = model.part_transforms().numpy()
+    model.free = None
+    out = np.tile(np.eye(4), (n_frames, n_parts, 1, 1))
+    out[:, :, :3] = motion
+    return out
+
+
+def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list[ScrewFit | None]:
+    """Every moving part's joint fitted to its freely recovered motion relative to the root over the whole
+    clip (:func:`~sync4d.recon.video.screw.fit_screw`: kind by evidence, robust over frames), the model
+    set to those joints and refined; returns the screw fits (root: None)."""
+    sc = model.scene
+    motions = free_motions(model, config, config.steps // 8)
+    root_motion = sc.root_motion.numpy()
+    inv_root = np.linalg.inv(root_motion)
+    with torch.no_grad():
+        rest = model.rest().numpy()
+    labels = model.labels.numpy()
+
+    def project_np(x: np.ndarray) -> np.ndarray:
+        world = np.einsum("tij,tnj->tni", root_motion[:, :3, :3], x) + root_motion[:, None, :3, 3]
+        return project(sc, torch.as_tensor(world)).numpy()
+
+    kinds, axes = list(model.kinds), model.axes.detach().numpy().copy()
+    pivots = model.pivots().detach().numpy().copy()
+    values = np.concatenate([np.zeros((1, len(kinds))), model.values.detach().numpy()], 0)
+    fits: list[ScrewFit | None] = []
+    for b in range(len(kinds)):
+        own = labels == b
+        if b == model.root or own.sum() < 3:
+            fits.append(None)
+            continue
+        screw = fit_screw(inv_root @ motions[:, b], rest[own], project_np, sc.stride)
+        log.info("recon=video: part %d's joint from its whole motion: %s (costs %s; was a %s)", b, screw.kind,
+                 {k: round(float(v), 1) for k, v in screw.costs.items()}, kinds[b])
+        kinds[b], axes[b] = screw.kind, screw.axis if screw.kind != "fixed" else axes[b]
+        if screw.kind == "hinge":
+            pivots[b] = screw.pivot
+        values[:, b] = screw.values / (sc.width if screw.kind == "slide" else 1.0)
+        fits.append(screw)
+    with torch.no_grad():
+        model.kinds = kinds
+        model.axes.copy_(torch.as_tensor(axes))
+        model.pivot0 = torch.as_tensor(pivots)
+        model.pivot_delta.zero_()
+        model.values.copy_(torch.as_tensor(values[1:]))
+    return fits
+
+
+def mirrored(model: Articulation, b: int) -> Articulation:
+    """A copy of ``model`` with hinge part ``b`` reversed in depth: its surface reflected through the
+    fronto-parallel plane at its mean depth (points stay on their rays), its axis and pivot reflected with
+    it and its angles negated. Under near-affine viewing both images are nearly the same (a plane's tilt has a
+    two-fold ambiguity), so the fit can settle in either; the data terms judge them side by side."""
+    sc = model.scene
+    with torch.no_grad():
+        out = copy_with(model, list(model.kinds), model.axes.numpy().copy(),
+                        np.concatenate([np.zeros((1, len(model.kinds))), model.values.numpy()], 0))
+        own = model.labels == b
+        inv = torch.exp(-model.log_depth())
+        mean_inv = float(inv[own].mean())
+        # inverse depth affine in the image: reflecting the depth about the mean is, to first order,
+        # reflecting the inverse depth (plane) and the residual
+        out.plane[b] = torch.as_tensor([2.0 * mean_inv - float(model.plane[b, 0]), -float(model.plane[b, 1]),
+                                        -float(model.plane[b, 2])], dtype=out.plane.dtype)
+        out.resid[own] = -model.resid[own]
+        w2c = sc.w2c.numpy()
+        flip = np.diag([1.0, 1.0, -1.0])
+        axis_c = w2c[:3, :3] @ model.axes[b].numpy()
+        axis = w2c[:3, :3].T @ (flip @ axis_c)
+        pivot_c = w2c[:3, :3] @ model.pivots()[b].numpy() + w2c[:3, 3]
+        pivot_c[2] = 2.0 / mean_inv - pivot_c[2]
+        pivot = w2c[:3, :3].T @ (pivot_c - w2c[:3, 3])
+        out.axes[b] = torch.as_tensor(axis)
+        out.pivot0 = out.pivots().clone()
+        out.pivot0[b] = torch.as_tensor(pivot)
+        out.pivot_delta.zero_()
+        out.values[:, b] = -model.values[:, b]
+    return out
 
 
 def relabel_and_refine(model: Articulation, tracks: Tracks, config: FitConfig, steps: int) -> float:

@@ -8,7 +8,9 @@ Stages (each a module with its own config block, results passed as dataclasses):
     3. initialisation (:func:`~sync4d.recon.video.stages.init_parts`): parts by clustering position and
        track displacement, refined by affine motion; the root is the part that moves least;
     4. silhouette and joint fit (:func:`~sync4d.recon.video.joints.fit_joints`): depths, one hinge or slide
-       per moving part and its value per frame, against tracks and masks; joint kinds chosen by the data;
+       per moving part and its value per frame, against tracks and masks; joint kinds chosen by the data; each
+       hinge judged against its depth reversal, then every joint fitted to the part's freely recovered
+       motion over the whole clip (kind by evidence) and the part re-posed on it;
     5. skinning (:func:`build_reference`): the points as the canonical shape (frame 0's pose), each
        skinned to its part, bones at the parts' centroids, bone motion from the joints.
 
