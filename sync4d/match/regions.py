@@ -48,6 +48,7 @@ def grow_limbs(
     thickness: np.ndarray,
     *,
     reach: float,
+    trunk: float | None = None,
 ) -> np.ndarray:
     """(M,) ``labels`` with each limb grown over the unlabelled points thinner than the limb-trunk junction.
 
@@ -59,7 +60,10 @@ def grow_limbs(
         reach: a point joins a limb if it lies within ``reach`` x the limb's thickness of it (geodesically)
             (the limb's thickness: the median of its thinner half; its base may lie in the trunk's balls)
             and is thinner than the geometric mean of the limb's thickness and the trunk's (the thickest
-            point's): the limb ends where the cross-section has widened half-way (in log) to the trunk's.
+            point's, or ``trunk``): the limb ends where the cross-section has widened half-way (in log)
+            to the trunk's. A limb at least as thick as the trunk (a big head on a small body) is not
+            grown: its branch already starts at its narrowing, and the trunk is no wider than it.
+        trunk: the trunk's thickness (the thickness at its core); None: the thickest point's.
 
     Returns:
         (M,) labels; a grown point takes the part of the limb point it was reached from.
@@ -68,11 +72,13 @@ def grow_limbs(
     free = out < 0
     best = np.full(len(out), np.inf)
     take = np.full(len(out), -1, dtype=np.int64)
-    trunk = float(thickness.max())
+    trunk = float(thickness.max()) if trunk is None else trunk
     for members in limbs:
         if len(members) == 0:
             continue
         t = limb_thickness(thickness, members)
+        if t >= trunk:
+            continue
         allowed = np.flatnonzero(free & (thickness <= np.sqrt(t * trunk)))
         nodes = np.union1d(members, allowed)
         sub = graph[nodes][:, nodes]
@@ -97,6 +103,7 @@ def label_regions(
     *,
     thickness: np.ndarray | None,
     reach: float,
+    trunk_thickness: float | None = None,
 ) -> np.ndarray:
     """(M,) reference part of every target point.
 
@@ -107,13 +114,13 @@ def label_regions(
         limbs: per matched limb, (indices of its points, the part of each of them).
         trunk_points: (K, 3) the reference's trunk points, same frame; trunk_labels: (K,) their parts.
         thickness: (M,) local thickness, or None (limbs are then not grown).
-        reach: see :func:`grow_limbs`.
+        reach, trunk_thickness: see :func:`grow_limbs` (``reach``, ``trunk``).
     """
     out = np.full(len(points), -1, dtype=np.int64)
     for members, parts in limbs:
         out[members] = parts
     if thickness is not None and graph is not None and limbs:
-        out = grow_limbs(graph, out, [m for m, _ in limbs], thickness, reach=reach)
+        out = grow_limbs(graph, out, [m for m, _ in limbs], thickness, reach=reach, trunk=trunk_thickness)
     tree = cKDTree(trunk_points)
     trunk = root_points[out[root_points] < 0]
     if len(trunk):

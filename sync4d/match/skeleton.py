@@ -393,6 +393,7 @@ def core_around(graph: csr_matrix, depth: np.ndarray, seed: int, min_depth: floa
 
 #: a separate blob of the solid deeper than this fraction of its deepest point is a candidate trunk
 BLOB_DEPTH = 0.5
+BLOB_DEPTHS = (0.5, 0.6)
 
 
 def blob_seeds(graph: csr_matrix, depth: np.ndarray, fraction: float, *, exclude: np.ndarray,
@@ -424,7 +425,7 @@ def trunk_on_legs(graph: csr_matrix, points: np.ndarray, depth: np.ndarray, core
     the body is nearer the feet; a base plate lying on the ground (a lamp's) is no trunk. ``core`` is the
     deepest blob's core (:func:`trunk_core`), kept when no other blob qualifies.
     """
-    others = blob_seeds(graph, depth, BLOB_DEPTH, exclude=core)
+    others = list(dict.fromkeys(q for f in BLOB_DEPTHS for q in blob_seeds(graph, depth, f, exclude=core)))
     if not others:
         return core
     h = points[:, up]
