@@ -525,6 +525,16 @@ def mirror_repair(
     owner = {c: r for r, c in pairs}
     tb = (tgt.base @ rotation.T) / tgt_scale
     n = normal
+    partner = {a: b for i, j in mirror for a, b in ((i, j), (j, i))}
+
+    def mirrored(a: int) -> bool:
+        """Limb a's partner holds a branch near the mirror image of a's (a left/right pair that fits)."""
+        if partner[a] not in held:
+            return True
+        here = tb[held[a]]
+        image = here - 2.0 * (here @ n) * n
+        return 4.0 * float(np.linalg.norm(tb[held[partner[a]]] - image)) < float(np.linalg.norm(here - image))
+
     for i, j in mirror:
         for a, b in ((i, j), (j, i)):
             if a not in held or b in held:
@@ -532,7 +542,7 @@ def mirror_repair(
             m = tb[held[a]] - 2.0 * (tb[held[a]] @ n) * n
             c = int(np.argmin(np.linalg.norm(tb - m, axis=1)))
             q = owner.get(c)
-            if c == held[a] or q is None or q in paired:
+            if c == held[a] or q is None or (q in paired and mirrored(q)):
                 continue
             held[b] = c
             owner[c] = b
@@ -608,6 +618,41 @@ def complete_partners(
     return sorted(held.items())
 
 
+def split_partners(
+    pairs: list[tuple[int, int]],
+    partners: list[tuple[int, int]],
+    ref_base: np.ndarray,
+    normal: np.ndarray,
+    tgt_points: np.ndarray,
+    tgt: LimbSet,
+) -> list[tuple[int, int, np.ndarray]]:
+    """Two partner limbs in one target branch (two legs whose levels part too low to be two branches):
+    when a limb is matched, its partner is not, and the branch straddles the plane of symmetry (each side
+    holds at least a quarter of its points), the partner takes the branch's half on its own side.
+
+    Args:
+        pairs: (reference limb, candidate) pairs; partners: left/right limb pairs (:func:`limb_partners`).
+        ref_base: (R, 3) reference limb bases, each horizontal axis divided by the shape's spread.
+        normal: (3,) unit normal of the vertical plane of symmetry in that frame (:func:`partner_plane`).
+        tgt_points: (M, 3) target skeleton points, turned into the reference's frame and divided by the
+            target's spread per axis; tgt: the candidates' limb sets.
+
+    Returns:
+        (partner limb, candidate, mask over the candidate's members of the partner's half) per split.
+    """
+    held = dict(pairs)
+    out = []
+    for a, b in partners:
+        for x, y in ((a, b), (b, a)):
+            if x not in held or y in held:
+                continue
+            side = (tgt_points[tgt.members[held[x]]] @ normal) * np.sign(float((ref_base[y] - ref_base[x]) @ normal))
+            if 0.25 <= float((side > 0).mean()) <= 0.75:
+                out.append((y, held[x], side > 0))
+                held[y] = held[x]
+    return out
+
+
 def trunk_branches(skeleton: CurveSkeleton, matched: list[int]) -> list[int]:
     """The branches that are trunk: the root branch and every branch between it and a matched limb's
     branch (where the levels had not yet parted the limbs that leave there: a cross's centre above its
@@ -681,6 +726,16 @@ def match_structure(
         pairs = complete_partners(pairs, partners, tgt_limbs, tgt_sk, cand, rot, symmetry[1], tgt_scale)
     limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
                                                    config.profile_bins)) for r, t in pairs]
+    if symmetry is not None and len(pairs):
+        for k, (y, t, half) in enumerate(split_partners(pairs, partners, ref_limbs.base / ref_scale, symmetry[1],
+                                                         (tgt_sk.points @ rot.T) / tgt_scale, tgt_limbs)):
+            parts = transfer_along(ref_sk, ref_limbs, y, ref_labels, tgt_sk, tgt_limbs, t, num_parts, config.profile_bins)
+            i = next(i for i, (r, c) in enumerate(pairs) if c == t)
+            members, own = limbs[i]
+            keep = ~np.isin(members, members[half])
+            limbs[i] = (members[keep], own[keep])
+            limbs.append((members[half], parts[half]))
+            pairs = [*pairs, (y, t)]
     in_trunk = np.isin(ref_labels, trunk)
     point_part = label_regions(
         tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [
