@@ -705,6 +705,15 @@ def match_structure(
     tgt_thick = None if tgt_depth is None else local_thickness(tgt_sk.points, tgt_depth)
     cand = np.arange(1, len(tgt_sk.branches))
     tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand], tgt_depth)
+    own_tip = []
+    for k, i in enumerate(cand):
+        own = tgt_sk.branches[i].points
+        if len(own) == 0 or not tgt_sk.branches[i].children:
+            own_tip.append(tgt_limbs.tip[k])
+            continue
+        g = tgt_sk.geodesic[own]
+        own_tip.append(tgt_sk.points[own[g >= g.max() - tgt_sk.level_width]].mean(axis=0))
+    tgt_limbs = replace(tgt_limbs, tip=np.array(own_tip).reshape(-1, 3))
     rng = np.random.default_rng(0)
     ref_sub = ref_points[rng.choice(len(ref_points), min(800, len(ref_points)), replace=False)]
     tgt_sub = tgt_points[rng.choice(len(tgt_points), min(800, len(tgt_points)), replace=False)]
