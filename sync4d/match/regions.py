@@ -5,7 +5,7 @@ the limb leaves the trunk (levels from the trunk's core reach a leg's top only a
 The limb is grown from its branch over the solid while the solid stays as thin as the limb (local
 thickness, :func:`local_thickness`) and within a few limb thicknesses (:func:`grow_limbs`): it stops where
 the cross-section widens into the trunk. The trunk (the root branch's points no limb took) takes the
-reference's trunk parts by position; the remaining points (target branches no reference limb matched)
+reference's trunk parts by relative position (:func:`fit_spread`); the remaining points (target branches no reference limb matched)
 take the part of the region they hang from (:func:`label_regions`).
 """
 
@@ -93,6 +93,18 @@ def grow_limbs(
     return out
 
 
+def fit_spread(points: np.ndarray, onto: np.ndarray) -> np.ndarray:
+    """(N, 3) ``points`` moved and stretched per axis to the mean and spread of ``onto`` (K, 3).
+
+    The target's trunk takes the reference trunk's parts by relative position within the trunk: a toy's
+    short body under a big head has a chest on top and a pelvis below, as a long human trunk does.
+    """
+    if len(points) < 2 or len(onto) < 2:
+        return points
+    scale = onto.std(axis=0) / np.maximum(points.std(axis=0), 1e-9)
+    return (points - points.mean(axis=0)) * scale + onto.mean(axis=0)
+
+
 def label_regions(
     points: np.ndarray,
     graph: csr_matrix | None,
@@ -124,7 +136,7 @@ def label_regions(
     tree = cKDTree(trunk_points)
     trunk = root_points[out[root_points] < 0]
     if len(trunk):
-        out[trunk] = trunk_labels[tree.query(points[trunk])[1]]
+        out[trunk] = trunk_labels[tree.query(fit_spread(points[trunk], trunk_points))[1]]
     seeds, rest = np.flatnonzero(out >= 0), np.flatnonzero(out < 0)
     if len(rest) and len(seeds) and graph is not None:
         # unmatched branches hang from what they touch: the part of their geodesically nearest labelled point
