@@ -536,3 +536,21 @@ def test_a_limb_as_thick_as_the_trunk_is_not_grown() -> None:
     graph = neighbour_graph(pts, 10, 4.0)
     assert (grow_limbs(graph, labels, [head], thick, reach=20.0, trunk=0.2) == labels).all()
     assert (grow_limbs(graph, labels, [head], thick, reach=20.0, trunk=1.0)[pts[:, 1] > 0.5] == 3).all()
+
+
+def test_the_trunk_takes_the_reference_trunk_parts_by_relative_position() -> None:
+    """A short trunk (a toy's body under a big head) fitted to a long reference trunk: its top takes the
+    chest, its bottom the pelvis, though every point of it lies nearest the reference's pelvis."""
+    from scipy.spatial import cKDTree
+
+    from sync4d.match.regions import fit_spread
+
+    rng = np.random.default_rng(0)
+    ref = np.c_[rng.uniform(-0.2, 0.2, 400), rng.uniform(-1.0, 1.0, 400), rng.uniform(-0.1, 0.1, 400)]
+    ref_part = np.where(ref[:, 1] > 0.0, 1, 0)  # 1 chest above, 0 pelvis below
+    short = np.c_[rng.uniform(-0.3, 0.3, 300), rng.uniform(-1.0, -0.4, 300), rng.uniform(-0.2, 0.2, 300)]
+    tree = cKDTree(ref)
+    assert (ref_part[tree.query(short)[1]] == 0).mean() > 0.9
+    fitted = ref_part[tree.query(fit_spread(short, ref))[1]]
+    top, bottom = short[:, 1] > -0.6, short[:, 1] < -0.8
+    assert (fitted[top] == 1).mean() > 0.9 and (fitted[bottom] == 0).mean() > 0.9
