@@ -736,13 +736,12 @@ def match_structure(
     limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
                                                    config.profile_bins)) for r, t in pairs]
     if symmetry is not None and len(pairs):
-        for k, (y, t, half) in enumerate(split_partners(pairs, partners, ref_limbs.base / ref_scale, symmetry[1],
-                                                         (tgt_sk.points @ rot.T) / tgt_scale, tgt_limbs)):
+        for y, t, half in split_partners(pairs, partners, ref_limbs.base / ref_scale, symmetry[1],
+                                         (tgt_sk.points @ rot.T) / tgt_scale, tgt_limbs):
             parts = transfer_along(ref_sk, ref_limbs, y, ref_labels, tgt_sk, tgt_limbs, t, num_parts, config.profile_bins)
-            i = next(i for i, (r, c) in enumerate(pairs) if c == t)
-            members, own = limbs[i]
-            keep = ~np.isin(members, members[half])
-            limbs[i] = (members[keep], own[keep])
+            held = next(j for j, (_, c) in enumerate(pairs) if c == t)
+            members, own = limbs[held]
+            limbs[held] = (members[~half], own[~half])
             limbs.append((members[half], parts[half]))
             pairs = [*pairs, (y, t)]
     in_trunk = np.isin(ref_labels, trunk)
