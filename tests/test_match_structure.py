@@ -462,3 +462,95 @@ def test_the_skeleton_picture_draws_what_the_structure_match_saw(tmp_path) -> No
     assert path.stat().st_size > 1000
     texts = [t.get_text() for ax in fig.axes for t in ax.texts]
     assert any(t.startswith("b1 -> ") for t in texts) and "head" in texts
+
+
+def _limb_set(base: np.ndarray, members: tuple[np.ndarray, ...] | None = None) -> "LimbSet":  # noqa: F821
+    from sync4d.match.structure import LimbSet
+
+    n = len(base)
+    empty = tuple(np.zeros(0, dtype=np.int64) for _ in range(n)) if members is None else members
+    return LimbSet(empty, base, base, np.zeros(n), np.ones(n), np.full(n, 0.1))
+
+
+def test_attach_heights_say_where_a_limb_leaves_the_trunk_whatever_its_pose() -> None:
+    """A standing trunk (height 1) with a limb leaving at its bottom and one at its top: -0.45 and +0.45 of
+    the trunk's length; an arm hanging beside the trunk (touching it from shoulder to elbow) leaves at its
+    end away from its other parts, not half-way down."""
+    from sync4d.match.skeleton import CurveSkeleton
+    from sync4d.match.structure import attach_heights
+
+    rng = np.random.default_rng(0)
+    trunk = np.c_[rng.uniform(-0.1, 0.1, 400), rng.uniform(0.0, 1.0, 400), rng.uniform(-0.1, 0.1, 400)]
+    s = np.linspace(0.1, 0.5, 20)
+    low, high = np.c_[s, np.full(20, 0.05), np.zeros(20)], np.c_[s, np.full(20, 0.95), np.zeros(20)]
+    hanging = np.c_[np.full(20, 0.15), np.linspace(0.9, 0.3, 20), np.zeros(20)]
+    pts = np.concatenate([trunk, low, high, hanging])
+    geo = np.concatenate([np.zeros(400), s, s, np.full(20, 0.05)])  # the hanging arm touches the trunk all along
+    sk = CurveSkeleton(pts, geo, 0, np.zeros(len(pts), dtype=np.int64), np.zeros(len(pts), dtype=np.int64), (), 0.06)
+    members = [400 + np.arange(20), 420 + np.arange(20)]
+    h = attach_heights(sk, members, np.arange(400), 1)
+    assert abs(h[0] + 0.45) < 0.05 and abs(h[1] - 0.45) < 0.05
+    arm = [440 + np.arange(20)]
+    assert abs(attach_heights(sk, arm, np.arange(400), 1)[0] - 0.1) < 0.05           # first level: half-way
+    away = np.array([[0.15, 0.1, 0.0]])                                               # its forearm below
+    assert attach_heights(sk, arm, np.arange(400), 1, away)[0] > 0.35                 # the shoulder
+
+
+def test_partners_in_one_straddling_branch_split_it_and_a_misplaced_pair_hands_a_branch_over() -> None:
+    """Two legs in one branch across the plane of symmetry: the left-over leg takes its side's half. A thigh
+    holding an arm's mirror branch while its partner sits on the midline hands it to the left-over arm."""
+    from sync4d.match.structure import mirror_repair, split_partners
+
+    rng = np.random.default_rng(0)
+    legs = np.c_[rng.uniform(-0.3, 0.3, 200), rng.uniform(-1.0, -0.5, 200), rng.uniform(-0.1, 0.1, 200)]
+    ref_base = np.array([[-0.2, -0.4, 0.0], [0.2, -0.4, 0.0]])
+    normal = np.array([1.0, 0.0, 0.0])
+    tgt = _limb_set(np.array([[0.0, -0.5, 0.0]]), (np.arange(200),))
+    (limb, cand, half), = split_partners([(0, 0)], [(0, 1)], ref_base, normal, legs, tgt)
+    assert (limb, cand) == (1, 0) and (legs[half, 0] > 0).all() and (legs[~half, 0] <= 0).all()
+    one_leg = _limb_set(np.array([[0.2, -0.5, 0.0]]), (np.flatnonzero(legs[:, 0] > 0),))
+    assert split_partners([(0, 0)], [(0, 1)], ref_base, normal, legs, one_leg) == []
+
+    # limbs: 0, 1 thighs, 2, 3 arms; branches: 0, 1 arm stubs at x = -/+0.8, 2 both legs on the midline
+    tgt = _limb_set(np.array([[-0.8, 0.0, 0.0], [0.8, 0.0, 0.0], [0.0, -1.0, 0.0]]))
+    ones = np.ones(3)
+    repaired = mirror_repair([(0, 1), (1, 2), (2, 0)], tgt, tgt, np.eye(3), 1, ones, ones, ([(0, 1), (2, 3)], normal))
+    assert repaired == [(1, 2), (2, 0), (3, 1)]
+    # a thigh pair that does mirror each other keeps its branches
+    tgt = _limb_set(np.array([[-0.8, 0.0, 0.0], [0.8, 0.0, 0.0], [-0.7, 0.0, 0.0]]))
+    kept = mirror_repair([(0, 1), (1, 2), (2, 0)], tgt, tgt, np.eye(3), 1, ones, ones, ([(0, 1), (2, 3)], normal))
+    assert kept == [(0, 1), (1, 2), (2, 0)]
+
+
+def test_a_limb_as_thick_as_the_trunk_is_not_grown() -> None:
+    """A big head on a small body: the head's branch is not grown over the body (the trunk is thinner)."""
+    from sync4d.match.regions import grow_limbs
+    from sync4d.match.skeleton import neighbour_graph
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0.0, 1.0, (600, 3))
+    thick = np.where(pts[:, 1] > 0.5, 0.5, 0.2)  # head above, body below
+    labels = np.full(600, -1)
+    head = np.flatnonzero(pts[:, 1] > 0.7)
+    labels[head] = 3
+    graph = neighbour_graph(pts, 10, 4.0)
+    assert (grow_limbs(graph, labels, [head], thick, reach=20.0, trunk=0.2) == labels).all()
+    assert (grow_limbs(graph, labels, [head], thick, reach=20.0, trunk=1.0)[pts[:, 1] > 0.5] == 3).all()
+
+
+def test_the_trunk_takes_the_reference_trunk_parts_by_relative_position() -> None:
+    """A short trunk (a toy's body under a big head) fitted to a long reference trunk: its top takes the
+    chest, its bottom the pelvis, though every point of it lies nearest the reference's pelvis."""
+    from scipy.spatial import cKDTree
+
+    from sync4d.match.regions import fit_spread
+
+    rng = np.random.default_rng(0)
+    ref = np.c_[rng.uniform(-0.2, 0.2, 400), rng.uniform(-1.0, 1.0, 400), rng.uniform(-0.1, 0.1, 400)]
+    ref_part = np.where(ref[:, 1] > 0.0, 1, 0)  # 1 chest above, 0 pelvis below
+    short = np.c_[rng.uniform(-0.3, 0.3, 300), rng.uniform(-1.0, -0.4, 300), rng.uniform(-0.2, 0.2, 300)]
+    tree = cKDTree(ref)
+    assert (ref_part[tree.query(short)[1]] == 0).mean() > 0.9
+    fitted = ref_part[tree.query(fit_spread(short, ref))[1]]
+    top, bottom = short[:, 1] > -0.6, short[:, 1] < -0.8
+    assert (fitted[top] == 1).mean() > 0.9 and (fitted[bottom] == 0).mean() > 0.9

@@ -5,7 +5,7 @@ the limb leaves the trunk (levels from the trunk's core reach a leg's top only a
 The limb is grown from its branch over the solid while the solid stays as thin as the limb (local
 thickness, :func:`local_thickness`) and within a few limb thicknesses (:func:`grow_limbs`): it stops where
 the cross-section widens into the trunk. The trunk (the root branch's points no limb took) takes the
-reference's trunk parts by position; the remaining points (target branches no reference limb matched)
+reference's trunk parts by relative position (:func:`fit_spread`); the remaining points (target branches no reference limb matched)
 take the part of the region they hang from (:func:`label_regions`).
 """
 
@@ -48,6 +48,7 @@ def grow_limbs(
     thickness: np.ndarray,
     *,
     reach: float,
+    trunk: float | None = None,
 ) -> np.ndarray:
     """(M,) ``labels`` with each limb grown over the unlabelled points thinner than the limb-trunk junction.
 
@@ -59,7 +60,10 @@ def grow_limbs(
         reach: a point joins a limb if it lies within ``reach`` x the limb's thickness of it (geodesically)
             (the limb's thickness: the median of its thinner half; its base may lie in the trunk's balls)
             and is thinner than the geometric mean of the limb's thickness and the trunk's (the thickest
-            point's): the limb ends where the cross-section has widened half-way (in log) to the trunk's.
+            point's, or ``trunk``): the limb ends where the cross-section has widened half-way (in log)
+            to the trunk's. A limb at least as thick as the trunk (a big head on a small body) is not
+            grown: its branch already starts at its narrowing, and the trunk is no wider than it.
+        trunk: the trunk's thickness (the thickness at its core); None: the thickest point's.
 
     Returns:
         (M,) labels; a grown point takes the part of the limb point it was reached from.
@@ -68,11 +72,13 @@ def grow_limbs(
     free = out < 0
     best = np.full(len(out), np.inf)
     take = np.full(len(out), -1, dtype=np.int64)
-    trunk = float(thickness.max())
+    trunk = float(thickness.max()) if trunk is None else trunk
     for members in limbs:
         if len(members) == 0:
             continue
         t = limb_thickness(thickness, members)
+        if t >= trunk:
+            continue
         allowed = np.flatnonzero(free & (thickness <= np.sqrt(t * trunk)))
         nodes = np.union1d(members, allowed)
         sub = graph[nodes][:, nodes]
@@ -87,6 +93,18 @@ def grow_limbs(
     return out
 
 
+def fit_spread(points: np.ndarray, onto: np.ndarray) -> np.ndarray:
+    """(N, 3) ``points`` moved and stretched per axis to the mean and spread of ``onto`` (K, 3).
+
+    The target's trunk takes the reference trunk's parts by relative position within the trunk: a toy's
+    short body under a big head has a chest on top and a pelvis below, as a long human trunk does.
+    """
+    if len(points) < 2 or len(onto) < 2:
+        return points
+    scale = onto.std(axis=0) / np.maximum(points.std(axis=0), 1e-9)
+    return (points - points.mean(axis=0)) * scale + onto.mean(axis=0)
+
+
 def label_regions(
     points: np.ndarray,
     graph: csr_matrix | None,
@@ -97,6 +115,7 @@ def label_regions(
     *,
     thickness: np.ndarray | None,
     reach: float,
+    trunk_thickness: float | None = None,
 ) -> np.ndarray:
     """(M,) reference part of every target point.
 
@@ -107,17 +126,17 @@ def label_regions(
         limbs: per matched limb, (indices of its points, the part of each of them).
         trunk_points: (K, 3) the reference's trunk points, same frame; trunk_labels: (K,) their parts.
         thickness: (M,) local thickness, or None (limbs are then not grown).
-        reach: see :func:`grow_limbs`.
+        reach, trunk_thickness: see :func:`grow_limbs` (``reach``, ``trunk``).
     """
     out = np.full(len(points), -1, dtype=np.int64)
     for members, parts in limbs:
         out[members] = parts
     if thickness is not None and graph is not None and limbs:
-        out = grow_limbs(graph, out, [m for m, _ in limbs], thickness, reach=reach)
+        out = grow_limbs(graph, out, [m for m, _ in limbs], thickness, reach=reach, trunk=trunk_thickness)
     tree = cKDTree(trunk_points)
     trunk = root_points[out[root_points] < 0]
     if len(trunk):
-        out[trunk] = trunk_labels[tree.query(points[trunk])[1]]
+        out[trunk] = trunk_labels[tree.query(fit_spread(points[trunk], trunk_points))[1]]
     seeds, rest = np.flatnonzero(out >= 0), np.flatnonzero(out < 0)
     if len(rest) and len(seeds) and graph is not None:
         # unmatched branches hang from what they touch: the part of their geodesically nearest labelled point

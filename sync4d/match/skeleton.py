@@ -391,8 +391,9 @@ def core_around(graph: csr_matrix, depth: np.ndarray, seed: int, min_depth: floa
     return deep[np.isfinite(dist)]
 
 
-#: a separate blob of the solid deeper than this fraction of its deepest point is a candidate trunk
-BLOB_DEPTH = 0.5
+#: a separate blob of the solid deeper than one of these fractions of its deepest point is a candidate
+#: trunk (a body joined to a bigger head by a neck half as deep as the head parts from it only at 0.6)
+BLOB_DEPTHS = (0.5, 0.6)
 
 
 def blob_seeds(graph: csr_matrix, depth: np.ndarray, fraction: float, *, exclude: np.ndarray,
@@ -420,11 +421,13 @@ def trunk_on_legs(graph: csr_matrix, points: np.ndarray, depth: np.ndarray, core
     """The trunk's core among the solid's thick blobs: the one nearest the ground (by mean geodesic
     distance to the ground points), of those not on the ground themselves.
 
-    The trunk carries the legs and the legs reach the ground: of a big head and a body (a stuffed toy),
+    The blobs are taken at each depth of :data:`BLOB_DEPTHS` (the pieces the deep points make at that
+    fraction of the largest depth). The trunk carries the legs and the legs reach the ground: of a big
+    head and a body (a stuffed toy),
     the body is nearer the feet; a base plate lying on the ground (a lamp's) is no trunk. ``core`` is the
     deepest blob's core (:func:`trunk_core`), kept when no other blob qualifies.
     """
-    others = blob_seeds(graph, depth, BLOB_DEPTH, exclude=core)
+    others = list(dict.fromkeys(q for f in BLOB_DEPTHS for q in blob_seeds(graph, depth, f, exclude=core)))
     if not others:
         return core
     h = points[:, up]

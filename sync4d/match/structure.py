@@ -59,6 +59,9 @@ class StructureConfig:
         tip_weight: weight of the tip-direction term (the base term has weight 1: where a limb leaves the
             trunk does not change with the pose, where it ends does).
         area_weight: weight of the squared log ratio of the limbs' shares of the surface.
+        attach_weight: weight of the squared difference of where the limbs leave the trunk along the up
+            axis, relative to the trunk's height (:func:`attach_heights`): a pose-free role (legs leave
+            at the trunk's bottom, arms at its top, whatever the pose).
         chamfer_weight: weight of the chamfer distance of the turned shapes in the choice of the turn.
         aligned_turn_cost: with ``match.align`` = ``pca``/``pca_icp`` (the target was fitted to the
             reference), the cost of turning it half a turn away from the fitted heading.
@@ -77,6 +80,7 @@ class StructureConfig:
     direction_weight: float = 0.5
     tip_weight: float = 1.0
     area_weight: float = 0.5
+    attach_weight: float = 1.0
     chamfer_weight: float = 2.0
     aligned_turn_cost: float = 4.0
     mirror_repair: bool = True
@@ -170,6 +174,53 @@ def limb_descriptors(
         np.array(length),
         area,
     )
+
+
+def attach_heights(skeleton: CurveSkeleton, members: list[np.ndarray] | tuple[np.ndarray, ...], trunk: np.ndarray,
+                   up: int, away: np.ndarray | None = None) -> np.ndarray:
+    """(L,) where each limb leaves the trunk along the up axis: its height above the trunk's middle over the
+    trunk's length (clipped to [-2, 2]).
+
+    A target branch leaves the trunk at its first level (its points within one level of its lowest
+    geodesic distance from the core). A reference limb can lie along the trunk (an arm hanging beside
+    the chest touches it from shoulder to elbow), so with ``away`` (L, 3) it leaves at the end of its
+    points (``members``: the limb's first part) farthest from ``away`` (the centroid of the limb's
+    other parts, or its tip), within one level: the shoulder, the hip, the neck's base. The trunk's
+    middle is that of the 2-98 % range of ``trunk``'s points (indices) along ``up``, its length the
+    2-98 % range along its principal axis (a standing body's height, a lying one's or a table top's
+    length: the term stays small where the trunk is flat). Where a limb leaves does not change with the
+    pose: a toy's arms hanging down leave its body half-way up, its legs at the bottom, its head at the top.
+    """
+    h, w = skeleton.points[:, up], skeleton.level_width
+    body = skeleton.points[trunk] if len(trunk) >= 3 else skeleton.points
+    lo, hi = np.percentile(body[:, up], [2.0, 98.0])
+    axis = np.linalg.svd(body - body.mean(axis=0), full_matrices=False)[2][0]
+    along = np.percentile(body @ axis, [2.0, 98.0])
+    length = max(float(along[1] - along[0]), 1e-9)
+    out = []
+    for i, m in enumerate(members):
+        if away is None:
+            g = skeleton.geodesic[m]
+            near = g <= g.min() + w
+        else:
+            d = np.linalg.norm(skeleton.points[m] - away[i], axis=1)
+            near = d >= d.max() - w
+        out.append(float(h[m[near]].mean()))
+    return np.clip((np.array(out) - 0.5 * (lo + hi)) / length, -2.0, 2.0)
+
+
+def reference_attach(skeleton: CurveSkeleton, labels: np.ndarray, limb_parts: list[list[int]], parent: np.ndarray,
+                     limbs: LimbSet, in_trunk: np.ndarray, up: int) -> np.ndarray:
+    """(L,) :func:`attach_heights` of the reference's limbs: each leaves the trunk at the end of its first
+    part (the one hanging from the trunk) farthest from its other parts (or, for a one-part limb, its tip)."""
+    first, away = [], []
+    for i, parts in enumerate(limb_parts):
+        root = next(q for q in parts if int(parent[q]) not in parts)
+        own = np.flatnonzero(labels == root)
+        rest = np.flatnonzero(np.isin(labels, [q for q in parts if q != root]))
+        first.append(own if len(own) else limbs.members[i])
+        away.append(skeleton.points[rest].mean(axis=0) if len(rest) else limbs.tip[i])
+    return attach_heights(skeleton, first, np.flatnonzero(in_trunk), up, np.array(away).reshape(-1, 3))
 
 
 def part_tree(
@@ -294,6 +345,8 @@ def limb_cost(
     up: int = 1,
     ref_scale: np.ndarray | None = None,
     tgt_scale: np.ndarray | None = None,
+    ref_attach: np.ndarray | None = None,
+    tgt_attach: np.ndarray | None = None,
 ) -> np.ndarray:
     """(R, T) cost of giving reference limb r the target subtree t, target turned by ``rotation``.
 
@@ -303,7 +356,8 @@ def limb_cost(
     target's level sets split and is not compared); ``tip_weight`` x the squared difference of the unit
     directions from the centre to the tips; ``direction_weight`` x that of the unit base -> tip
     directions; ``length_weight`` x the squared log length ratio; ``area_weight`` x the squared log
-    ratio of the shares of the points (a leg is not half a body).
+    ratio of the shares of the points (a leg is not half a body); ``attach_weight`` x the squared
+    difference of the relative attachment heights ``ref_attach`` (R,), ``tgt_attach`` (T,) if given.
     """
     tb, tt = tgt.base @ rotation.T, tgt.tip @ rotation.T
     rs = np.ones(3) if ref_scale is None else ref_scale
@@ -319,8 +373,10 @@ def limb_cost(
     # smaller one is not (the target's levels split where a limb leaves the trunk's level sets, often
     # below where it leaves the trunk, so a target limb branch is typically a limb's lower part)
     d_area = np.maximum(np.log(np.maximum(tgt.area[None], 1e-6) / np.maximum(ref.area[:, None], 1e-6)), 0.0) ** 2
+    d_attach = 0.0 if ref_attach is None or tgt_attach is None else (ref_attach[:, None] - tgt_attach[None]) ** 2
     return (
-        config.base_weight * d_base
+        config.attach_weight * d_attach
+        + config.base_weight * d_base
         + config.tip_weight * d_tip
         + config.direction_weight * d_dir
         + config.length_weight * d_len
@@ -469,6 +525,16 @@ def mirror_repair(
     owner = {c: r for r, c in pairs}
     tb = (tgt.base @ rotation.T) / tgt_scale
     n = normal
+    partner = {a: b for i, j in mirror for a, b in ((i, j), (j, i))}
+
+    def mirrored(a: int) -> bool:
+        """Limb a's partner holds a branch near the mirror image of a's (a left/right pair that fits)."""
+        if partner[a] not in held:
+            return True
+        here = tb[held[a]]
+        image = here - 2.0 * (here @ n) * n
+        return 4.0 * float(np.linalg.norm(tb[held[partner[a]]] - image)) < float(np.linalg.norm(here - image))
+
     for i, j in mirror:
         for a, b in ((i, j), (j, i)):
             if a not in held or b in held:
@@ -476,7 +542,7 @@ def mirror_repair(
             m = tb[held[a]] - 2.0 * (tb[held[a]] @ n) * n
             c = int(np.argmin(np.linalg.norm(tb - m, axis=1)))
             q = owner.get(c)
-            if c == held[a] or q is None or q in paired:
+            if c == held[a] or q is None or (q in paired and mirrored(q)):
                 continue
             held[b] = c
             owner[c] = b
@@ -552,6 +618,41 @@ def complete_partners(
     return sorted(held.items())
 
 
+def split_partners(
+    pairs: list[tuple[int, int]],
+    partners: list[tuple[int, int]],
+    ref_base: np.ndarray,
+    normal: np.ndarray,
+    tgt_points: np.ndarray,
+    tgt: LimbSet,
+) -> list[tuple[int, int, np.ndarray]]:
+    """Two partner limbs in one target branch (two legs whose levels part too low to be two branches):
+    when a limb is matched, its partner is not, and the branch straddles the plane of symmetry (each side
+    holds at least a quarter of its points), the partner takes the branch's half on its own side.
+
+    Args:
+        pairs: (reference limb, candidate) pairs; partners: left/right limb pairs (:func:`limb_partners`).
+        ref_base: (R, 3) reference limb bases, each horizontal axis divided by the shape's spread.
+        normal: (3,) unit normal of the vertical plane of symmetry in that frame (:func:`partner_plane`).
+        tgt_points: (M, 3) target skeleton points, turned into the reference's frame and divided by the
+            target's spread per axis; tgt: the candidates' limb sets.
+
+    Returns:
+        (partner limb, candidate, mask over the candidate's members of the partner's half) per split.
+    """
+    held = dict(pairs)
+    out = []
+    for a, b in partners:
+        for x, y in ((a, b), (b, a)):
+            if x not in held or y in held:
+                continue
+            side = (tgt_points[tgt.members[held[x]]] @ normal) * np.sign(float((ref_base[y] - ref_base[x]) @ normal))
+            if 0.25 <= float((side > 0).mean()) <= 0.75:
+                out.append((y, held[x], side > 0))
+                held[y] = held[x]
+    return out
+
+
 def trunk_branches(skeleton: CurveSkeleton, matched: list[int]) -> list[int]:
     """The branches that are trunk: the root branch and every branch between it and a matched limb's
     branch (where the levels had not yet parted the limbs that leave there: a cross's centre above its
@@ -604,14 +705,27 @@ def match_structure(
     tgt_thick = None if tgt_depth is None else local_thickness(tgt_sk.points, tgt_depth)
     cand = np.arange(1, len(tgt_sk.branches))
     tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand], tgt_depth)
+    own_tip = []
+    for k, i in enumerate(cand):
+        own = tgt_sk.branches[i].points
+        if len(own) == 0 or not tgt_sk.branches[i].children:
+            own_tip.append(tgt_limbs.tip[k])
+            continue
+        g = tgt_sk.geodesic[own]
+        own_tip.append(tgt_sk.points[own[g >= g.max() - tgt_sk.level_width]].mean(axis=0))
+    tgt_limbs = replace(tgt_limbs, tip=np.array(own_tip).reshape(-1, 3))
     rng = np.random.default_rng(0)
     ref_sub = ref_points[rng.choice(len(ref_points), min(800, len(ref_points)), replace=False)]
     tgt_sub = tgt_points[rng.choice(len(tgt_points), min(800, len(tgt_points)), replace=False)]
     up = UP_AXES[up_axis]
     ref_scale = horizontal_scale(ref_points, np.eye(3), up)
-    turns = score_turns(ref_limbs, tgt_limbs, tgt_sk, cand, ref_sub, tgt_sub, config, up_axis, ref_scale, turn_cost)
+    parent = bone_tree(ref_sk, ref_labels, num_parts, part_parents)[0]
+    attach = (reference_attach(ref_sk, ref_labels, limb_parts, parent, ref_limbs, np.isin(ref_labels, trunk), up),
+              attach_heights(tgt_sk, tgt_limbs.members, tgt_sk.branches[0].points, up))
+    turns = score_turns(ref_limbs, tgt_limbs, tgt_sk, cand, ref_sub, tgt_sub, config, up_axis, ref_scale, turn_cost,
+                        attach)
     _, rot, pairs, total = turns[0]
-    partners = limb_partners(limb_parts, bone_tree(ref_sk, ref_labels, num_parts, part_parents)[0], ref_limbs.base,
+    partners = limb_partners(limb_parts, parent, ref_limbs.base,
                              ref_limbs.length)
     symmetry = (partners, partner_plane(ref_limbs.base, partners, up, ref_scale)) if partners else None
     tgt_scale = horizontal_scale(tgt_points, rot, up)
@@ -621,6 +735,15 @@ def match_structure(
         pairs = complete_partners(pairs, partners, tgt_limbs, tgt_sk, cand, rot, symmetry[1], tgt_scale)
     limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
                                                    config.profile_bins)) for r, t in pairs]
+    if symmetry is not None and len(pairs):
+        for y, t, half in split_partners(pairs, partners, ref_limbs.base / ref_scale, symmetry[1],
+                                         (tgt_sk.points @ rot.T) / tgt_scale, tgt_limbs):
+            parts = transfer_along(ref_sk, ref_limbs, y, ref_labels, tgt_sk, tgt_limbs, t, num_parts, config.profile_bins)
+            held = next(j for j, (_, c) in enumerate(pairs) if c == t)
+            members, own = limbs[held]
+            limbs[held] = (members[~half], own[~half])
+            limbs.append((members[half], parts[half]))
+            pairs = [*pairs, (y, t)]
     in_trunk = np.isin(ref_labels, trunk)
     point_part = label_regions(
         tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [
@@ -628,6 +751,7 @@ def match_structure(
         ref_sk.points[in_trunk], ref_labels[in_trunk],
         thickness=tgt_thick,
         reach=config.limb_reach,
+        trunk_thickness=None if tgt_thick is None else float(tgt_thick[tgt_sk.core].max()),
     )
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
@@ -654,12 +778,14 @@ def score_turns(
     up_axis: str,
     ref_scale: np.ndarray,
     turn_cost: float,
+    attach: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[tuple[float, np.ndarray, list[tuple[int, int]], float]]:
     """Every turn of the target about the up axis with its assignment, best first.
 
     Returns:
         (score, rotation, (reference limb, candidate) pairs, assignment cost) per turn; the score is the
-        assignment cost plus ``chamfer_weight`` x chamfer distance plus the heading prior.
+        assignment cost plus ``chamfer_weight`` x chamfer distance plus the heading prior. ``attach``: the
+        reference's and the candidates' attachment heights (:func:`attach_heights`), or None.
     """
     up = UP_AXES[up_axis]
     tree = cKDTree(ref_sub)
@@ -668,7 +794,8 @@ def score_turns(
     for rot in yaw_rotations(up_axis, config.yaw_steps):
         if len(ref_limbs.members) and len(cand):
             cost = limb_cost(
-                ref_limbs, tgt_limbs, rot, config, up=up, ref_scale=ref_scale, tgt_scale=horizontal_scale(tgt_all, rot, up)
+                ref_limbs, tgt_limbs, rot, config, up=up, ref_scale=ref_scale, tgt_scale=horizontal_scale(tgt_all, rot, up),
+                ref_attach=None if attach is None else attach[0], tgt_attach=None if attach is None else attach[1],
             )
             pairs, total = assign_limbs(cost, tgt_sk, cand, config.miss_cost)
         else:
