@@ -217,8 +217,9 @@ def test_drive_adjoint_matches_finite_differences(scene, threads):
     leaves = {k: t.clone().requires_grad_(True) for k, t in base.items()}
     loss(**leaves).backward()
     # steps large enough that float32 rounding of the loss stays well below the tolerance (F at 3e-4 was off by 8 %
-    # on the fields scene by rounding alone: 1e-3 and 3e-3 agree to 0.5 %)
-    for which, eps in (("v", 3e-3), ("x", 1e-4), ("F", 1e-3), ("C", 3e-2)):
+    # on the fields scene by rounding alone, 1e-3 and 3e-3 agree to 0.5 %; C's gradient is ~1e-5, and at 3e-2 its
+    # difference was rounding-limited: 3e-2, 1e-1 and 2e-1 agree with the adjoint to 0.6 %)
+    for which, eps in (("v", 3e-3), ("x", 1e-4), ("F", 1e-3), ("C", 1e-1)):
         d = torch.tensor(rng.normal(size=base[which].shape), dtype=torch.float32)
         with torch.no_grad():
             fd = (float(loss(**dict(base, **{which: base[which] + eps * d})))

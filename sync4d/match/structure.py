@@ -29,6 +29,7 @@ a matched limb's branch are trunk (:func:`trunk_branches`). Unmatched reference 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -666,6 +667,37 @@ def trunk_branches(skeleton: CurveSkeleton, matched: list[int]) -> list[int]:
     return sorted(out)
 
 
+def point_samples(points: np.ndarray, rng: np.random.Generator, count: int = 800) -> np.ndarray:
+    """At most ``count`` of ``points`` (N, 3), drawn without replacement by ``rng``."""
+    return points[rng.choice(len(points), min(count, len(points)), replace=False)]
+
+
+def own_chain_tips(tgt_sk: Any, cand: np.ndarray, tgt_limbs: Any) -> Any:
+    """``tgt_limbs`` with each candidate branch's tip measured at the end of its own chain (a head's crown, not an
+    ear's tip) where the branch has sub-branches."""
+    own_tip = []
+    for k, i in enumerate(cand):
+        own = tgt_sk.branches[i].points
+        if len(own) == 0 or not tgt_sk.branches[i].children:
+            own_tip.append(tgt_limbs.tip[k])
+            continue
+        g = tgt_sk.geodesic[own]
+        own_tip.append(tgt_sk.points[own[g >= g.max() - tgt_sk.level_width]].mean(axis=0))
+    return replace(tgt_limbs, tip=np.array(own_tip).reshape(-1, 3))
+
+
+def split_limb(limbs: list[Any], pairs: list[tuple[int, int]], ref_limb: int, branch: int, half: np.ndarray,
+               parts: np.ndarray) -> tuple[list[Any], list[tuple[int, int]]]:
+    """The branch shared by two partner limbs split: its ``half`` (bool over its members) goes to ``ref_limb`` with
+    the labels ``parts``, the rest stays with the limb that held it."""
+    held = next(j for j, (_, c) in enumerate(pairs) if c == branch)
+    members, own = limbs[held]
+    limbs = list(limbs)
+    limbs[held] = (members[~half], own[~half])
+    limbs.append((members[half], parts[half]))
+    return limbs, [*pairs, (ref_limb, branch)]
+
+
 def match_structure(
     ref_points: np.ndarray,
     ref_labels: np.ndarray,
@@ -704,19 +736,10 @@ def match_structure(
     )
     tgt_thick = None if tgt_depth is None else local_thickness(tgt_sk.points, tgt_depth)
     cand = np.arange(1, len(tgt_sk.branches))
-    tgt_limbs = limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand], tgt_depth)
-    own_tip = []
-    for k, i in enumerate(cand):
-        own = tgt_sk.branches[i].points
-        if len(own) == 0 or not tgt_sk.branches[i].children:
-            own_tip.append(tgt_limbs.tip[k])
-            continue
-        g = tgt_sk.geodesic[own]
-        own_tip.append(tgt_sk.points[own[g >= g.max() - tgt_sk.level_width]].mean(axis=0))
-    tgt_limbs = replace(tgt_limbs, tip=np.array(own_tip).reshape(-1, 3))
+    tgt_limbs = own_chain_tips(tgt_sk, cand, limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand],
+                                                              tgt_depth))
     rng = np.random.default_rng(0)
-    ref_sub = ref_points[rng.choice(len(ref_points), min(800, len(ref_points)), replace=False)]
-    tgt_sub = tgt_points[rng.choice(len(tgt_points), min(800, len(tgt_points)), replace=False)]
+    ref_sub, tgt_sub = point_samples(ref_points, rng), point_samples(tgt_points, rng)
     up = UP_AXES[up_axis]
     ref_scale = horizontal_scale(ref_points, np.eye(3), up)
     parent = bone_tree(ref_sk, ref_labels, num_parts, part_parents)[0]
@@ -739,11 +762,7 @@ def match_structure(
         for y, t, half in split_partners(pairs, partners, ref_limbs.base / ref_scale, symmetry[1],
                                          (tgt_sk.points @ rot.T) / tgt_scale, tgt_limbs):
             parts = transfer_along(ref_sk, ref_limbs, y, ref_labels, tgt_sk, tgt_limbs, t, num_parts, config.profile_bins)
-            held = next(j for j, (_, c) in enumerate(pairs) if c == t)
-            members, own = limbs[held]
-            limbs[held] = (members[~half], own[~half])
-            limbs.append((members[half], parts[half]))
-            pairs = [*pairs, (y, t)]
+            limbs, pairs = split_limb(limbs, pairs, y, t, half, parts)
     in_trunk = np.isin(ref_labels, trunk)
     point_part = label_regions(
         tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [
@@ -755,16 +774,9 @@ def match_structure(
     )
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
-    return StructureMatch(
-        ref_sk,
-        tgt_sk,
-        rot,
-        np.array([(r, int(cand[c])) for r, c in pairs], dtype=np.int64).reshape(-1, 2),
-        tuple(tuple(p) for p in limb_parts),
-        leftover,
-        point_part,
-        float(total),
-    )
+    matched_branches = np.array([(r, int(cand[c])) for r, c in pairs], dtype=np.int64).reshape(-1, 2)
+    return StructureMatch(ref_sk, tgt_sk, rot, matched_branches, tuple(tuple(p) for p in limb_parts), leftover,
+                          point_part, float(total))
 
 
 def score_turns(

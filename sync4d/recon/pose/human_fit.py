@@ -162,6 +162,15 @@ def _hinge_losses(x: torch.Tensor, min_cos: float) -> torch.Tensor:
     return loss
 
 
+def camera_tensors(extrinsics: np.ndarray | None, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """((T, 3, 3) rotations, (T, 3) translations [m]) of world-to-camera ``extrinsics`` (T, 4, 4), float64; the
+    identity for a static camera (None)."""
+    if extrinsics is None:
+        return torch.eye(3, dtype=torch.float64).repeat(frames, 1, 1), torch.zeros((frames, 3), dtype=torch.float64)
+    e = torch.tensor(np.asarray(extrinsics), dtype=torch.float64)
+    return e[:, :3, :3], e[:, :3, 3]
+
+
 def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: float = 10.0,
               extrinsics: np.ndarray | None = None) -> HumanFit:
     """Fit the 17-joint skeleton to a :class:`PoseTrack` seen by a camera with intrinsics ``K``.
@@ -195,9 +204,7 @@ def fit_human(track: PoseTrack, K: np.ndarray, config: HumanFitConfig, fps: floa
     flow = flow_targets(track, vis)
     min_cos = float(np.cos(np.radians(config.min_hinge_deg)))
     moving = extrinsics is not None
-    rot_np = np.asarray(extrinsics)[:, :3, :3] if moving else np.tile(np.eye(3), (len(x0), 1, 1))
-    cam_t_np = np.asarray(extrinsics)[:, :3, 3] if moving else np.zeros((len(x0), 3))
-    rot, cam_t = torch.tensor(rot_np, dtype=dt), torch.tensor(cam_t_np, dtype=dt)
+    rot, cam_t = camera_tensors(extrinsics, len(x0))
     opt = torch.optim.LBFGS([x, log_len], lr=1.0, max_iter=config.iterations, line_search_fn="strong_wolfe")
 
     def in_world(points: torch.Tensor) -> torch.Tensor:
