@@ -554,3 +554,59 @@ def test_the_trunk_takes_the_reference_trunk_parts_by_relative_position() -> Non
     fitted = ref_part[tree.query(fit_spread(short, ref))[1]]
     top, bottom = short[:, 1] > -0.6, short[:, 1] < -0.8
     assert (fitted[top] == 1).mean() > 0.9 and (fitted[bottom] == 0).mean() > 0.9
+
+
+def test_a_leg_on_an_arm_stub_beside_the_legs_straddling_branch_hands_it_to_the_arms() -> None:
+    """Legs 0/1 (partners), arms 2/3 (partners, both left over). Leg 0 holds an arm stub (a side branch)
+    while leg 1 holds the legs' branch straddling the midline: the stub goes to the arm that fits it best;
+    with no left-over pair, or with the legs on two side branches, nothing changes."""
+    from sync4d.match.structure import LimbSet, straddle_repair
+
+    # candidates: 0 the legs' branch (points on both sides), 1 and 2 arm stubs (one side each)
+    side = np.array([-1.0, -1.0, 1.0, 1.0, -2.0, -2.0, 2.0, 2.0])
+    members = (np.arange(4), np.array([4, 5]), np.array([6, 7]))
+    tgt = LimbSet(members, np.zeros((3, 3)), np.zeros((3, 3)), np.zeros(3), np.ones(3), np.full(3, 0.1))
+    partners = [(0, 1), (2, 3)]
+    cost = np.array([[1.0, 1.5, 5.0], [1.1, 5.0, 2.0], [6.0, 4.9, 4.0], [6.0, 4.0, 4.8]])
+    assert straddle_repair([(0, 1), (1, 0)], partners, cost, side, tgt) == [(1, 0), (3, 1)]
+    assert straddle_repair([(0, 1), (1, 0), (2, 2)], partners, cost, side, tgt) == [(0, 1), (1, 0), (2, 2)]
+    assert straddle_repair([(0, 1), (1, 2)], partners, cost, side, tgt) == [(0, 1), (1, 2)]
+
+
+def test_a_foot_points_where_the_toes_reach_and_a_turned_foot_costs() -> None:
+    """A leg whose lowest points reach forward (+z) of the points above has a foot pointing +z; an arm off
+    the ground has none. Turned half a turn, the target's foot disagrees with the reference's in full."""
+    from dataclasses import replace
+
+    from sync4d.match.structure import LimbSet, foot_disagreement, limb_feet, yaw_rotations
+
+    shin = np.stack([np.zeros(20), np.linspace(0.06, 0.25, 20), np.zeros(20)], axis=1)
+    toes = np.stack([np.zeros(10), np.full(10, 0.01), np.linspace(0.0, 0.2, 10)], axis=1)
+    arm = np.stack([np.full(10, 0.5), np.linspace(0.6, 1.0, 10), np.zeros(10)], axis=1)
+    points = np.concatenate([shin, toes, arm])
+    feet = limb_feet(points, [np.arange(30), np.arange(30, 40)], up=1)
+    assert feet[0, 2] > 0.05 and abs(feet[0, 0]) < 1e-9 and feet[0, 1] == 0.0
+    assert np.allclose(feet[1], 0.0)
+    n = 2
+    limbs = replace(LimbSet(tuple(np.zeros(0, dtype=np.int64) for _ in range(n)), np.zeros((n, 3)), np.zeros((n, 3)),
+                            np.zeros(n), np.ones(n), np.ones(n)), foot=feet)
+    same = foot_disagreement(limbs, limbs, np.eye(3))
+    half = foot_disagreement(limbs, limbs, yaw_rotations("y", 2)[1])
+    assert same[0, 0] < 1e-9 and half[0, 0] > 0.99 * np.linalg.norm(feet[0])
+    assert same[1, 1] == 0.0 and half[1, 1] == 0.0 and half[0, 1] == 0.0
+
+
+def test_limbs_left_over_take_free_branches_by_the_pose_free_cost() -> None:
+    """Limb 1 left over takes the free branch it fits best (candidate 2) under the miss cost; a branch nested
+    under a held one (candidate 1 under candidate 0) is not free; a limb dearer than the miss cost stays left."""
+    from sync4d.match.skeleton import Branch, CurveSkeleton
+    from sync4d.match.structure import pose_free_round
+
+    parents = [-1, 0, 1, 0, 0]  # branch 2 hangs from branch 1
+    branches = tuple(Branch((i,), parents[i], (), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+                            np.zeros(3), np.zeros(3), 0.0, 1.0) for i in range(5))
+    skeleton = CurveSkeleton(np.zeros((1, 3)), np.zeros(1), 0, np.zeros(1, dtype=np.int64),
+                             np.zeros(1, dtype=np.int64), branches, 0.1)
+    cand = np.arange(1, 5)
+    cost = np.array([[0.5, 9.0, 9.0, 9.0], [9.0, 0.1, 1.0, 2.0], [9.0, 9.0, 9.0, 5.0]])
+    assert pose_free_round([(0, 0)], cost, skeleton, cand, 3.0) == [(0, 0), (1, 2)]

@@ -10,7 +10,7 @@ unit RMS radius; both upright along ``up_axis``). Then:
    subtree) is a candidate for one reference limb (:func:`limb_descriptors`);
 2. for each turn of the target about the up axis (``yaw_steps`` of them), the reference limbs are
    assigned to target subtrees by the Hungarian method on a cost of where each limb leaves the trunk,
-   where it ends, its direction and its length (:func:`limb_cost`); a limb may stay unmatched at cost
+   where it ends, its direction, its length and where its foot points (:func:`limb_cost`); a limb may stay unmatched at cost
    ``miss_cost`` (a target with fewer limbs: a cross, a table), and an assignment that holds a subtree
    and one of its descendants is re-solved with that pair forbidden (:func:`assign_limbs`). The turn of
    lowest assignment cost plus chamfer distance wins: the shapes need not face the same way;
@@ -21,9 +21,11 @@ unit RMS radius; both upright along ``up_axis``). Then:
 
 Left/right: limbs hanging from the same trunk part with as many parts are partners (:func:`limb_partners`);
 a partner left over takes the free branch at the mirror image of the other's (:func:`complete_partners`),
-and a tail holding that branch hands it over (:func:`mirror_repair`). The branches between the root and
-a matched limb's branch are trunk (:func:`trunk_branches`). Unmatched reference limbs are reported
-(``StructureMatch.leftover``).
+and a tail holding that branch hands it over (:func:`mirror_repair`); a partner on a side branch while the
+other holds a branch straddling the plane hands the side branch to a left-over pair (:func:`straddle_repair`).
+Limbs still left over then take free branches by the pose-free terms alone (:func:`pose_free_round`). The
+branches between the root and a matched limb's branch are trunk (:func:`trunk_branches`). Unmatched
+reference limbs are reported (``StructureMatch.leftover``).
 """
 
 from __future__ import annotations
@@ -64,6 +66,8 @@ class StructureConfig:
             axis, relative to the trunk's height (:func:`attach_heights`): a pose-free role (legs leave
             at the trunk's bottom, arms at its top, whatever the pose).
         chamfer_weight: weight of the chamfer distance of the turned shapes in the choice of the turn.
+        foot_weight: weight of the term of where a limb's foot points (:func:`limb_feet`) in the limb cost: a
+            target nearly symmetric front to back (a toy) faces the way its feet point.
         aligned_turn_cost: with ``match.align`` = ``pca``/``pca_icp`` (the target was fitted to the
             reference), the cost of turning it half a turn away from the fitted heading.
         profile_bins: bins of relative position along a limb in the part profile.
@@ -83,6 +87,7 @@ class StructureConfig:
     area_weight: float = 0.5
     attach_weight: float = 1.0
     chamfer_weight: float = 2.0
+    foot_weight: float = 5.0
     aligned_turn_cost: float = 4.0
     mirror_repair: bool = True
     profile_bins: int = 20
@@ -100,6 +105,7 @@ class LimbSet:
         base_level: (L,) geodesic distance of the base from the centre.
         length: (L,) geodesic extent from the base to the tip.
         area: (L,) the limb's share of the shape's surface points (for voxels: of the outer layer).
+        foot: (L, 3) where each limb's foot points (:func:`limb_feet`), or None.
     """
 
     members: tuple[np.ndarray, ...]
@@ -108,6 +114,7 @@ class LimbSet:
     base_level: np.ndarray
     length: np.ndarray
     area: np.ndarray
+    foot: np.ndarray | None = None
 
     def relative_position(self, geodesic: np.ndarray, limb: int) -> np.ndarray:
         """(Q,) relative geodesic position in [0, 1] of the limb's points (0 at the base, 1 at the tip)."""
@@ -175,6 +182,30 @@ def limb_descriptors(
         np.array(length),
         area,
     )
+
+
+def limb_feet(points: np.ndarray, members: list[np.ndarray] | tuple[np.ndarray, ...], up: int, sole: float = 0.05,
+              shins: float = 0.25) -> np.ndarray:
+    """(L, 3) where each limb's foot points: the horizontal offset of the centroid of its points in the lowest
+    ``sole`` of the shape's height from the centroid of its points in the band above (up to ``shins``).
+
+    Toes, paws and a toy's feet reach forward of the legs they stand on. A limb that does not reach the
+    ground (an arm, a raised tail) has no foot: (0, 0, 0), as has one with no points in the band.
+    """
+    h = points[:, up]
+    rel = (h - h.min()) / max(float(np.ptp(h)), 1e-9)
+    out = np.zeros((len(members), 3))
+    for i, m in enumerate(members):
+        low, band = m[rel[m] <= sole], m[(rel[m] > sole) & (rel[m] <= shins)]
+        if len(low) and len(band):
+            out[i] = points[low].mean(axis=0) - points[band].mean(axis=0)
+    out[:, up] = 0.0
+    return out
+
+
+def with_feet(limbs: LimbSet, points: np.ndarray, up: int) -> LimbSet:
+    """``limbs`` with their feet (:func:`limb_feet`) on the skeleton points ``points``."""
+    return replace(limbs, foot=limb_feet(points, limbs.members, up))
 
 
 def attach_heights(skeleton: CurveSkeleton, members: list[np.ndarray] | tuple[np.ndarray, ...], trunk: np.ndarray,
@@ -358,7 +389,8 @@ def limb_cost(
     directions from the centre to the tips; ``direction_weight`` x that of the unit base -> tip
     directions; ``length_weight`` x the squared log length ratio; ``area_weight`` x the squared log
     ratio of the shares of the points (a leg is not half a body); ``attach_weight`` x the squared
-    difference of the relative attachment heights ``ref_attach`` (R,), ``tgt_attach`` (T,) if given.
+    difference of the relative attachment heights ``ref_attach`` (R,), ``tgt_attach`` (T,) if given;
+    ``foot_weight`` x :func:`foot_disagreement`.
     """
     tb, tt = tgt.base @ rotation.T, tgt.tip @ rotation.T
     rs = np.ones(3) if ref_scale is None else ref_scale
@@ -377,12 +409,24 @@ def limb_cost(
     d_attach = 0.0 if ref_attach is None or tgt_attach is None else (ref_attach[:, None] - tgt_attach[None]) ** 2
     return (
         config.attach_weight * d_attach
+        + config.foot_weight * foot_disagreement(ref, tgt, rotation)
         + config.base_weight * d_base
         + config.tip_weight * d_tip
         + config.direction_weight * d_dir
         + config.length_weight * d_len
         + config.area_weight * d_area
     )
+
+
+def foot_disagreement(ref: LimbSet, tgt: LimbSet, rotation: np.ndarray) -> np.ndarray:
+    """(R, T) how far the turned target limb's foot points away from the reference limb's: the shorter foot
+    vector's length times (1 - cos) / 2 of the angle between them; 0 where either limb has no foot."""
+    if ref.foot is None or tgt.foot is None:
+        return np.zeros((len(ref.members), len(tgt.members)))
+    turned = tgt.foot @ rotation.T
+    n_r, n_t = np.linalg.norm(ref.foot, axis=1), np.linalg.norm(turned, axis=1)
+    cos = (ref.foot @ turned.T) / np.maximum(n_r[:, None] * n_t[None], 1e-12)
+    return np.minimum(n_r[:, None], n_t[None]) * (1.0 - cos) / 2.0
 
 
 def assign_limbs(
@@ -619,6 +663,56 @@ def complete_partners(
     return sorted(held.items())
 
 
+def straddle_repair(
+    pairs: list[tuple[int, int]],
+    partners: list[tuple[int, int]],
+    cost: np.ndarray,
+    side: np.ndarray,
+    tgt: LimbSet,
+) -> list[tuple[int, int]]:
+    """A partner on a side branch while the other partner holds a branch straddling the plane of symmetry
+    (two legs in one branch, one leg also on an arm stub): the side branch goes to the left-over partner
+    pair (both limbs unmatched) that fits it best by ``cost`` (R, T), and the displaced limb shares the
+    straddling branch (:func:`split_partners`); :func:`complete_partners` then gives the taker's partner
+    the mirror image. Nothing changes without a left-over pair to take the branch.
+
+    ``side`` (M,) is the signed distance of each target skeleton point from the plane of symmetry; a
+    branch straddles it when each side holds at least a quarter of its points (``tgt.members``).
+    """
+    held = dict(pairs)
+
+    def straddles(c: int) -> bool:
+        return 0.25 <= float((side[tgt.members[c]] > 0).mean()) <= 0.75
+
+    for a, b in partners:
+        for x, y in ((a, b), (b, a)):
+            if x not in held or y not in held or straddles(held[x]) or not straddles(held[y]):
+                continue
+            free = [(float(cost[t, held[x]]), t) for i, j in partners for t in (i, j) if i not in held and j not in held]
+            if free:
+                held[min(free)[1]] = held.pop(x)
+    return sorted(held.items())
+
+
+def pose_free_round(pairs: list[tuple[int, int]], cost: np.ndarray, skeleton: CurveSkeleton, cand: np.ndarray,
+                    miss_cost: float) -> list[tuple[int, int]]:
+    """The reference limbs left over take free target branches by ``cost`` (R, T) without the pose's terms
+    (where a limb leaves the trunk, its base seen from above, its length and share only): a cat's raised
+    tail is the dog's hanging one, a toy's arm stubs hanging down are the arms raised in the reference's
+    first frame. A free branch is neither held nor nested with a held one; a limb still stays left over at
+    ``miss_cost`` (:func:`assign_limbs`)."""
+    held = dict(pairs)
+    taken = [int(cand[c]) for c in held.values()]
+    rows = [r for r in range(cost.shape[0]) if r not in held]
+    cols = [c for c in range(cost.shape[1]) if c not in held.values() and not any(
+        skeleton.is_ancestor(int(cand[c]), t) or skeleton.is_ancestor(t, int(cand[c])) for t in taken)]
+    if not rows or not cols:
+        return sorted(held.items())
+    more, _ = assign_limbs(cost[np.ix_(rows, cols)], skeleton, cand[cols], miss_cost)
+    held.update({rows[r]: cols[c] for r, c in more})
+    return sorted(held.items())
+
+
 def split_partners(
     pairs: list[tuple[int, int]],
     partners: list[tuple[int, int]],
@@ -698,6 +792,28 @@ def split_limb(limbs: list[Any], pairs: list[tuple[int, int]], ref_limb: int, br
     return limbs, [*pairs, (ref_limb, branch)]
 
 
+def repair_pairs(pairs: list[tuple[int, int]], ref_limbs: LimbSet, tgt_limbs: LimbSet, tgt_sk: CurveSkeleton,
+                 cand: np.ndarray, rot: np.ndarray, symmetry: tuple[list[tuple[int, int]], np.ndarray] | None,
+                 attach: tuple[np.ndarray, np.ndarray], config: StructureConfig, up: int, ref_scale: np.ndarray,
+                 tgt_scale: np.ndarray) -> list[tuple[int, int]]:
+    """The chosen turn's (reference limb, candidate) pairs after :func:`mirror_repair`, :func:`straddle_repair`,
+    :func:`complete_partners` (with left/right partners and their plane, ``symmetry``) and
+    :func:`pose_free_round`; ``tgt_scale``: the target's horizontal spread (:func:`horizontal_scale`)."""
+
+    def cost(cfg: StructureConfig) -> np.ndarray:
+        return limb_cost(ref_limbs, tgt_limbs, rot, cfg, up=up, ref_scale=ref_scale, ref_attach=attach[0],
+                         tgt_scale=horizontal_scale(tgt_sk.points, rot, up), tgt_attach=attach[1])
+
+    if config.mirror_repair and len(pairs):
+        pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, tgt_scale, symmetry)
+    if symmetry is not None and len(pairs):
+        partners, normal = symmetry
+        pairs = straddle_repair(pairs, partners, cost(config), (tgt_sk.points @ rot.T) / tgt_scale @ normal, tgt_limbs)
+        pairs = complete_partners(pairs, partners, tgt_limbs, tgt_sk, cand, rot, normal, tgt_scale)
+    return pose_free_round(pairs, cost(replace(config, tip_weight=0.0, direction_weight=0.0, foot_weight=0.0)),
+                           tgt_sk, cand, config.miss_cost)
+
+
 def match_structure(
     ref_points: np.ndarray,
     ref_labels: np.ndarray,
@@ -731,16 +847,15 @@ def match_structure(
     tgt_sk = curve_skeleton(tgt_points, config.skeleton, tgt_depth, up=UP_AXES[up_axis])
     limb_parts, trunk = reference_limbs(ref_sk, ref_labels, num_parts, part_parents)
     ref_sk = distance_from_trunk(ref_sk, np.isin(ref_labels, trunk), config.skeleton)
-    ref_limbs = limb_descriptors(
-        ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts], base_share=config.reference_base_share
-    )
+    up = UP_AXES[up_axis]
+    ref_limbs = with_feet(limb_descriptors(ref_sk, [np.flatnonzero(np.isin(ref_labels, p)) for p in limb_parts],
+                                           base_share=config.reference_base_share), ref_sk.points, up)
     tgt_thick = None if tgt_depth is None else local_thickness(tgt_sk.points, tgt_depth)
     cand = np.arange(1, len(tgt_sk.branches))
-    tgt_limbs = own_chain_tips(tgt_sk, cand, limb_descriptors(tgt_sk, [tgt_sk.branches[i].subtree for i in cand],
-                                                              tgt_depth))
+    tgt_limbs = with_feet(own_chain_tips(tgt_sk, cand, limb_descriptors(
+        tgt_sk, [tgt_sk.branches[i].subtree for i in cand], tgt_depth)), tgt_sk.points, up)
     rng = np.random.default_rng(0)
     ref_sub, tgt_sub = point_samples(ref_points, rng), point_samples(tgt_points, rng)
-    up = UP_AXES[up_axis]
     ref_scale = horizontal_scale(ref_points, np.eye(3), up)
     parent = bone_tree(ref_sk, ref_labels, num_parts, part_parents)[0]
     attach = (reference_attach(ref_sk, ref_labels, limb_parts, parent, ref_limbs, np.isin(ref_labels, trunk), up),
@@ -748,14 +863,11 @@ def match_structure(
     turns = score_turns(ref_limbs, tgt_limbs, tgt_sk, cand, ref_sub, tgt_sub, config, up_axis, ref_scale, turn_cost,
                         attach)
     _, rot, pairs, total = turns[0]
-    partners = limb_partners(limb_parts, parent, ref_limbs.base,
-                             ref_limbs.length)
+    partners = limb_partners(limb_parts, parent, ref_limbs.base, ref_limbs.length)
     symmetry = (partners, partner_plane(ref_limbs.base, partners, up, ref_scale)) if partners else None
     tgt_scale = horizontal_scale(tgt_points, rot, up)
-    if config.mirror_repair and len(pairs):
-        pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, tgt_scale, symmetry)
-    if symmetry is not None and len(pairs):
-        pairs = complete_partners(pairs, partners, tgt_limbs, tgt_sk, cand, rot, symmetry[1], tgt_scale)
+    pairs = repair_pairs(pairs, ref_limbs, tgt_limbs, tgt_sk, cand, rot, symmetry, attach, config, up, ref_scale,
+                         tgt_scale)
     limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
                                                    config.profile_bins)) for r, t in pairs]
     if symmetry is not None and len(pairs):
@@ -764,14 +876,10 @@ def match_structure(
             parts = transfer_along(ref_sk, ref_limbs, y, ref_labels, tgt_sk, tgt_limbs, t, num_parts, config.profile_bins)
             limbs, pairs = split_limb(limbs, pairs, y, t, half, parts)
     in_trunk = np.isin(ref_labels, trunk)
-    point_part = label_regions(
-        tgt_sk.points @ rot.T, tgt_sk.graph, np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [
-            int(cand[c]) for _, c in pairs]))), limbs,
-        ref_sk.points[in_trunk], ref_labels[in_trunk],
-        thickness=tgt_thick,
-        reach=config.limb_reach,
-        trunk_thickness=None if tgt_thick is None else float(tgt_thick[tgt_sk.core].max()),
-    )
+    root = np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [int(cand[c]) for _, c in pairs])))
+    point_part = label_regions(tgt_sk.points @ rot.T, tgt_sk.graph, root, limbs, ref_sk.points[in_trunk],
+                               ref_labels[in_trunk], thickness=tgt_thick, reach=config.limb_reach,
+                               trunk_thickness=None if tgt_thick is None else float(tgt_thick[tgt_sk.core].max()))
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
     matched_branches = np.array([(r, int(cand[c])) for r, c in pairs], dtype=np.int64).reshape(-1, 2)
