@@ -594,19 +594,3 @@ def test_a_foot_points_where_the_toes_reach_and_a_turned_foot_costs() -> None:
     half = foot_disagreement(limbs, limbs, yaw_rotations("y", 2)[1])
     assert same[0, 0] < 1e-9 and half[0, 0] > 0.99 * np.linalg.norm(feet[0])
     assert same[1, 1] == 0.0 and half[1, 1] == 0.0 and half[0, 1] == 0.0
-
-
-def test_limbs_left_over_take_free_branches_by_the_pose_free_cost() -> None:
-    """Limb 1 left over takes the free branch it fits best (candidate 2) under the miss cost; a branch nested
-    under a held one (candidate 1 under candidate 0) is not free; a limb dearer than the miss cost stays left."""
-    from sync4d.match.skeleton import Branch, CurveSkeleton
-    from sync4d.match.structure import pose_free_round
-
-    parents = [-1, 0, 1, 0, 0]  # branch 2 hangs from branch 1
-    branches = tuple(Branch((i,), parents[i], (), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
-                            np.zeros(3), np.zeros(3), 0.0, 1.0) for i in range(5))
-    skeleton = CurveSkeleton(np.zeros((1, 3)), np.zeros(1), 0, np.zeros(1, dtype=np.int64),
-                             np.zeros(1, dtype=np.int64), branches, 0.1)
-    cand = np.arange(1, 5)
-    cost = np.array([[0.5, 9.0, 9.0, 9.0], [9.0, 0.1, 1.0, 2.0], [9.0, 9.0, 9.0, 5.0]])
-    assert pose_free_round([(0, 0)], cost, skeleton, cand, 3.0) == [(0, 0), (1, 2)]

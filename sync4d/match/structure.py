@@ -23,8 +23,7 @@ Left/right: limbs hanging from the same trunk part with as many parts are partne
 a partner left over takes the free branch at the mirror image of the other's (:func:`complete_partners`),
 and a tail holding that branch hands it over (:func:`mirror_repair`); a partner on a side branch while the
 other holds a branch straddling the plane hands the side branch to a left-over pair (:func:`straddle_repair`).
-Limbs still left over then take free branches by the pose-free terms alone (:func:`pose_free_round`). The
-branches between the root and a matched limb's branch are trunk (:func:`trunk_branches`). Unmatched
+The branches between the root and a matched limb's branch are trunk (:func:`trunk_branches`). Unmatched
 reference limbs are reported (``StructureMatch.leftover``).
 """
 
@@ -694,25 +693,6 @@ def straddle_repair(
     return sorted(held.items())
 
 
-def pose_free_round(pairs: list[tuple[int, int]], cost: np.ndarray, skeleton: CurveSkeleton, cand: np.ndarray,
-                    miss_cost: float) -> list[tuple[int, int]]:
-    """The reference limbs left over take free target branches by ``cost`` (R, T) without the pose's terms
-    (where a limb leaves the trunk, its base seen from above, its length and share only): a cat's raised
-    tail is the dog's hanging one, a toy's arm stubs hanging down are the arms raised in the reference's
-    first frame. A free branch is neither held nor nested with a held one; a limb still stays left over at
-    ``miss_cost`` (:func:`assign_limbs`)."""
-    held = dict(pairs)
-    taken = [int(cand[c]) for c in held.values()]
-    rows = [r for r in range(cost.shape[0]) if r not in held]
-    cols = [c for c in range(cost.shape[1]) if c not in held.values() and not any(
-        skeleton.is_ancestor(int(cand[c]), t) or skeleton.is_ancestor(t, int(cand[c])) for t in taken)]
-    if not rows or not cols:
-        return sorted(held.items())
-    more, _ = assign_limbs(cost[np.ix_(rows, cols)], skeleton, cand[cols], miss_cost)
-    held.update({rows[r]: cols[c] for r, c in more})
-    return sorted(held.items())
-
-
 def split_partners(
     pairs: list[tuple[int, int]],
     partners: list[tuple[int, int]],
@@ -796,22 +776,18 @@ def repair_pairs(pairs: list[tuple[int, int]], ref_limbs: LimbSet, tgt_limbs: Li
                  cand: np.ndarray, rot: np.ndarray, symmetry: tuple[list[tuple[int, int]], np.ndarray] | None,
                  attach: tuple[np.ndarray, np.ndarray], config: StructureConfig, up: int, ref_scale: np.ndarray,
                  tgt_scale: np.ndarray) -> list[tuple[int, int]]:
-    """The chosen turn's (reference limb, candidate) pairs after :func:`mirror_repair`, :func:`straddle_repair`,
-    :func:`complete_partners` (with left/right partners and their plane, ``symmetry``) and
-    :func:`pose_free_round`; ``tgt_scale``: the target's horizontal spread (:func:`horizontal_scale`)."""
-
-    def cost(cfg: StructureConfig) -> np.ndarray:
-        return limb_cost(ref_limbs, tgt_limbs, rot, cfg, up=up, ref_scale=ref_scale, ref_attach=attach[0],
-                         tgt_scale=horizontal_scale(tgt_sk.points, rot, up), tgt_attach=attach[1])
-
+    """The chosen turn's (reference limb, candidate) pairs after :func:`mirror_repair`, :func:`straddle_repair`
+    and :func:`complete_partners` (with left/right partners and their plane, ``symmetry``); ``tgt_scale``: the
+    target's horizontal spread (:func:`horizontal_scale`)."""
     if config.mirror_repair and len(pairs):
         pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, tgt_scale, symmetry)
     if symmetry is not None and len(pairs):
         partners, normal = symmetry
-        pairs = straddle_repair(pairs, partners, cost(config), (tgt_sk.points @ rot.T) / tgt_scale @ normal, tgt_limbs)
+        cost = limb_cost(ref_limbs, tgt_limbs, rot, config, up=up, ref_scale=ref_scale, ref_attach=attach[0],
+                         tgt_scale=horizontal_scale(tgt_sk.points, rot, up), tgt_attach=attach[1])
+        pairs = straddle_repair(pairs, partners, cost, (tgt_sk.points @ rot.T) / tgt_scale @ normal, tgt_limbs)
         pairs = complete_partners(pairs, partners, tgt_limbs, tgt_sk, cand, rot, normal, tgt_scale)
-    return pose_free_round(pairs, cost(replace(config, tip_weight=0.0, direction_weight=0.0, foot_weight=0.0)),
-                           tgt_sk, cand, config.miss_cost)
+    return pairs
 
 
 def match_structure(
