@@ -5,6 +5,8 @@ it moves with the room. But it stands off the room's planes (floor, walls), so u
 picture does not follow the planes' homographies: over a few frames' baseline its dense flow leaves a
 residual (parallax) that the floor next to it does not. What stands off the planes, thick, touching the
 moving subject's mask and not running out of the picture is the subject's (:func:`join_static_parts`).
+Parallax fades where the part meets the floor, so a mask that was joined by a part is then refined by
+GrabCut (colour decides its outline near the joined mask).
 
 Measured on the front end's suite (``docs/results/video_frontend.md``): the never-moving bodies stand
 1.7-2.4 px off the planes at a 3-frame baseline, the room 0.26-0.29 px (medians). A moving subject's
@@ -17,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from sync4d.frontend.motion import background_residual, dense_flow
-from sync4d.frontend.segment import components, largest_component, morph, pull_warp, size_of
+from sync4d.frontend.segment import components, grabcut, largest_component, morph, pull_warp, size_of
 
 #: frames between the two pictures whose parallax is compared (each frame against the one this many
 #: before and after it; the clip's first and last ``BASELINE`` frames take the parts carried by the flow)
@@ -59,19 +61,22 @@ def attached_parts(candidate: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.isin(labels, keep[thick >= THICKNESS * size_of(mask)])
 
 
-def join_static_parts(grey: np.ndarray, masks: np.ndarray, flows: dict[tuple[int, int], np.ndarray],
-                      baseline: int = BASELINE) -> np.ndarray:
+def join_static_parts(frames: np.ndarray, grey: np.ndarray, masks: np.ndarray,
+                      flows: dict[tuple[int, int], np.ndarray], iterations: int, baseline: int = BASELINE) -> np.ndarray:
     """(T, H, W) bool ``masks`` joined by the never-moving parts attached to them (moving camera only).
 
     Frames with ``baseline`` frames on both sides get their parts from their own parallax
     (:func:`off_plane`, :func:`attached_parts`); the clip's first and last frames take the nearest such
     frame's parts carried along the neighbouring-frame ``flows`` (``{(t, s): (H, W, 2)}``, as
-    :class:`~sync4d.frontend.motion.MotionEvidence`). Each mask stays one connected piece.
+    :class:`~sync4d.frontend.motion.MotionEvidence`). A mask joined by a part is refined by GrabCut
+    (:func:`~sync4d.frontend.segment.grabcut`, ``iterations``); each mask stays one connected piece.
 
     Args:
-        grey: (T, H, W) uint8 frames.
+        frames: (T, H, W, 3) uint8 RGB frames.
+        grey: (T, H, W) uint8 the same frames in grey.
         masks: (T, H, W) bool the moving subject's masks.
         flows: dense flows between neighbouring frames [px].
+        iterations: GrabCut iterations per joined frame.
         baseline: frames between the pictures compared.
     """
     n_frames = len(grey)
@@ -83,9 +88,14 @@ def join_static_parts(grey: np.ndarray, masks: np.ndarray, flows: dict[tuple[int
             have[t] = True
     if not have.any():
         return masks
-    for step, frames in ((-1, range(baseline - 1, -1, -1)), (1, range(n_frames - baseline, n_frames))):
-        for t in frames:
+    for step, ends in ((-1, range(baseline - 1, -1, -1)), (1, range(n_frames - baseline, n_frames))):
+        for t in ends:
             if have[t - step] and (t, t - step) in flows:
                 parts[t] = pull_warp(parts[t - step], flows[(t, t - step)]) & ~masks[t]
                 have[t] = True
-    return np.stack([largest_component(m | p) if m.any() else m for m, p in zip(masks, parts, strict=True)])
+    out = masks.copy()
+    for t in np.flatnonzero(parts.reshape(n_frames, -1).any(axis=1)):
+        joined = largest_component(masks[t] | parts[t])
+        refined = largest_component(grabcut(frames[t], joined, sure=None, iterations=iterations))
+        out[t] = refined if refined.any() else joined
+    return out

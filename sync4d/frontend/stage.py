@@ -138,7 +138,7 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, config: Subje
     if static:  # a subject found by its motion under a static camera: what shows the background plate is floor
         return drop_plate(work, masks) if method == "motion" else masks
     # a moving camera: the subject's parts that never move stand off the room's planes (parallax)
-    return join_static_parts(grey, masks, flows) if method == "motion" else masks
+    return join_static_parts(work, grey, masks, flows, config.grabcut_iters) if method == "motion" else masks
 
 
 def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | None = None, masks_given: bool = False,
