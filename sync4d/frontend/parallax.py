@@ -8,8 +8,8 @@ moving subject's mask and not running out of the picture is the subject's (:func
 Parallax fades where the part meets the floor, so a mask that was joined by a part is then refined by
 GrabCut (colour decides its outline near the joined mask).
 
-Measured on the front end's suite (``docs/results/video_frontend.md``): the never-moving bodies stand
-1.7-2.4 px off the planes at a 3-frame baseline, the room 0.26-0.29 px (medians). A moving subject's
+Measured on the front end's suite (``docs/results/video_frontend.md``): the chest's and the appliance's
+silhouettes stand 1.7-2.4 px off the planes at a 3-frame baseline, the room 0.23-0.29 px (medians). A moving subject's
 flow smears a thin band around it over that baseline (a halo); a never-moving part is thick: a band
 thinner than ``THICKNESS`` of the mask's size is left out.
 """
@@ -25,7 +25,7 @@ from sync4d.frontend.segment import components, grabcut, largest_component, morp
 #: before and after it; the clip's first and last ``BASELINE`` frames take the parts carried by the flow)
 BASELINE = 3
 #: a pixel stands off the background's planes when its flow to both frames leaves more than this [px]
-#: unexplained by their homographies (the room: about 0.3 px; the suite's never-moving bodies: 1.7-2.4 px)
+#: unexplained by their homographies (the suite's room: 0.23-0.29 px median; its boxes' silhouettes 1.7-2.4 px)
 OFF_PLANE_PX = 1.0
 #: a part joins the mask only when its thickest point (the distance to its own outline) reaches this share
 #: of the mask's size (the square root of its area): a moving subject's flow halo is a thin band
@@ -94,8 +94,8 @@ def join_static_parts(frames: np.ndarray, grey: np.ndarray, masks: np.ndarray,
                 parts[t] = pull_warp(parts[t - step], flows[(t, t - step)]) & ~masks[t]
                 have[t] = True
     out = masks.copy()
-    for t in np.flatnonzero(parts.reshape(n_frames, -1).any(axis=1)):
-        joined = largest_component(masks[t] | parts[t])
-        refined = largest_component(grabcut(frames[t], joined, sure=None, iterations=iterations))
-        out[t] = refined if refined.any() else joined
+    for joined_at in np.flatnonzero(parts.reshape(n_frames, -1).any(axis=1)):
+        joined = largest_component(masks[joined_at] | parts[joined_at])
+        refined = largest_component(grabcut(frames[joined_at], joined, sure=None, iterations=iterations))
+        out[joined_at] = refined if refined.any() else joined
     return out
