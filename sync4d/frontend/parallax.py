@@ -8,10 +8,9 @@ moving subject's mask and not running out of the picture is the subject's (:func
 Parallax fades where the part meets the floor, so a mask that was joined by a part is then refined by
 GrabCut (colour decides its outline near the joined mask).
 
-Measured on the front end's suite (``docs/results/video_frontend.md``): the chest's and the appliance's
-silhouettes stand 1.7-2.4 px off the planes at a 3-frame baseline, the room 0.23-0.29 px (medians). A moving subject's
-flow smears a thin band around it over that baseline (a halo); a never-moving part is thick: a band
-thinner than ``THICKNESS`` of the mask's size is left out.
+A moving subject's flow smears a thin band around it over that baseline (a halo); a never-moving part is
+thick: a band thinner than ``THICKNESS`` of the mask's size is left out. What it finds and misses, measured:
+``docs/results/video_frontend.md``.
 """
 
 from __future__ import annotations
@@ -21,23 +20,41 @@ import numpy as np
 from sync4d.frontend.motion import background_residual, dense_flow
 from sync4d.frontend.segment import components, grabcut, largest_component, morph, pull_warp, size_of
 
-#: frames between the two pictures whose parallax is compared (each frame against the one this many
-#: before and after it; the clip's first and last ``BASELINE`` frames take the parts carried by the flow)
-BASELINE = 3
+#: each frame's parallax is measured against the nearest frames before and after it where the room has
+#: shifted by at least this much [px] (the neighbouring flows' medians added up): a slow camera gets a
+#: longer baseline, a fast one a shorter (a fast camera's longer baseline widens a moving subject's halo)
+ROOM_SHIFT_PX = 10.0
+#: ... at most this many frames away (a frame with no such partner on both sides takes a neighbour's parts)
+MAX_BASELINE = 6
 #: a pixel stands off the background's planes when its flow to both frames leaves more than this [px]
-#: unexplained by their homographies (the suite's room: 0.23-0.29 px median; its boxes' silhouettes 1.7-2.4 px)
+#: unexplained by their homographies (the room's own residual is a fraction of a pixel)
 OFF_PLANE_PX = 1.0
 #: a part joins the mask only when its thickest point (the distance to its own outline) reaches this share
 #: of the mask's size (the square root of its area): a moving subject's flow halo is a thin band
 THICKNESS = 0.2
 
 
-def off_plane(grey: np.ndarray, t: int, baseline: int) -> np.ndarray:
-    """(H, W) bool: pixels of frame ``t`` whose flow to frames ``t - baseline`` and ``t + baseline`` both
-    leave more than ``OFF_PLANE_PX`` unexplained by the background's planes
-    (:func:`~sync4d.frontend.motion.background_residual`)."""
+def partners(shifts: np.ndarray, t: int) -> tuple[int, int] | None:
+    """The frames before and after ``t`` nearest to it where the room has shifted by ``ROOM_SHIFT_PX``
+    (``shifts``: (T - 1,) the room's median flow [px] between neighbouring frames, added up), within
+    ``MAX_BASELINE`` frames; None when either side has none."""
+    found = []
+    for direction in (-1, 1):
+        moved, s = 0.0, t
+        while moved < ROOM_SHIFT_PX:
+            if not 0 <= s + direction < len(shifts) + 1 or abs(s + direction - t) > MAX_BASELINE:
+                return None
+            moved += float(shifts[min(s, s + direction)])
+            s += direction
+        found.append(s)
+    return found[0], found[1]
+
+
+def off_plane(grey: np.ndarray, t: int, others: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: pixels of frame ``t`` whose flow to both frames ``others`` leaves more than
+    ``OFF_PLANE_PX`` unexplained by the background's planes (:func:`~sync4d.frontend.motion.background_residual`)."""
     out = np.ones(grey.shape[1:], bool)
-    for s in (t - baseline, t + baseline):
+    for s in others:
         _, pixels, _ = background_residual(dense_flow(grey[t], grey[s]), static=False)
         out &= pixels > OFF_PLANE_PX
     return out
@@ -61,15 +78,50 @@ def attached_parts(candidate: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.isin(labels, keep[thick >= THICKNESS * size_of(mask)])
 
 
+def measured_parts(grey: np.ndarray, masks: np.ndarray, flows: dict[tuple[int, int], np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(T, H, W) bool the parts attached to each frame's mask (:func:`off_plane` against its
+    :func:`partners`, :func:`attached_parts`) and (T,) bool which frames were measured. When most measured
+    frames found a part, a measured frame that found none (a lid seen edge-on) counts as not measured, so it
+    takes a neighbour's parts; else only frames with partners on both sides are measured."""
+    n_frames = len(grey)
+    shifts = np.array([float(np.median(np.linalg.norm(flows[(t, t + 1)], axis=-1))) for t in range(n_frames - 1)])
+    parts = np.zeros_like(masks)
+    measured = np.zeros(n_frames, bool)
+    for t in range(n_frames):
+        others = partners(shifts, t)
+        if others is not None and masks[t].any():
+            parts[t] = attached_parts(off_plane(grey, t, others), masks[t])
+            measured[t] = True
+    found = measured & parts.reshape(n_frames, -1).any(axis=1)
+    return parts, found if found.sum() > 0.5 * measured.sum() else measured
+
+
+def carry_parts(parts: np.ndarray, have: np.ndarray, masks: np.ndarray,
+                flows: dict[tuple[int, int], np.ndarray]) -> np.ndarray:
+    """(T, H, W) bool ``parts`` where frames without them (``have`` False) take their neighbour's, carried
+    along the neighbouring-frame ``flows`` (forwards, then backwards), outside ``masks``."""
+    parts, have = parts.copy(), have.copy()
+    n_frames = len(parts)
+    for order in (range(n_frames), range(n_frames - 1, -1, -1)):
+        previous = None
+        for t in order:
+            if not have[t] and previous is not None and abs(t - previous) == 1:
+                parts[t] = pull_warp(parts[previous], flows[(t, previous)]) & ~masks[t]
+                have[t] = True
+            previous = t if have[t] else None
+    return parts
+
+
 def join_static_parts(frames: np.ndarray, grey: np.ndarray, masks: np.ndarray,
-                      flows: dict[tuple[int, int], np.ndarray], iterations: int, baseline: int = BASELINE) -> np.ndarray:
+                      flows: dict[tuple[int, int], np.ndarray], iterations: int) -> np.ndarray:
     """(T, H, W) bool ``masks`` joined by the never-moving parts attached to them (moving camera only).
 
-    Frames with ``baseline`` frames on both sides get their parts from their own parallax
-    (:func:`off_plane`, :func:`attached_parts`); the clip's first and last frames take the nearest such
-    frame's parts carried along the neighbouring-frame ``flows`` (``{(t, s): (H, W, 2)}``, as
-    :class:`~sync4d.frontend.motion.MotionEvidence`). A mask joined by a part is refined by GrabCut
-    (:func:`~sync4d.frontend.segment.grabcut`, ``iterations``); each mask stays one connected piece.
+    Each frame's parts come from its own parallax (:func:`measured_parts`), or are carried from a
+    neighbour's along the neighbouring-frame ``flows`` (``{(t, s): (H, W, 2)}``, as
+    :class:`~sync4d.frontend.motion.MotionEvidence`; :func:`carry_parts`). A mask joined by a part is
+    refined by GrabCut (:func:`~sync4d.frontend.segment.grabcut`, ``iterations``); each mask stays one
+    connected piece.
 
     Args:
         frames: (T, H, W, 3) uint8 RGB frames.
@@ -77,24 +129,13 @@ def join_static_parts(frames: np.ndarray, grey: np.ndarray, masks: np.ndarray,
         masks: (T, H, W) bool the moving subject's masks.
         flows: dense flows between neighbouring frames [px].
         iterations: GrabCut iterations per joined frame.
-        baseline: frames between the pictures compared.
     """
-    n_frames = len(grey)
-    parts = np.zeros_like(masks)
-    have = np.zeros(n_frames, bool)
-    for t in range(baseline, n_frames - baseline):
-        if masks[t].any():
-            parts[t] = attached_parts(off_plane(grey, t, baseline), masks[t])
-            have[t] = True
-    if not have.any():
+    parts, have = measured_parts(grey, masks, flows)
+    if not parts.any():
         return masks
-    for step, ends in ((-1, range(baseline - 1, -1, -1)), (1, range(n_frames - baseline, n_frames))):
-        for t in ends:
-            if have[t - step] and (t, t - step) in flows:
-                parts[t] = pull_warp(parts[t - step], flows[(t, t - step)]) & ~masks[t]
-                have[t] = True
+    parts = carry_parts(parts, have, masks, flows)
     out = masks.copy()
-    for joined_at in np.flatnonzero(parts.reshape(n_frames, -1).any(axis=1)):
+    for joined_at in np.flatnonzero(parts.reshape(len(parts), -1).any(axis=1)):
         joined = largest_component(masks[joined_at] | parts[joined_at])
         refined = largest_component(grabcut(frames[joined_at], joined, sure=None, iterations=iterations))
         out[joined_at] = refined if refined.any() else joined
