@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sync4d.frontend.parallax import attached_parts
+from sync4d.frontend.parallax import MAX_BASELINE, ROOM_SHIFT_PX, attached_parts, partners
 
 
 def disc(h: int, w: int, cy: float, cx: float, r: float) -> np.ndarray:
@@ -29,6 +29,15 @@ def test_a_thick_part_touching_the_mask_joins_and_a_thin_halo_or_the_room_does_n
     far = np.zeros((h, w), bool)
     far[70:90, 95:120] = True  # thick, but not touching the mask
     assert not attached_parts(far, mask).any()
+
+
+def test_the_baseline_follows_the_rooms_shift():
+    fast = np.full(15, ROOM_SHIFT_PX / 2)  # the room shifts half the target per frame: 2 frames each way
+    assert partners(fast, 7) == (5, 9)
+    slow = np.full(15, ROOM_SHIFT_PX / 5)
+    assert partners(slow, 7) == (2, 12)
+    assert partners(fast, 1) is None  # no frame far enough before it
+    assert partners(np.full(15, ROOM_SHIFT_PX / (MAX_BASELINE + 1)), 7) is None  # too slow within the limit
 
 
 def test_a_rendered_chest_under_a_moving_camera_keeps_its_box_that_never_moves():
