@@ -81,9 +81,10 @@ def attached_parts(candidate: np.ndarray, mask: np.ndarray) -> np.ndarray:
 def measured_parts(grey: np.ndarray, masks: np.ndarray, flows: dict[tuple[int, int], np.ndarray]
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(T, H, W) bool the parts attached to each frame's mask (:func:`off_plane` against its
-    :func:`partners`, :func:`attached_parts`) and (T,) bool which frames were measured. When most measured
-    frames found a part, a measured frame that found none (a lid seen edge-on) counts as not measured, so it
-    takes a neighbour's parts; else only frames with partners on both sides are measured."""
+    :func:`partners`, :func:`attached_parts`) and (T,) bool which frames hold their parts. A part of the
+    subject that never moves is seen in most frames: when at most half the measured frames found one, none
+    is kept (a sofa a walking cat passes by); else a measured frame that found none (a lid seen edge-on)
+    counts as not measured, so it takes a neighbour's parts."""
     n_frames = len(grey)
     shifts = np.array([float(np.median(np.linalg.norm(flows[(t, t + 1)], axis=-1))) for t in range(n_frames - 1)])
     parts = np.zeros_like(masks)
@@ -94,7 +95,9 @@ def measured_parts(grey: np.ndarray, masks: np.ndarray, flows: dict[tuple[int, i
             parts[t] = attached_parts(off_plane(grey, t, others), masks[t])
             measured[t] = True
     found = measured & parts.reshape(n_frames, -1).any(axis=1)
-    return parts, found if found.sum() > 0.5 * measured.sum() else measured
+    if found.sum() <= 0.5 * measured.sum():  # a part in a few frames only: scenery the subject passes by
+        return np.zeros_like(masks), measured
+    return parts, found
 
 
 def carry_parts(parts: np.ndarray, have: np.ndarray, masks: np.ndarray,
