@@ -5,6 +5,7 @@ keep a moving subject's flow halo and the room out."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from sync4d.frontend.parallax import MAX_BASELINE, ROOM_SHIFT_PX, attached_parts, partners
 
@@ -57,3 +58,25 @@ def test_a_rendered_chest_under_a_moving_camera_keeps_its_box_that_never_moves()
     rows = [np.flatnonzero(m.any(axis=1)) for m in truth]
     lower = np.stack([m & (np.arange(m.shape[0])[:, None] > r[len(r) // 2]) for m, r in zip(truth, rows, strict=True)])
     assert (found.clip.masks & lower).sum() / lower.sum() >= 0.6
+
+
+def test_a_part_seen_in_a_few_frames_only_is_scenery(monkeypatch: pytest.MonkeyPatch):
+    """A never-moving part of the subject is seen in most frames; one the subject passes by (a sofa behind
+    a walking cat) in a few: it is not joined. A frame that misses a part most frames see takes it."""
+    import sync4d.frontend.parallax as parallax
+
+    n, h, w = 12, 96, 128
+    mask = disc(h, w, 40, 50, 12)
+    body = np.zeros((h, w), bool)
+    body[50:75, 35:70] = True
+    masks = np.repeat(mask[None], n, axis=0)
+    flows = {(t, s): np.full((h, w, 2), ROOM_SHIFT_PX / 2, np.float32) for t in range(n) for s in (t - 1, t + 1)
+             if 0 <= s < n}
+    grey = np.zeros((n, h, w), np.uint8)
+    for seen in ({3}, set(range(n)) - {5}):
+        monkeypatch.setattr(parallax, "off_plane", lambda g, t, others, seen=seen: body | mask if t in seen else mask)
+        parts, have = parallax.measured_parts(grey, masks, flows)
+        if len(seen) == 1:
+            assert not parts.any()
+        else:
+            assert parts[4].any() and not have[5] and have[4]  # frame 5 takes a neighbour's part
