@@ -19,6 +19,7 @@ from sync4d.frontend.checks import check_clip, check_prompt, check_subject
 from sync4d.frontend.config import FrontEndConfig, SubjectConfig
 from sync4d.frontend.geometry import ground_up, intrinsics_from_fov
 from sync4d.frontend.motion import motion_evidence
+from sync4d.frontend.parallax import join_static_parts
 from sync4d.frontend.segment import (
     box_grabcut, drop_plate, follow, grabcut, largest_component, seed_from_motion, seed_from_prompt,
 )
@@ -134,8 +135,10 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, config: Subje
                                           iterations=max(config.grabcut_iters, 1)))
     log.info("frontend: subject seeded in frame %d (%d px at work size)", start, int(first.sum()))
     masks = follow(work, start, first, evidence, config.grabcut_iters)
-    # a subject found by its motion under a static camera: what shows the clip's background plate is floor
-    return drop_plate(work, masks) if static and method == "motion" else masks
+    if static:  # a subject found by its motion under a static camera: what shows the background plate is floor
+        return drop_plate(work, masks) if method == "motion" else masks
+    # a moving camera: the subject's parts that never move stand off the room's planes (parallax)
+    return join_static_parts(work, grey, masks, flows, config.grabcut_iters) if method == "motion" else masks
 
 
 def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | None = None, masks_given: bool = False,
