@@ -127,10 +127,7 @@ def track_grid(frames: np.ndarray, masks: np.ndarray, config: TrackConfig) -> Tr
     vv, uu = np.nonzero(masks[0])
     keep = (vv % stride == 0) & (uu % stride == 0)
     uv0 = np.stack([uu[keep], vv[keep]], 1).astype(np.float64) + 0.5
-    # the subject's flow from the subject alone (outside its masks blanked): the flow's support (DIS patches of
-    # 8 px) is wider than a thin part's image, and the background's own motion (a moving camera's, or none)
-    # bled into it (the filmed laptop's lid: flow read 0.69 of its motion, 0.92 blanked; docs/results/articulated.md)
-    fwd, bwd = optical_flow(np.where(masks[..., None], frames, 0).astype(np.uint8), config.flow)
+    fwd, bwd = optical_flow(frames, config.flow)
     valid = flow_consistency(fwd, bwd, tol_px=config.check_px)
     uv, ok = trusted_tracks(uv0, fwd, valid, masks)
     ncc, contrast = patch_agreement(frames, uv0, uv)
