@@ -12,6 +12,12 @@ For each seed the default run's own stages are run (or read from the stage cache
     * ``hinge_axis_deg``: the angle between the reconstructed hinge axis (the lid's motion relative to the
       base, :func:`sync4d_tools.articulated.score.hinge_line`) and the true one, both in frame 0's camera;
       ``hinge_motion_deg``: mean |recovered - true| lid angle since frame 0;
+      ``hinge_elevation_deg`` / ``hinge_azimuth_deg``: that error split into the recovered axis's angle out of
+      the true horizontal plane and its angle from the true axis within that plane (the true hinge is level);
+    * ``camera_rot_deg`` / ``camera_centre_pct`` (a moving camera): the largest error over the frames of the
+      camera the run used against the film's, relative to frame 0: the rotation [deg], and the camera centre's
+      distance from the true one in % of the true path's largest distance from frame 0 (after the one scale a
+      monocular camera cannot see, by least squares);
     * ``match_labels``: the share of the shell's Gaussians whose matched reference part is the expected one
       (the shell's top -> the lid, its bottom -> the base; each Gaussian's half from the nearest vertex of the
       procedural shell mesh), as ``sync4d_tools/match_labels/shell.json`` states.
@@ -72,7 +78,7 @@ def score_seed(seed: int, cache_dir: str, overrides: list[str]) -> dict[str, Any
     truth = loaded.ground_truth
     assert truth is not None and loaded.camera is not None, "the default scene carries its truth and camera"
     film = plan["reference"].build(device="cpu", seed=seed)
-    _, true_camera = film.film(truth)
+    true_clip, true_camera = film.film(truth)
     world = np.einsum("tij,tbjk->tbik", reference.global_transforms, reference.bone_transforms)
     bone = reference.skinning.argmax(1)
     moved = [float(np.abs(world[:, b] - world[:1, b]).max()) for b in range(reference.num_bones)]
@@ -101,12 +107,43 @@ def score_seed(seed: int, cache_dir: str, overrides: list[str]) -> dict[str, Any
         "lid_spans_m": np.round(found, 4).tolist(), "lid_thin_ratio": round(float(found_ratio), 4),
         "true_thin_ratio": round(float(true_ratio), 4), "lid_thickness_x": round(float(found_ratio / true_ratio), 2),
         "hinge_axis_deg": round(float(np.degrees(np.arccos(min(1.0, abs(float(axis_cam @ true_axis_cam)))))), 2),
+        **hinge_split(axis_cam * sign, true_axis_cam, true_camera.world_to_cam[:3, :3] @ np.array([0.0, 1.0, 0.0])),
+        **camera_errors(loaded.video.extrinsics if loaded.video is not None else None, true_clip.extrinsics),
         "hinge_motion_deg": round(float(np.degrees(np.abs(sign * angle - true_angle).mean())), 2),
         "match_labels": round(float((part_map.tgt_part == expected).mean()), 4),
         "up_error_deg": up_error(loaded, true_camera),
         "match_top_to_lid": round(float((part_map.tgt_part[shell_half == 1] == lid).mean()), 4),
         "match_bottom_to_base": round(float((part_map.tgt_part[shell_half == 0] == base).mean()), 4),
     }
+
+
+def hinge_split(axis: np.ndarray, true_axis: np.ndarray, up: np.ndarray) -> dict[str, float]:
+    """The recovered hinge ``axis``'s angle out of the true horizontal plane (normal ``up``) and, within that
+    plane, from ``true_axis`` (a level axis), all (3,) unit vectors in one frame, either sign [deg]."""
+    elevation = np.degrees(np.arcsin(min(1.0, abs(float(axis @ up)))))
+    level = axis - (axis @ up) * up
+    norm = float(np.linalg.norm(level))
+    azimuth = 90.0 if norm < 1e-9 else np.degrees(np.arccos(min(1.0, abs(float(level @ true_axis)) / norm)))
+    return {"hinge_elevation_deg": round(float(elevation), 2), "hinge_azimuth_deg": round(float(azimuth), 2)}
+
+
+def camera_errors(found: np.ndarray | None, true: np.ndarray | None) -> dict[str, float | None]:
+    """The largest rotation error [deg] and camera-centre error [% of the true path's reach] over the frames of
+    the per-frame world-to-camera ``found`` (T, 4, 4) against ``true``, both relative to their frame 0 (the
+    found path scaled to the true one by least squares); None when either camera is missing or still."""
+    from scipy.spatial.transform import Rotation
+
+    if found is None or true is None or np.ptp(np.asarray(true), axis=0).max() < 1e-9:
+        return {"camera_rot_deg": None, "camera_centre_pct": None}
+    rel_f = np.asarray(found) @ np.linalg.inv(found[0])
+    rel_t = np.asarray(true) @ np.linalg.inv(true[0])
+    rot = Rotation.from_matrix(rel_f[:, :3, :3] @ np.swapaxes(rel_t[:, :3, :3], 1, 2)).magnitude()
+    centre_f = -np.einsum("tji,tj->ti", rel_f[:, :3, :3], rel_f[:, :3, 3])
+    centre_t = -np.einsum("tji,tj->ti", rel_t[:, :3, :3], rel_t[:, :3, 3])
+    scale = float((centre_f * centre_t).sum() / max(float((centre_f**2).sum()), 1e-12))
+    reach = max(float(np.linalg.norm(centre_t, axis=1).max()), 1e-12)
+    return {"camera_rot_deg": round(float(np.degrees(rot.max())), 2),
+            "camera_centre_pct": round(100.0 * float(np.linalg.norm(scale * centre_f - centre_t, axis=1).max()) / reach, 1)}
 
 
 def up_error(loaded: Any, true_camera: Any) -> float | None:

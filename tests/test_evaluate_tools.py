@@ -545,6 +545,29 @@ def test_default_scene_spans_are_a_box_s_extents() -> None:
     np.testing.assert_allclose(spans(box), [0.36, 0.27, 0.018], rtol=0.03)
 
 
+def test_default_scene_splits_the_hinge_error_and_scores_the_camera() -> None:
+    """A level axis tilted 5 deg up and turned 3 deg in the level plane reads 5 / 3; a camera path turned 2 deg
+    and its centres pushed 10 % of the path's reach off (at any scale) reads 2 deg / 10 %; the truth reads 0."""
+    from scipy.spatial.transform import Rotation
+
+    from sync4d_tools.default_scene import camera_errors, hinge_split
+
+    axis = np.array([np.cos(np.radians(3.0)), np.tan(np.radians(5.0)), np.sin(np.radians(3.0))])
+    split = hinge_split(axis / np.linalg.norm(axis), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    assert split == {"hinge_elevation_deg": 5.0, "hinge_azimuth_deg": 3.0}
+    centres = np.stack([np.zeros(3), [0.5, 0.0, 0.1], [1.0, 0.0, 0.3]])
+    true = np.tile(np.eye(4), (3, 1, 1))
+    true[:, :3, 3] = -centres
+    found = true.copy()
+    found[2, :3, :3] = Rotation.from_euler("x", 2.0, degrees=True).as_matrix()
+    found[2, :3, 3] = -found[2, :3, :3] @ (centres[2] + [0.0, 0.1 * np.linalg.norm(centres[2]), 0.0])
+    found[:, :3, 3] *= 3.0  # a monocular camera's path has no scale
+    errors = camera_errors(found, true)
+    assert errors["camera_rot_deg"] == 2.0 and 9.0 <= errors["camera_centre_pct"] <= 10.5
+    assert camera_errors(true, true) == {"camera_rot_deg": 0.0, "camera_centre_pct": 0.0}
+    assert camera_errors(None, true)["camera_rot_deg"] is None
+
+
 @pytest.mark.slow
 def test_default_scene_scores_the_default_run(tmp_path: Path) -> None:
     """The default run's own stages at seed 0: the shell's top goes to the reconstructed lid."""
