@@ -63,6 +63,9 @@ class QuadrupedFitConfig:
             penalty [deg].
         smooth_weight: squared accelerations of the root-relative joints and the root (template units) at 30
             frames a second; other frame rates scale second differences by (fps / 30)^2.
+        upright_weight: the body's up axis (the root joint's, template +y) tilted from the world's up by more
+            than ``tilt_deg`` (squared radians beyond it): a standing or walking animal stays upright.
+        tilt_deg: tilt of the body from the world's up allowed without penalty [deg].
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -84,6 +87,8 @@ class QuadrupedFitConfig:
     joint_limit_deg: float = 50.0
     leg_off_plane_deg: float = 15.0
     smooth_weight: float = 5.0
+    upright_weight: float = 1.0
+    tilt_deg: float = 20.0
     background_threshold: float = 30.0
 
 
@@ -282,11 +287,13 @@ def relative_cameras(extrinsics: np.ndarray | None) -> np.ndarray | None:
 
 
 class QuadrupedProblem:
-    """The tensors of one fit: coarse masks, distance fields, grid, cameras, template, flow, frame rate."""
+    """The tensors of one fit: coarse masks, distance fields, grid, cameras, template, flow, frame rate and the
+    world's up direction in the first camera's frame (``up``; None = the camera's -y)."""
 
     def __init__(self, masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig, *,
                  frames: np.ndarray | None = None, extrinsics: np.ndarray | None = None,
-                 fps: float = SMOOTH_FPS) -> None:
+                 fps: float = SMOOTH_FPS, up: np.ndarray | None = None) -> None:
+        self.up = torch.tensor([0.0, -1.0, 0.0] if up is None else np.asarray(up) / np.linalg.norm(up), dtype=DTYPE)
         self.box = mask_box(masks)
         uv, self.gw, self.gh = grid_cells(self.box, config.grid)
         coarse = coarse_masks(masks, self.box, self.gw, self.gh)
@@ -346,6 +353,13 @@ def shape_priors(prob: QuadrupedProblem, params: Params, config: QuadrupedFitCon
     return lengths, limit
 
 
+def tilt_penalty(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig) -> torch.Tensor:
+    """Mean squared tilt [rad] of the root joint's up axis from the world's up beyond ``tilt_deg``."""
+    rot = rotation_vector_to_matrix_torch(params["root_rot"]) @ rotation_vector_to_matrix_torch(params["local"][:, 0])
+    cos = (rot[:, :, 1] @ prob.up).clamp(-1 + 1e-6, 1 - 1e-6)
+    return torch.relu(torch.acos(cos) - math.radians(config.tilt_deg)).pow(2).mean()
+
+
 def smoothness(prob: QuadrupedProblem, joints: torch.Tensor, scale: torch.Tensor, history: torch.Tensor | None
                ) -> torch.Tensor:
     """Mean squared acceleration of the root-relative joints and the root (template units)."""
@@ -369,7 +383,7 @@ def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config
     bce, inside, occ = silhouette_terms(prob, frames, joints, verts, params["log_scale"].exp())
     lengths, limit = shape_priors(prob, params, config)
     total = (config.silhouette_weight * bce + config.inside_weight * inside + config.length_weight * lengths
-             + config.limit_weight * limit
+             + config.limit_weight * limit + config.upright_weight * tilt_penalty(prob, params, config)
              + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
     return total, joints, occ
 
@@ -482,6 +496,27 @@ def frame_params(params: Params, t: int) -> Params:
             for k, v in params.items()}
 
 
+def place_by_moments(prob: QuadrupedProblem, params: Params, frame: int, rounds: int = 3) -> None:
+    """Move the root of a one-frame ``params`` so the body's silhouette on the grid has the mask's centroid and
+    area: along the viewing ray by sqrt(area ratio) (depth), then across it by the centroids' pixel offset
+    (the root joint is not the silhouette's centre, and the rest pose's extent is not the mask's)."""
+    tgt = prob.target[frame]
+    cams = prob.cams_of(np.array([frame]))
+    with torch.no_grad():
+        for _ in range(rounds):
+            _, verts = pose_body(prob.tt, params)
+            occ = body_silhouette(prob, verts, cams, params["log_scale"].exp())[0]
+            if float(occ.sum()) < 1.0:
+                return
+            pos = to_cameras(params["root_pos"][:, None], cams)[0, 0]
+            ratio = math.sqrt(float(occ.sum()) / max(float(tgt.sum()), 1.0))
+            shift = (tgt @ prob.uv) / tgt.sum().clamp_min(1.0) - (occ @ prob.uv) / occ.sum()
+            new = pos * ratio
+            new[:2] = new[:2] + shift / torch.stack([prob.K[0, 0], prob.K[1, 1]]) * new[2]
+            back = new if cams is None else cams[0, :3, :3].T @ (new - cams[0, :3, 3])
+            params["root_pos"][0] = back
+
+
 def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig
                        ) -> list[tuple[float, int, Params]]:
     """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints)."""
@@ -491,6 +526,7 @@ def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndar
     for k in range(config.starts):
         params = start_params(prob, heading_rotation(up_cam, 2 * math.pi * k / config.starts), root0,
                               config.template_length)
+        place_by_moments(prob, params, 0)
         run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
         loss, _, iou = run_steps(prob, np.arange(1), params, config, config.start_iterations - config.start_iterations // 2)
         log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f, IoU %.3f", k + 1, config.starts,
@@ -588,9 +624,9 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     """
     check_masks(masks, source, extrinsics)
     n = len(masks)
-    prob = QuadrupedProblem(masks, camera, config, frames=frames, extrinsics=extrinsics, fps=fps)
     w2c0 = camera.world_to_cam if extrinsics is None else np.asarray(extrinsics[0], dtype=np.float64)
     up_cam = np.array([0.0, -1.0, 0.0]) if world_up is None else w2c0[:3, :3] @ np.asarray(world_up, dtype=np.float64)
+    prob = QuadrupedProblem(masks, camera, config, frames=frames, extrinsics=extrinsics, fps=fps, up=up_cam)
     starts = first_frame_starts(prob, masks[0], up_cam, config)
     full = best_hypothesis(prob, starts, config, n)
     loss, joints, iou = run_steps(prob, np.arange(n), full, config, config.swap_iterations if prob.flow is not None else 0)
