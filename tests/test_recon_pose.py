@@ -338,10 +338,8 @@ def test_quadruped_fit_started_at_the_truth_stays_there(shared_data: Path, movin
     assert joint_errors(fitted, joints).mean() < 0.03 * 0.6
 
 
-def test_quadruped_tilt_penalty_and_moment_placement(shared_data: Path) -> None:
-    """An upright body costs no tilt penalty and one tipped 45 deg over does; a start whose root is 0.6 m too
-    far and 16 cm off to the side is moved by the silhouette's moments to within 3 cm across the view and a
-    third of the depth error (the disc silhouette is a little fatter than the mask: it ends ~0.17 m near)."""
+def test_quadruped_tilt_penalty(shared_data: Path) -> None:
+    """An upright body costs no tilt penalty and one tipped 45 deg over does."""
     import torch
     from scipy.spatial.transform import Rotation
 
@@ -355,11 +353,6 @@ def test_quadruped_tilt_penalty_and_moment_placement(shared_data: Path) -> None:
         (Rotation.from_rotvec([math.radians(45), 0, 0]) * Rotation.from_rotvec(truth["root_rot"][0].detach().numpy())
          ).as_rotvec()[None], dtype=qf.DTYPE)}
     assert float(qf.tilt_penalty(prob, tipped, cfg)) > 0.5 * math.radians(25) ** 2
-    start = {k: v.detach().clone() for k, v in truth.items()}
-    start["root_pos"] += torch.tensor([0.15, -0.05, 0.6], dtype=qf.DTYPE)
-    qf.place_by_moments(prob, start, 0)
-    off = (start["root_pos"] - truth["root_pos"])[0].detach()
-    assert float(off[:2].norm()) < 0.03 and abs(float(off[2])) < 0.2
 
 
 def test_quadruped_split_fits_the_template_to_known_joints(shared_data: Path) -> None:

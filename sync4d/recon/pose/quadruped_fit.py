@@ -9,9 +9,10 @@ the camera moves) and rasterised softly (each triangle's signed edge distance th
 union over triangles) on a coarse grid; the loss is the binary cross-entropy against the masks, plus
 points along the skeleton's segments inside the mask (distance transform); priors: bone lengths and
 girths (per-bone changes near zero, left/right equal), joint limits (``joint_limit_deg`` from the
-template; leg joints turn mostly about the body's lateral axis), smooth root-relative joints and root
-(accelerations). Search: root headings on the first frame, the best few tracked frame by frame, then
-left/right leg swaps as hypotheses ranked by the video's optical flow (near vertices hide far ones).
+template; leg joints turn mostly about the body's lateral axis), the body upright (its up axis within
+``tilt_deg`` of the world's up), smooth root-relative joints and root (accelerations). Search: root
+headings on the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses
+ranked by the video's optical flow (near vertices hide far ones).
 """
 
 from __future__ import annotations
@@ -496,27 +497,6 @@ def frame_params(params: Params, t: int) -> Params:
             for k, v in params.items()}
 
 
-def place_by_moments(prob: QuadrupedProblem, params: Params, frame: int, rounds: int = 3) -> None:
-    """Move the root of a one-frame ``params`` so the body's silhouette on the grid has the mask's centroid and
-    area: along the viewing ray by sqrt(area ratio) (depth), then across it by the centroids' pixel offset
-    (the root joint is not the silhouette's centre, and the rest pose's extent is not the mask's)."""
-    tgt = prob.target[frame]
-    cams = prob.cams_of(np.array([frame]))
-    with torch.no_grad():
-        for _ in range(rounds):
-            _, verts = pose_body(prob.tt, params)
-            occ = body_silhouette(prob, verts, cams, params["log_scale"].exp())[0]
-            if float(occ.sum()) < 1.0:
-                return
-            pos = to_cameras(params["root_pos"][:, None], cams)[0, 0]
-            ratio = math.sqrt(float(occ.sum()) / max(float(tgt.sum()), 1.0))
-            shift = (tgt @ prob.uv) / tgt.sum().clamp_min(1.0) - (occ @ prob.uv) / occ.sum()
-            new = pos * ratio
-            new[:2] = new[:2] + shift / torch.stack([prob.K[0, 0], prob.K[1, 1]]) * new[2]
-            back = new if cams is None else cams[0, :3, :3].T @ (new - cams[0, :3, 3])
-            params["root_pos"][0] = back
-
-
 def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig
                        ) -> list[tuple[float, int, Params]]:
     """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints)."""
@@ -526,7 +506,6 @@ def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndar
     for k in range(config.starts):
         params = start_params(prob, heading_rotation(up_cam, 2 * math.pi * k / config.starts), root0,
                               config.template_length)
-        place_by_moments(prob, params, 0)
         run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
         loss, _, iou = run_steps(prob, np.arange(1), params, config, config.start_iterations - config.start_iterations // 2)
         log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f, IoU %.3f", k + 1, config.starts,
