@@ -301,11 +301,11 @@ def split_clip(folder: Path) -> dict:
     truth_cam = np.einsum("ij,tkj->tki", w2c[0][:3, :3], truth) + w2c[0][:3, 3]  # the first camera's frame
     cfg = qf.QuadrupedFitConfig()
     clip = video_of(source)
-    frames, up_cam = np.arange(len(truth)), w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
     prob = qf.QuadrupedProblem(clip.masks, camera_of(source), cfg, frames=clip.frames, extrinsics=clip.extrinsics,
-                               fps=source.fps, up=up_cam)
+                               fps=source.fps)
     tmpl = prob.tt.template
     ids = [tmpl.names.index(dict(tmpl.vocabulary)[n]) for n in names]
+    frames, up_cam = np.arange(len(truth)), w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
     row: dict = {"clip": folder.name}
     for key, priors in (("A1", False), ("A2", True)):
         params = truth_start(prob, truth_cam, names, up_cam)

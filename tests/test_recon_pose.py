@@ -338,23 +338,6 @@ def test_quadruped_fit_started_at_the_truth_stays_there(shared_data: Path, movin
     assert joint_errors(fitted, joints).mean() < 0.03 * 0.6
 
 
-def test_quadruped_tilt_penalty(shared_data: Path) -> None:
-    """An upright body costs no tilt penalty and one tipped 45 deg over does."""
-    import torch
-    from scipy.spatial.transform import Rotation
-
-    from sync4d.recon.pose import quadruped_fit as qf
-
-    truth, _, camera, masks, _ = _template_clip(frames=1)
-    cfg = qf.QuadrupedFitConfig(grid=32)
-    prob = qf.QuadrupedProblem(masks, camera, cfg)
-    assert float(qf.tilt_penalty(prob, truth, cfg)) == 0.0
-    tipped = {**truth, "root_rot": torch.tensor(
-        (Rotation.from_rotvec([math.radians(45), 0, 0]) * Rotation.from_rotvec(truth["root_rot"][0].detach().numpy())
-         ).as_rotvec()[None], dtype=qf.DTYPE)}
-    assert float(qf.tilt_penalty(prob, tipped, cfg)) > 0.5 * math.radians(25) ** 2
-
-
 def test_quadruped_split_fits_the_template_to_known_joints(shared_data: Path) -> None:
     """The body suite's error split (``--split``): the template fitted directly to joints of the template
     posed by known rotations recovers them (A1, no priors) and stays close under the fit's priors (A2)."""

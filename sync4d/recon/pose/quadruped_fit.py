@@ -9,10 +9,9 @@ the camera moves) and rasterised softly (each triangle's signed edge distance th
 union over triangles) on a coarse grid; the loss is the binary cross-entropy against the masks, plus
 points along the skeleton's segments inside the mask (distance transform); priors: bone lengths and
 girths (per-bone changes near zero, left/right equal), joint limits (``joint_limit_deg`` from the
-template; leg joints turn mostly about the body's lateral axis), the body upright (its up axis within
-``tilt_deg`` of the world's up), smooth root-relative joints and root (accelerations). Search: root
-headings on the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses
-ranked by the video's optical flow (near vertices hide far ones).
+template; leg joints turn mostly about the body's lateral axis), smooth root-relative joints and root
+(accelerations). Search: root headings on the first frame, the best few tracked frame by frame, then
+left/right leg swaps as hypotheses ranked by the video's optical flow (near vertices hide far ones).
 """
 
 from __future__ import annotations
@@ -64,9 +63,6 @@ class QuadrupedFitConfig:
             penalty [deg].
         smooth_weight: squared accelerations of the root-relative joints and the root (template units) at 30
             frames a second; other frame rates scale second differences by (fps / 30)^2.
-        upright_weight: the body's up axis (the root joint's, template +y) tilted from the world's up by more
-            than ``tilt_deg`` (squared radians beyond it): a standing or walking animal stays upright.
-        tilt_deg: tilt of the body from the world's up allowed without penalty [deg].
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -88,8 +84,6 @@ class QuadrupedFitConfig:
     joint_limit_deg: float = 50.0
     leg_off_plane_deg: float = 15.0
     smooth_weight: float = 5.0
-    upright_weight: float = 1.0
-    tilt_deg: float = 20.0
     background_threshold: float = 30.0
 
 
@@ -288,13 +282,11 @@ def relative_cameras(extrinsics: np.ndarray | None) -> np.ndarray | None:
 
 
 class QuadrupedProblem:
-    """The tensors of one fit: coarse masks, distance fields, grid, cameras, template, flow, frame rate and the
-    world's up direction in the first camera's frame (``up``; None = the camera's -y)."""
+    """The tensors of one fit: coarse masks, distance fields, grid, cameras, template, flow, frame rate."""
 
     def __init__(self, masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig, *,
                  frames: np.ndarray | None = None, extrinsics: np.ndarray | None = None,
-                 fps: float = SMOOTH_FPS, up: np.ndarray | None = None) -> None:
-        self.up = torch.tensor([0.0, -1.0, 0.0] if up is None else np.asarray(up) / np.linalg.norm(up), dtype=DTYPE)
+                 fps: float = SMOOTH_FPS) -> None:
         self.box = mask_box(masks)
         uv, self.gw, self.gh = grid_cells(self.box, config.grid)
         coarse = coarse_masks(masks, self.box, self.gw, self.gh)
@@ -354,13 +346,6 @@ def shape_priors(prob: QuadrupedProblem, params: Params, config: QuadrupedFitCon
     return lengths, limit
 
 
-def tilt_penalty(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig) -> torch.Tensor:
-    """Mean squared tilt [rad] of the root joint's up axis from the world's up beyond ``tilt_deg``."""
-    rot = rotation_vector_to_matrix_torch(params["root_rot"]) @ rotation_vector_to_matrix_torch(params["local"][:, 0])
-    cos = (rot[:, :, 1] @ prob.up).clamp(-1 + 1e-6, 1 - 1e-6)
-    return torch.relu(torch.acos(cos) - math.radians(config.tilt_deg)).pow(2).mean()
-
-
 def smoothness(prob: QuadrupedProblem, joints: torch.Tensor, scale: torch.Tensor, history: torch.Tensor | None
                ) -> torch.Tensor:
     """Mean squared acceleration of the root-relative joints and the root (template units)."""
@@ -384,7 +369,7 @@ def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config
     bce, inside, occ = silhouette_terms(prob, frames, joints, verts, params["log_scale"].exp())
     lengths, limit = shape_priors(prob, params, config)
     total = (config.silhouette_weight * bce + config.inside_weight * inside + config.length_weight * lengths
-             + config.limit_weight * limit + config.upright_weight * tilt_penalty(prob, params, config)
+             + config.limit_weight * limit
              + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
     return total, joints, occ
 
@@ -603,9 +588,9 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     """
     check_masks(masks, source, extrinsics)
     n = len(masks)
+    prob = QuadrupedProblem(masks, camera, config, frames=frames, extrinsics=extrinsics, fps=fps)
     w2c0 = camera.world_to_cam if extrinsics is None else np.asarray(extrinsics[0], dtype=np.float64)
     up_cam = np.array([0.0, -1.0, 0.0]) if world_up is None else w2c0[:3, :3] @ np.asarray(world_up, dtype=np.float64)
-    prob = QuadrupedProblem(masks, camera, config, frames=frames, extrinsics=extrinsics, fps=fps, up=up_cam)
     starts = first_frame_starts(prob, masks[0], up_cam, config)
     full = best_hypothesis(prob, starts, config, n)
     loss, joints, iou = run_steps(prob, np.arange(n), full, config, config.swap_iterations if prob.flow is not None else 0)
