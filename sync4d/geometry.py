@@ -148,9 +148,15 @@ def best_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """(...) the angle [deg] of rotations (..., 3, 3), from the trace (clipped for rounding)."""
-    cos = (np.trace(np.asarray(R, dtype=np.float64), axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    """(...) the angle [deg] of rotations (..., 3, 3).
+
+    From atan2(|skew part|, trace - 1) rather than arccos of the trace: arccos loses half the digits near 0 deg
+    (a rounding of 1e-16 in the trace reads as 1.6e-6 deg), atan2 keeps them at every angle.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    cos2 = np.trace(R, axis1=-2, axis2=-1) - 1.0
+    skew = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    return np.degrees(np.arctan2(np.linalg.norm(skew, axis=-1), cos2))
 
 
 def bbox_diagonal(points: np.ndarray) -> float:

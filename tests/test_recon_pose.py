@@ -325,12 +325,14 @@ def test_skinned_template_moves_with_its_bones(shared_data: Path) -> None:
 def test_quadruped_fit_started_at_the_truth_stays_there(shared_data: Path, moving: bool) -> None:
     """The objective's minimum is at the truth: silhouettes of the template posed by known rotations (static
     camera, or per-frame extrinsics), the fit started there drifts by under 3 % of the body length after one
-    similarity."""
+    similarity. Judged on the fit's own grid (the default, 40 cells): on a coarser 32-cell grid the drift depends
+    on the CPU's vector width (2.2 % without SIMD, 3.4 % with AVX2 or AVX-512, moving camera), a flat objective
+    that rounding moves, not a property of the fit users run."""
     from sync4d.recon.pose import quadruped_fit as qf
     from sync4d_tools.evaluate.recon_joints import joint_errors
 
     truth, joints, camera, masks, extrinsics = _template_clip(moving=moving)
-    cfg = qf.QuadrupedFitConfig(grid=32)
+    cfg = qf.QuadrupedFitConfig()
     prob = qf.QuadrupedProblem(masks, camera, cfg, extrinsics=extrinsics)
     params = {k: v.detach().clone().requires_grad_(True) for k, v in truth.items()}
     _, fitted, iou = qf.run_steps(prob, np.arange(len(masks)), params, cfg, 40)
