@@ -227,8 +227,9 @@ def test_two_plate_slide_is_found_as_a_slide() -> None:
 def test_tracks_on_a_plain_face_are_not_verified() -> None:
     """A plain lid slides 3 px a frame over a static plain base of similar grey (a closed laptop's lid on
     its base); a textured square moves the same. On the plain lid the chained flow sticks (small and still
-    forward-backward consistent), so 'trusted' alone keeps tracks that report under half the motion; the
-    patch check drops them and keeps the textured square's, which are right."""
+    forward-backward consistent), so 'trusted' alone keeps tracks that report too little motion (with the
+    subject's flow on frames enlarged 2x: 6 of 72, at 9.5 of 15 px; at the frames' own size all 72, at 6.3
+    px); the patch check drops them and keeps the textured square's, which are right."""
     from sync4d.recon.video.stages import TrackConfig, track_grid
 
     yy, xx = np.mgrid[0:H, 0:W]
@@ -245,10 +246,33 @@ def test_tracks_on_a_plain_face_are_not_verified() -> None:
     textured = (tracks.uv0[:, 0] > 72) & (tracks.uv0[:, 0] < 98) & (tracks.uv0[:, 1] > 24) & (tracks.uv0[:, 1] < 72)
     moved = tracks.uv[-1, :, 0] - tracks.uv0[:, 0]
     sticking = tracks.trusted[-1] & lid
-    assert sticking.sum() > 30 and np.median(moved[sticking]) < 7.5  # trusted, yet under half the true 15 px
+    assert sticking.any() and np.median(moved[sticking]) < 0.7 * 15.0  # trusted, yet short of the true 15 px
     assert not tracks.verified[-1, lid].any()
     assert tracks.verified[-1, textured].mean() > 0.9
     assert np.allclose(moved[tracks.verified[-1] & textured], 15.0, atol=1.0)
+
+
+def test_a_thin_part_s_tracks_are_not_dragged_by_the_background() -> None:
+    """A textured bar 4 px wide moves right 3 px a frame over a textured background moving left 2 px a frame
+    (a thin lid before a room, filmed by a moving camera). The flow's support is wider than the bar: computed
+    on the whole frame no track of the bar survives; on the subject alone (outside its masks blanked) and on
+    frames enlarged 2x they follow the bar within 2 % (blanked at the frames' own size: 3 % short)."""
+    from sync4d.recon.video.stages import TrackConfig, track_grid
+
+    yy, xx = np.mgrid[0:H, 0:2 * W]
+    room = (110 + 80 * np.sin(xx / 3.1) * np.cos(yy / 2.3)).astype(np.uint8)
+    bar = (120 + 90 * np.sin(yy[:, :4] / 1.7 + xx[:, :4] / 1.3)).astype(np.uint8)
+    frames, masks = np.zeros((6, H, W, 3), np.uint8), np.zeros((6, H, W), bool)
+    for t in range(6):
+        frames[t] = room[:, 40 + 2 * t:40 + 2 * t + W, None]
+        x = 30 + 3 * t
+        frames[t, 20:76, x:x + 4] = bar[20:76, :, None]
+        masks[t, 20:76, x:x + 4] = True
+    tracks = track_grid(frames, masks, TrackConfig(points=200))
+    ok = tracks.trusted[-1]
+    assert ok.sum() >= 0.5 * len(ok)
+    moved = (tracks.uv[-1, ok, 0] - tracks.uv0[ok, 0]) / 15.0
+    assert abs(float(np.median(moved)) - 1.0) < 0.02
 
 
 def test_still_points_are_triangulated_under_a_moving_camera_and_a_moving_one_is_not() -> None:

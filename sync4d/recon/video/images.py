@@ -12,18 +12,22 @@ from sync4d.recon import skinning as sk
 from sync4d.types import Camera, VideoClip
 
 
-def optical_flow(frames: np.ndarray, method: str = "dis") -> tuple[np.ndarray, np.ndarray]:
+def optical_flow(frames: np.ndarray, method: str = "dis", upsample: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Dense forward and backward optical flow between consecutive frames.
 
     Args:
         frames: (T, H, W, 3) uint8 RGB.
         method: ``dis`` (OpenCV DIS, medium preset) or ``farneback``.
+        upsample: the flow is computed on the frames enlarged this many times (bilinear) and brought back
+            (area average): the flow's support (DIS patches of 8 px) shrinks in the image by that factor.
 
     Returns:
         (forward (T-1, H, W, 2), backward (T-1, H, W, 2)) displacements [px] as (du, dv);
         forward[t] maps frame t to t+1, backward[t] maps frame t+1 to t.
     """
     grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
+    if upsample > 1:
+        grey = [cv2.resize(g, None, fx=upsample, fy=upsample, interpolation=cv2.INTER_LINEAR) for g in grey]
     if method == "dis":
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]  # missing from OpenCV's stubs
 
@@ -35,8 +39,13 @@ def optical_flow(frames: np.ndarray, method: str = "dis") -> tuple[np.ndarray, n
             return cv2.calcOpticalFlowFarneback(a, b, None, 0.5, 4, 15, 5, 5, 1.2, 0)
     else:
         raise ConfigError(f"recon.flow={method!r}: use 'dis' or 'farneback'")
-    fwd = np.stack([flow(grey[t], grey[t + 1]) for t in range(len(grey) - 1)]) if len(grey) > 1 else np.zeros((0,) + frames.shape[1:3] + (2,), np.float32)
-    bwd = np.stack([flow(grey[t + 1], grey[t]) for t in range(len(grey) - 1)]) if len(grey) > 1 else fwd.copy()
+    size = (frames.shape[2], frames.shape[1])
+
+    def back(f: np.ndarray) -> np.ndarray:
+        return f if upsample <= 1 else cv2.resize(f, size, interpolation=cv2.INTER_AREA) / upsample
+
+    fwd = np.stack([back(flow(grey[t], grey[t + 1])) for t in range(len(grey) - 1)]) if len(grey) > 1 else np.zeros((0,) + frames.shape[1:3] + (2,), np.float32)
+    bwd = np.stack([back(flow(grey[t + 1], grey[t])) for t in range(len(grey) - 1)]) if len(grey) > 1 else fwd.copy()
     return fwd.astype(np.float32), bwd.astype(np.float32)
 
 

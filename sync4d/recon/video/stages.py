@@ -16,6 +16,10 @@ from sync4d.recon.video.images import (
 from sync4d.types import Camera, VideoClip
 
 log = logging.getLogger(__name__)
+# the flow is the subject's alone (outside its masks blanked), on frames enlarged 2x: DIS's support (patches of
+# 8 px) is wider than a thin part, and the background's motion bled into it (docs/results/articulated.md)
+FLOW_UPSAMPLE = 2
+FLOW_MASKED = True
 MIN_PATCH_CONTRAST = 0.02  # grey std-dev (0-1) of a frame-0 patch under which its track cannot be verified
 
 
@@ -127,7 +131,8 @@ def track_grid(frames: np.ndarray, masks: np.ndarray, config: TrackConfig) -> Tr
     vv, uu = np.nonzero(masks[0])
     keep = (vv % stride == 0) & (uu % stride == 0)
     uv0 = np.stack([uu[keep], vv[keep]], 1).astype(np.float64) + 0.5
-    fwd, bwd = optical_flow(frames, config.flow)
+    source = np.where(masks[..., None], frames, 0).astype(np.uint8) if FLOW_MASKED else frames
+    fwd, bwd = optical_flow(source, config.flow, FLOW_UPSAMPLE)
     valid = flow_consistency(fwd, bwd, tol_px=config.check_px)
     uv, ok = trusted_tracks(uv0, fwd, valid, masks)
     ncc, contrast = patch_agreement(frames, uv0, uv)
