@@ -5,9 +5,10 @@ joint's rotation relative to the template (axis-angle, in the template's axes); 
 girth, a log length change per bone and a log girth change per bone (left and right tied by a prior). The
 posed mesh (linear blend skinning of the template's vertices; a bone's vertices stretch along it with its
 length and across it with its girth) is projected by the camera of each frame (per-frame extrinsics when
-the camera moves) and rasterised softly (each triangle's signed edge distance through a sigmoid, the
-union over triangles) on a coarse grid; the loss is the binary cross-entropy against the masks, plus
-points along the skeleton's segments inside the mask (distance transform); priors: bone lengths and
+the camera moves) as discs around fixed surface samples on a coarse grid; the loss is the binary cross-entropy
+against the masks, plus points along the skeleton's segments inside the mask (distance transform), and at full
+resolution the surface samples inside the mask and the mask's outline covered by the discs (both near zero at
+the true pose whatever the grid); priors: bone lengths and
 girths (per-bone changes near zero, left/right equal), joint limits (``joint_limit_deg`` from the
 template; leg joints turn mostly about the body's lateral axis), smooth root-relative joints and root
 (accelerations). Search: root headings on the first frame, the best few tracked frame by frame, then
