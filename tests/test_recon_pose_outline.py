@@ -33,3 +33,14 @@ def test_outline_terms_are_lowest_at_the_truth(shared_data: Path) -> None:
     off = terms(bent)
     assert at_truth[0] < 0.02 and at_truth[1] < 0.05, at_truth
     assert off[0] > 5 * max(at_truth[0], 1e-3) and off[1] > 10 * at_truth[1], (at_truth, off)
+
+
+def test_quadruped_climb_needs_a_clip() -> None:
+    """sync4d_tools.quadruped_climb: --clip is required (argparse exits 2 before any work)."""
+    import pytest
+
+    from sync4d_tools import quadruped_climb
+
+    with pytest.raises(SystemExit) as err:
+        quadruped_climb.main([])
+    assert err.value.code == 2
