@@ -1,0 +1,123 @@
+"""Is the truth the quadruped objective's minimum? The from-scratch hypotheses against the fit started at the truth.
+
+    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --save hyps.pt          # main's search
+    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --load hyps.pt \\
+        --set surface_weight=1 outline_weight=1 --steps 60 --pick 0,4                                # re-judged
+
+The first form runs the fit's search (first-frame starts, ``tracks`` tracks refined on the clip, each with its
+legs swapped: the hypotheses) with the defaults, saves them and scores each (loss, optical-flow error, mpjpe
+in % of the height as ``body_suite`` scores). Both forms then fit ``B`` (the template fitted to the truth joints
+under the fit's priors, then the silhouette clip fit from there, as ``body_suite --split`` does) and, with
+``--load``, refine every saved hypothesis the same ``--steps`` under the configuration given by ``--set``: the
+truth is the objective's minimum on this clip when B's loss is below every hypothesis'. Prints JSON rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sync4d.recon.pose import quadruped_fit as qf
+from sync4d_tools import camera_of, video_of
+from sync4d_tools import body_suite as bs
+
+
+class Clip:
+    """A rendered quadruped clip and the fit's problem on it."""
+
+    def __init__(self, folder: Path, cfg: qf.QuadrupedFitConfig) -> None:
+        source, self.truth, self.names, self.w2c = bs.load_quadruped_clip(folder)
+        clip = video_of(source)
+        self.masks = clip.masks
+        self.prob = qf.QuadrupedProblem(clip.masks, camera_of(source), cfg, frames=clip.frames,
+                                        extrinsics=clip.extrinsics, fps=source.fps)
+        tmpl = self.prob.tt.template
+        self.ids = [tmpl.names.index(dict(tmpl.vocabulary)[n]) for n in self.names]
+        self.frames = np.arange(len(self.truth))
+
+    def score(self, params: qf.Params) -> dict:
+        with torch.no_grad():
+            joints = qf.pose_body(self.prob.tt, params)[0].numpy().astype(np.float64)
+        return bs.joint_score(bs.first_camera_to_world(joints[:, self.ids], self.w2c[0]), self.truth)
+
+    def terms(self, params: qf.Params) -> dict:
+        """The silhouette's cross-entropy, the surface and outline terms (unweighted) and the grid IoU."""
+        prob = self.prob
+        with torch.no_grad():
+            _, verts = qf.pose_body(prob.tt, params)
+            uv, radius = qf.projected_samples(prob, verts, prob.cams_of(self.frames), params["log_scale"].exp())
+            occ = qf.soft_point_silhouette(uv, radius, prob.uv, prob.tau)
+            tgt = prob.target[self.frames]
+            bce = -(tgt * torch.log(occ.clamp(1e-5)) + (1 - tgt) * torch.log((1 - occ).clamp(1e-5))).mean()
+            surface, outline = qf.outline_terms(prob, self.frames, uv, radius)
+            iou = (((occ > 0.5) & (tgt > 0.5)).sum(1) / ((occ > 0.5) | (tgt > 0.5)).sum(1)).float().mean()
+        return {"bce": round(float(bce), 4), "surface": round(float(surface), 4), "outline": round(float(outline), 4),
+                "iou": round(float(iou), 3)}
+
+
+def truth_started(c: Clip, cfg: qf.QuadrupedFitConfig, steps: int) -> dict:
+    """``B``: A2 (the template fitted to the truth joints under the priors), girth, then ``steps`` clip steps."""
+    truth_cam = np.einsum("ij,tkj->tki", c.w2c[0][:3, :3], c.truth) + c.w2c[0][:3, 3]
+    params = bs.truth_start(c.prob, truth_cam, c.names, c.w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0]))
+    bs.fit_to_truth(c.prob, params, torch.tensor(truth_cam, dtype=qf.DTYPE), c.ids, cfg, True)
+    qf.run_steps(c.prob, c.frames, params, cfg, 60, free=("log_thick", "log_girth"))
+    loss = qf.run_steps(c.prob, c.frames, params, cfg, steps)[0]
+    return {"what": "B (truth-started)", "loss": round(loss, 4), **c.terms(params), **c.score(params)}
+
+
+def search(c: Clip, cfg: qf.QuadrupedFitConfig) -> list[tuple[str, qf.Params]]:
+    """The fit's hypotheses (heading / legs swapped, parameters), as :func:`qf.best_hypothesis` makes them."""
+    up_cam = c.w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
+    starts = qf.first_frame_starts(c.prob, c.masks[0], up_cam, cfg)
+    out = []
+    for _, k, params in sorted(starts, key=lambda x: x[0])[: cfg.tracks]:
+        full = qf.track(c.prob, params, cfg, len(c.frames))
+        qf.run_steps(c.prob, c.frames, full, cfg, cfg.iterations)
+        for pairs in ((), ("f",), ("h",), ("f", "h")):
+            trial = {**full, "local": qf.swap_legs(c.prob.tt, full["local"].detach(), pairs)}
+            out.append((f"{360 * k / cfg.starts:.0f} deg, swapped {'+'.join(pairs) or 'none'}",
+                        {n: v.detach().clone().requires_grad_(True) for n, v in trial.items()}))
+    return out
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--clip", required=True, help="a rendered quadruped clip (body_suite's folder)")
+    parser.add_argument("--save", help="run the defaults' search and save its hypotheses here (.pt)")
+    parser.add_argument("--load", help="hypotheses saved by --save, refined under --set")
+    parser.add_argument("--set", nargs="*", default=[], help="QuadrupedFitConfig fields, name=value")
+    parser.add_argument("--steps", type=int, default=140, help="clip steps for B and each loaded hypothesis")
+    parser.add_argument("--pick", default="", help="comma-separated indices of the loaded hypotheses")
+    args = parser.parse_args(argv)
+    base = qf.QuadrupedFitConfig()
+    over: dict[str, Any] = {k: type(getattr(base, k))(v) for k, v in (s.split("=", 1) for s in args.set)}
+    cfg = qf.QuadrupedFitConfig(**over)
+    c = Clip(Path(args.clip), cfg)
+    rows = [truth_started(c, cfg, args.steps)]
+    print(json.dumps(rows[-1]), flush=True)
+    if args.save:
+        hyps = search(c, cfg)
+        torch.save([(name, {k: v.detach() for k, v in p.items()}) for name, p in hyps], args.save)
+        for name, p in hyps:
+            rows.append({"what": name, "loss": round(qf.run_steps(c.prob, c.frames, p, cfg, 0)[0], 4),
+                         "flow_error": round(qf.flow_error(c.prob, p), 4), **c.terms(p), **c.score(p)})
+            print(json.dumps(rows[-1]), flush=True)
+    if args.load:
+        saved = torch.load(args.load)
+        keep = [int(i) for i in args.pick.split(",")] if args.pick else range(len(saved))
+        for i in keep:
+            name, p = saved[i]
+            p = {k: v.clone().requires_grad_(True) for k, v in p.items()}
+            loss = qf.run_steps(c.prob, c.frames, p, cfg, args.steps)[0]
+            rows.append({"what": name, "loss": round(loss, 4), **c.terms(p), **c.score(p)})
+            print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
