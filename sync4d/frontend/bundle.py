@@ -15,6 +15,9 @@ from sync4d.frontend.tracks import Tracks
 MAX_FOCAL_CHANGE = 1.6
 #: Huber scale of the reprojection residual [px]
 HUBER_PX = 1.0
+#: LSMR's tolerances inside each trust-region step: scipy's defaults (1e-6) stop the inner solve early, and a
+#: small baseline's pan-versus-slide valley is then walked in tiny steps (docs/results/video_frontend.md)
+STEP_TOLERANCE = 1e-12
 
 
 @dataclass(frozen=True)
@@ -101,7 +104,7 @@ def bundle_adjust(tracks: Tracks, K: np.ndarray, poses: np.ndarray, points: np.n
     args = (obs, n_frames, n_points, K, refine_focal, scale_frame, scale)
     solved = least_squares(residuals, x0, jac_sparsity=sparsity(obs, n_frames, n_points, refine_focal, scale_frame),
                            loss="huber", f_scale=HUBER_PX, x_scale="jac", max_nfev=iterations, method="trf",
-                           args=args)
+                           tr_options={"atol": STEP_TOLERANCE, "btol": STEP_TOLERANCE}, args=args)
     x = solved.x
     focal_factor = float(np.exp(x[-1])) if refine_focal else 1.0
     focal_changed = refine_focal and 1.0 / MAX_FOCAL_CHANGE < focal_factor < MAX_FOCAL_CHANGE
