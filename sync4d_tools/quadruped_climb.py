@@ -2,7 +2,7 @@
 
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --save hyps.pt          # main's search
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --load hyps.pt \\
-        --set surface_weight=1 outline_weight=1 --steps 60 --pick 0,4                                # re-judged
+        --set inside_weight=0.2 --steps 60 --pick 0,4                                                # re-judged
 
 The first form runs the fit's search (first-frame starts, ``tracks`` tracks refined on the clip, each with its
 legs swapped: the hypotheses) with the defaults, saves them and scores each (loss, optical-flow error, mpjpe
@@ -46,18 +46,15 @@ class Clip:
         return bs.joint_score(bs.first_camera_to_world(joints[:, self.ids], self.w2c[0]), self.truth)
 
     def terms(self, params: qf.Params) -> dict:
-        """The silhouette's cross-entropy, the surface and outline terms (unweighted) and the grid IoU."""
+        """The silhouette's cross-entropy (unweighted) and the grid IoU."""
         prob = self.prob
         with torch.no_grad():
             _, verts = qf.pose_body(prob.tt, params)
-            uv, radius = qf.projected_samples(prob, verts, prob.cams_of(self.frames), params["log_scale"].exp())
-            occ = qf.soft_point_silhouette(uv, radius, prob.uv, prob.tau)
+            occ = qf.body_silhouette(prob, verts, prob.cams_of(self.frames), params["log_scale"].exp())
             tgt = prob.target[self.frames]
             bce = -(tgt * torch.log(occ.clamp(1e-5)) + (1 - tgt) * torch.log((1 - occ).clamp(1e-5))).mean()
-            surface, outline = qf.outline_terms(prob, self.frames, uv, radius)
             iou = (((occ > 0.5) & (tgt > 0.5)).sum(1) / ((occ > 0.5) | (tgt > 0.5)).sum(1)).float().mean()
-        return {"bce": round(float(bce), 4), "surface": round(float(surface), 4), "outline": round(float(outline), 4),
-                "iou": round(float(iou), 3)}
+        return {"bce": round(float(bce), 4), "iou": round(float(iou), 3)}
 
 
 def truth_started(c: Clip, cfg: qf.QuadrupedFitConfig, steps: int) -> dict:

@@ -601,3 +601,14 @@ def test_quadruped_fit_is_reproducible_on_two_threads(shared_data: Path) -> None
     finally:
         torch.set_num_threads(threads)
     assert np.array_equal(runs[0], runs[1])
+
+
+def test_quadruped_climb_needs_a_clip() -> None:
+    """sync4d_tools.quadruped_climb: --clip is required (argparse exits 2 before any work)."""
+    import pytest
+
+    from sync4d_tools import quadruped_climb
+
+    with pytest.raises(SystemExit) as err:
+        quadruped_climb.main([])
+    assert err.value.code == 2

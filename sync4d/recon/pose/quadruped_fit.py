@@ -5,10 +5,9 @@ joint's rotation relative to the template (axis-angle, in the template's axes); 
 girth, a log length change per bone and a log girth change per bone (left and right tied by a prior). The
 posed mesh (linear blend skinning of the template's vertices; a bone's vertices stretch along it with its
 length and across it with its girth) is projected by the camera of each frame (per-frame extrinsics when
-the camera moves) as discs around fixed surface samples on a coarse grid; the loss is the binary cross-entropy
-against the masks, plus points along the skeleton's segments inside the mask (distance transform), and at full
-resolution the surface samples inside the mask and the mask's outline covered by the discs (both near zero at
-the true pose whatever the grid); priors: bone lengths and
+the camera moves) and rasterised softly (each triangle's signed edge distance through a sigmoid, the
+union over triangles) on a coarse grid; the loss is the binary cross-entropy against the masks, plus
+points along the skeleton's segments inside the mask (distance transform); priors: bone lengths and
 girths (per-bone changes near zero, left/right equal), joint limits (``joint_limit_deg`` from the
 template; leg joints turn mostly about the body's lateral axis), smooth root-relative joints and root
 (accelerations). Search: root headings on the first frame, the best few tracked frame by frame, then
@@ -57,13 +56,6 @@ class QuadrupedFitConfig:
         lr: Adam step size (radians / template units).
         silhouette_weight: binary cross-entropy of the soft silhouette.
         inside_weight: skeleton points outside the mask (distance transform, in grid cells).
-        surface_weight: the body's surface samples outside the mask: squared distance [grid cells] on a distance
-            field ``fine`` times finer than the grid (zero at the truth whatever the grid: every surface point of
-            the true pose projects inside its silhouette).
-        outline_weight: the mask's outline points (``outline_points`` a frame, at full resolution) farther from
-            the body's nearest disc than its radius: squared distance [grid cells] (near zero at the truth).
-        fine: the surface term's distance field has this many times the grid's cells across.
-        outline_points: outline points of each frame's mask in the outline term.
         length_weight: per-bone log length and girth changes and their left/right differences.
         limit_weight: joint rotation beyond ``joint_limit_deg``.
         joint_limit_deg: rotation of a joint from the template allowed without penalty [deg].
@@ -87,10 +79,6 @@ class QuadrupedFitConfig:
     lr: float = 0.03
     silhouette_weight: float = 1.0
     inside_weight: float = 0.05
-    surface_weight: float = 0.0
-    outline_weight: float = 0.0
-    fine: int = 4
-    outline_points: int = 400
     length_weight: float = 1.0
     limit_weight: float = 1.0
     joint_limit_deg: float = 50.0
@@ -284,31 +272,6 @@ def outside_distance(coarse: np.ndarray) -> np.ndarray:
     return np.stack([cv2.distanceTransform((m < 0.5).astype(np.uint8), cv2.DIST_L2, 3) for m in coarse])
 
 
-def fine_outside_distance(masks: np.ndarray, box: tuple[int, int, int, int], cells: int) -> np.ndarray:
-    """(T, fh, fw) distance [px] of each cell of a grid ``cells`` across the longer side of ``box`` from the
-    full-resolution mask (0 inside; the distance transform at full resolution, then sampled)."""
-    import cv2
-
-    u0, v0, u1, v1 = box
-    _, gw, gh = grid_cells(box, cells)
-    return np.stack([cv2.resize(cv2.distanceTransform((~m[v0:v1, u0:u1]).astype(np.uint8), cv2.DIST_L2, 5),
-                                (gw, gh), interpolation=cv2.INTER_LINEAR) for m in masks])
-
-
-def outline_points(masks: np.ndarray, count: int) -> np.ndarray:
-    """(T, count, 2) pixel centres [px] on each mask's outline (its pixels with a 4-neighbour outside), evenly
-    picked in raster order (repeated when the outline has fewer)."""
-    import cv2
-
-    out = []
-    for m in masks:
-        edge = m & ~cv2.erode(m.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0).astype(bool)
-        ys, xs = np.nonzero(edge)
-        pick = np.linspace(0, len(xs) - 1, count).round().astype(int)
-        out.append(np.stack([xs[pick], ys[pick]], 1) + 0.5)
-    return np.stack(out).astype(np.float64)
-
-
 def relative_cameras(extrinsics: np.ndarray | None) -> np.ndarray | None:
     """(T, 4, 4) first camera -> frame t camera from (T, 4, 4) world-to-camera matrices; None if static."""
     if extrinsics is None:
@@ -338,58 +301,24 @@ class QuadrupedProblem:
         self.cams = None if rel is None else torch.tensor(rel, dtype=DTYPE)
         self.rate = fps / SMOOTH_FPS
         self.flow = None if frames is None or len(frames) < 2 else torch.tensor(video_flow(frames, uv), dtype=DTYPE)
-        cell = 2 * self.tau
-        self.fine_outside = torch.tensor(fine_outside_distance(masks, self.box, config.grid * config.fine) / cell,
-                                         dtype=DTYPE)[:, None]
-        self.outline = torch.tensor(outline_points(masks, config.outline_points), dtype=DTYPE)
 
     def cams_of(self, frames: np.ndarray) -> torch.Tensor | None:
         return None if self.cams is None else self.cams[torch.as_tensor(frames)]
 
 
-def projected_samples(prob: QuadrupedProblem, verts: torch.Tensor, cams: torch.Tensor | None, scale: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(T, N, 2) pixel positions of the posed body's (T, V, 3) surface samples seen by ``cams`` and (T, N) their
-    discs' radii [px]."""
-    pts = to_cameras(body_samples(prob.tt, verts), cams)
-    return project_points(pts, prob.K), prob.tt.sample_radius * scale * prob.K[0, 0] / pts[..., 2].clamp_min(1e-3)
-
-
 def body_silhouette(prob: QuadrupedProblem, verts: torch.Tensor, cams: torch.Tensor | None, scale: torch.Tensor
                     ) -> torch.Tensor:
     """(T, P) soft silhouette of the posed body (T, V, 3) on the grid, seen by cameras ``cams``."""
-    uv, radius = projected_samples(prob, verts, cams, scale)
-    return soft_point_silhouette(uv, radius, prob.uv, prob.tau)
-
-
-def outline_terms(prob: QuadrupedProblem, frames: np.ndarray, uv: torch.Tensor, radius: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The surface term (mean squared distance [grid cells] of the projected samples ``uv`` (T, N, 2) from the
-    mask, on the fine distance field; beyond the mask's box the distance to the box is added) and the outline
-    term (mean squared distance [grid cells] beyond the nearest disc's radius of the mask's outline points)."""
-    u0, v0, u1, v1 = prob.box
-    cell = 2 * prob.tau
-    lo, hi = uv.new_tensor([u0, v0]), uv.new_tensor([u1, v1])
-    grid = (uv - lo) / (hi - lo) * 2 - 1
-    dist = torch.nn.functional.grid_sample(prob.fine_outside[frames], grid[:, None], align_corners=False,
-                                           padding_mode="border")[:, 0, 0]
-    beyond = (torch.relu(lo - uv) + torch.relu(uv - hi)).norm(dim=-1) / cell
-    surface = (dist + beyond).pow(2).mean()
-    pts = prob.outline[frames]
-    with torch.no_grad():
-        nearest = (torch.cdist(pts, uv.detach()) - radius.detach()[:, None]).argmin(2)
-    centre = torch.gather(uv, 1, nearest[..., None].expand(*nearest.shape, 2))
-    gap = (pts - centre).pow(2).sum(-1).clamp_min(1e-12).sqrt() - torch.gather(radius, 1, nearest)
-    return surface, torch.relu(gap / cell).pow(2).mean()
+    pts = to_cameras(body_samples(prob.tt, verts), cams)
+    radius = prob.tt.sample_radius * scale * prob.K[0, 0] / pts[..., 2].clamp_min(1e-3)
+    return soft_point_silhouette(project_points(pts, prob.K), radius, prob.uv, prob.tau)
 
 
 def silhouette_terms(prob: QuadrupedProblem, frames: np.ndarray, joints: torch.Tensor, verts: torch.Tensor,
-                     scale: torch.Tensor, config: QuadrupedFitConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """The weighted image terms (binary cross-entropy of the soft silhouette, the skeleton inside the mask, the
-    surface and outline terms of :func:`outline_terms`) and the (T, P) occupancy."""
+                     scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Binary cross-entropy of the soft silhouette, the skeleton-inside-mask term and the (T, P) occupancy."""
     cams = prob.cams_of(frames)
-    uv_s, radius = projected_samples(prob, verts, cams, scale)
-    occ = soft_point_silhouette(uv_s, radius, prob.uv, prob.tau)
+    occ = body_silhouette(prob, verts, cams, scale)
     tgt = prob.target[frames]
     bce = -(tgt * torch.log(occ.clamp(1e-5)) + (1 - tgt) * torch.log((1 - occ).clamp(1e-5))).mean()
     seg, par = prob.tt.segments, prob.tt.parents
@@ -400,10 +329,7 @@ def silhouette_terms(prob: QuadrupedProblem, frames: np.ndarray, joints: torch.T
     grid = torch.stack([(uv[..., 0] - u0) / (u1 - u0) * 2 - 1, (uv[..., 1] - v0) / (v1 - v0) * 2 - 1], -1)
     dist = torch.nn.functional.grid_sample(prob.outside[frames][:, None], grid[:, None], align_corners=False,
                                            padding_mode="border")
-    surface, outline = outline_terms(prob, frames, uv_s, radius) if config.surface_weight or config.outline_weight \
-        else (bce.new_zeros(()), bce.new_zeros(()))
-    return (config.silhouette_weight * bce + config.inside_weight * dist.pow(2).mean()
-            + config.surface_weight * surface + config.outline_weight * outline), occ
+    return bce, dist.pow(2).mean(), occ
 
 
 def shape_priors(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig) -> tuple[torch.Tensor, torch.Tensor]:
@@ -440,9 +366,9 @@ def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config
     (template units), for the smoothness term.
     """
     joints, verts = pose_body(prob.tt, params)
-    image, occ = silhouette_terms(prob, frames, joints, verts, params["log_scale"].exp(), config)
+    bce, inside, occ = silhouette_terms(prob, frames, joints, verts, params["log_scale"].exp())
     lengths, limit = shape_priors(prob, params, config)
-    total = (image + config.length_weight * lengths
+    total = (config.silhouette_weight * bce + config.inside_weight * inside + config.length_weight * lengths
              + config.limit_weight * limit
              + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
     return total, joints, occ
