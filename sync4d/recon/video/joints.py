@@ -33,12 +33,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from collections.abc import Callable
+from functools import partial
 
 import cv2
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from sync4d.forked import run_forked, usable_workers
 from sync4d.recon.video.screw import ScrewFit, fit_screw
 from sync4d.recon.video.stages import PartInit, Tracks
 from sync4d.types import Camera
@@ -67,6 +70,8 @@ class FitConfig:
     smooth_weight: weight of the depth and temporal smoothness priors.
     relabel_rounds: relabel + refine rounds after the first fit.
     static_root_px: median track motion [px] under which the root counts as static.
+    workers: hinge starts fitted side by side, each in a forked process (0: one per usable core; 1: in turn
+        here); the result does not depend on it.
     """
 
     steps: int = 240
@@ -77,6 +82,7 @@ class FitConfig:
     smooth_weight: float = 1.0
     relabel_rounds: int = 1
     static_root_px: float = 1.0
+    workers: int = 0
 
 
 @dataclass(frozen=True)
@@ -527,6 +533,42 @@ def relabel(model: Articulation, tracks: Tracks, *, margin: float = 0.25) -> np.
     return out if all((out == b).sum() >= 3 for b in range(n_parts)) else labels
 
 
+def start_model(scene: Scene, labels: np.ndarray, root: int, kinds: list[str], border: np.ndarray,
+                pivots: np.ndarray, n_frames: int, log_d: np.ndarray, s: int) -> Articulation:
+    """The model of hinge start ``s`` (:func:`axis_start`), every joint value zero."""
+    return Articulation(scene, labels, root, kinds, axis_start(s, border), pivots, np.zeros((n_frames, len(kinds))),
+                        log_d)
+
+
+def fit_start(make: Callable[[int], Articulation], pairs: torch.Tensor, config: FitConfig, s: int
+              ) -> tuple[float, dict[str, torch.Tensor]]:
+    """Start ``s`` fitted: its data loss and the model's parameters."""
+    model = make(s)
+    # the starts follow every consistent track: a sticking track under-reports its part's motion but
+    # still points the way, and a start needs any cue to reach the right basin (the lever's starts all
+    # ended at about 4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
+    loss = optimise(model, config, config.steps // 3, pairs, verified_only=False)
+    return loss, model.state_dict()
+
+
+def fit_hinge_starts(make: Callable[[int], Articulation], count: int, pairs: torch.Tensor, config: FitConfig
+                     ) -> tuple[Articulation, list[float]]:
+    """The best of ``count`` hinge starts (``make(s)`` builds start s), fitted side by side in forked
+    processes (``config.workers``), and every start's data loss."""
+    fitted = run_forked([partial(fit_start, make, pairs, config, s) for s in range(count)],
+                        usable_workers(config.workers))
+    best, best_loss, history = None, np.inf, []
+    for s, (loss, state) in enumerate(fitted):
+        history.append(loss)
+        log.info("recon=video: hinge start %d (axes %s): data loss %.4f", s, np.round(state["axes"].numpy(), 2).tolist(),
+                 loss)
+        if loss < best_loss:
+            best, best_loss = make(s), loss
+            best.load_state_dict(state)
+    assert best is not None, "at least one hinge start runs"
+    return best, history
+
+
 def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) -> JointFit:
     """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms (the camera is
     the scene's)."""
@@ -536,19 +578,8 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) 
     pairs = neighbour_pairs(tracks.uv0, labels, tracks.stride)
     log_d = np.full(len(labels), np.log(scene.z_ref)) if scene.depth0 is None else np.log(scene.depth0.numpy())
     kinds = ["root" if b == root else "hinge" for b in range(n_parts)]
-    best, best_loss, history = None, np.inf, []
-    for s in range(max(1, min(config.axis_starts, len(AXIS_STARTS) + 1))):
-        axes = axis_start(s, border)
-        model = Articulation(scene, labels, root, kinds, axes, pivots, np.zeros((n_frames, n_parts)), log_d)
-        # the starts follow every consistent track: a sticking track under-reports its part's motion but
-        # still points the way, and a start needs any cue to reach the right basin (the lever's starts all
-        # ended at about 4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
-        loss = optimise(model, config, config.steps // 3, pairs, verified_only=False)
-        history.append(loss)
-        log.info("recon=video: hinge start %d (axes %s): data loss %.4f", s, np.round(axes, 2).tolist(), loss)
-        if loss < best_loss:
-            best, best_loss = model, loss
-    assert best is not None, "at least one hinge start runs"
+    best, history = fit_hinge_starts(partial(start_model, scene, labels, root, kinds, border, pivots, n_frames, log_d),
+                                     max(1, min(config.axis_starts, len(AXIS_STARTS) + 1)), pairs, config)
     best = choose_kinds(best, tracks, config, history)
     pairs = neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride)
     best_loss = optimise(best, config, config.steps // 2, pairs, windows=1)

@@ -110,6 +110,8 @@ class VideoReconstructor:
             if self.fit.steps < 3 or self.fit.axis_starts < 1 or self.fit.relabel_rounds < 0:
                 raise ConfigError(f"recon.fit: steps={self.fit.steps} >= 3, axis_starts={self.fit.axis_starts} >= 1 "
                                   f"and relabel_rounds={self.fit.relabel_rounds} >= 0 needed")
+            if self.fit.workers < 0:
+                raise ConfigError(f"recon.fit.workers={self.fit.workers}: needs >= 0 (0: one per core, 1: no processes)")
             if not -1.0 <= self.tracks.patch_ncc <= 1.0:
                 raise ConfigError(f"recon.tracks.patch_ncc={self.tracks.patch_ncc}: a correlation, needs -1 <= patch_ncc <= 1")
             if not 0.0 < self.opacity < 1.0:
