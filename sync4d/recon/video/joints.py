@@ -761,8 +761,17 @@ def slide_from(model: Articulation, b: int, tracks: Tracks, config: FitConfig) -
         starts.append((kind_loss(trial, config), len(starts), trial))
     starts.sort(key=lambda x: x[:2])
     pairs = neighbour_pairs(tracks.uv0, model.labels.numpy(), tracks.stride)
-    fitted = [(optimise(trial, config, config.steps // 8, pairs, windows=1), i, trial) for _, i, trial in starts[:2]]
-    return min(fitted, key=lambda x: x[:2])[2]
+    picked = [trial for _, _, trial in starts[:2]]
+    fitted = run_forked([partial(fit_copy, trial, pairs, config) for trial in picked], usable_workers(config.workers))
+    loss, i = min((loss, i) for i, (loss, _) in enumerate(fitted))
+    picked[i].load_state_dict(fitted[i][1])
+    return picked[i]
+
+
+def fit_copy(model: Articulation, pairs: torch.Tensor, config: FitConfig) -> tuple[float, dict[str, torch.Tensor]]:
+    """A slide start refined (one window, ``config.steps // 8`` steps): its data loss and parameters."""
+    loss = optimise(model, config, config.steps // 8, pairs, windows=1)
+    return loss, model.state_dict()
 
 
 def slide_directions(x0: np.ndarray, xt: np.ndarray, uv: np.ndarray, scene: Scene) -> list[np.ndarray]:
