@@ -18,6 +18,12 @@ from typing import Any, TypeVar
 T = TypeVar("T")
 
 
+def cpu_seconds() -> float:
+    """CPU time of this process and of its finished (joined) children [s]: the forked jobs' work included."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 def usable_workers(requested: int) -> int:
     """``requested`` (0: one per CPU core this process may use) capped by those cores, at least 1."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

@@ -37,3 +37,22 @@ def test_a_failing_forked_job_raises_with_its_message() -> None:
 def test_usable_workers_is_capped_by_the_cores() -> None:
     assert usable_workers(1) == 1
     assert 1 <= usable_workers(0) == usable_workers(10_000)
+
+
+def _spin() -> int:
+    total = 0
+    for i in range(3_000_000):
+        total += i
+    return total
+
+
+def test_cpu_seconds_count_the_forked_jobs() -> None:
+    """The children's CPU time is counted once they are joined (the reconstruction reports it as its own)."""
+    from sync4d.forked import cpu_seconds
+
+    import time
+
+    start, own = cpu_seconds(), time.process_time()
+    run_forked([_spin, _spin], 2)
+    assert time.process_time() - own < 0.05  # this process only waited
+    assert cpu_seconds() - start > 0.1  # the children's work

@@ -29,6 +29,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from sync4d.errors import ConfigError, InputError
+from sync4d.forked import cpu_seconds
 from sync4d.recon.video.images import (
     camera_moves, default_camera, pnp_transforms, sample_image, static_depths,
 )
@@ -137,7 +138,7 @@ class VideoReconstructor:
         if clip.num_frames < 2:
             raise InputError(f"recon=video: '{clip.source}' has {clip.num_frames} frame; need at least 2")
         config = self.config
-        start, cpu_start = time.perf_counter(), time.process_time()
+        start, cpu_start = time.perf_counter(), cpu_seconds()
         rng = np.random.default_rng(config.seed)
         extrinsics = np.array(clip.extrinsics, np.float64) if camera_moves(clip.extrinsics) else None
         camera = source.camera if source.camera is not None else default_camera(clip, config.init.fov_deg)
@@ -181,7 +182,7 @@ class VideoReconstructor:
         # its neighbour (exact frame-0 surface, suite clips: label score +0.01 to +0.03)
         sigma = 0.5 * tracks.stride * depth / camera.K[0, 0]
         ref = build_reference(joints, means, labels, clip, camera, source.name)
-        seconds, cpu = time.perf_counter() - start, time.process_time() - cpu_start
+        seconds, cpu = time.perf_counter() - start, cpu_seconds() - cpu_start
         log.info("recon=video: %d frames reconstructed in %.1f s (%.1f s CPU)", clip.num_frames, seconds, cpu)
         return VideoFit(reference=ref, camera=camera, masks=masks, tracks=tracks, init=init, joints=joints,
                         means=means, sigma=sigma, opacity=np.full(len(means), config.opacity),
