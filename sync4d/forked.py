@@ -26,7 +26,10 @@ def cpu_seconds() -> float:
 
 def usable_workers(requested: int) -> int:
     """``requested`` (0: one per CPU core this process may use) capped by those cores, at least 1."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity on this OS (macOS, Windows): every core
+        cores = os.cpu_count() or 1
     return max(1, min(requested, cores) if requested > 0 else cores)
 
 
