@@ -2,8 +2,8 @@
 
 A forked child inherits the parent's memory, so a job's inputs (a reconstruction's scene, tens of MB) are not
 copied or pickled; only each job's result comes back through a pipe, pickled. Each child runs torch on one
-thread. Where ``fork`` does not exist (Windows, macOS's default) or ``workers <= 1`` the jobs run here, in
-order: the results are the same either way.
+thread. Where ``fork`` does not exist (Windows, macOS's default), in a daemonic process or with ``workers <= 1``
+the jobs run here, in order: the results are the same either way.
 """
 
 from __future__ import annotations
@@ -53,7 +53,9 @@ def run_forked(jobs: Sequence[Callable[[], T]], workers: int) -> list[T]:
     Raises:
         RuntimeError: a job raised in its child (the message carries the child's traceback).
     """
-    if workers <= 1 or len(jobs) <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+    # a daemonic process (a pool's worker) may not have children: there the jobs run in turn
+    if (workers <= 1 or len(jobs) <= 1 or "fork" not in multiprocessing.get_all_start_methods()
+            or multiprocessing.current_process().daemon):
         return [job() for job in jobs]
     ctx = multiprocessing.get_context("fork")
     results: list[T] = []

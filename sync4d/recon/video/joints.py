@@ -32,8 +32,8 @@ fixed by penalised residual, robust over frames), the part re-posed on it and re
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from functools import partial
 
 import cv2
@@ -70,8 +70,8 @@ class FitConfig:
     smooth_weight: weight of the depth and temporal smoothness priors.
     relabel_rounds: relabel + refine rounds after the first fit.
     static_root_px: median track motion [px] under which the root counts as static.
-    workers: hinge starts fitted side by side, each in a forked process (0: one per usable core; 1: in turn
-        here); the result does not depend on it.
+    workers: the hinge starts, and a slide's two starts, fitted side by side, each in a forked process (0: one
+        per usable core; 1: in turn here); the result does not depend on it.
     """
 
     steps: int = 240
