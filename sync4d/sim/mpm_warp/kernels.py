@@ -762,8 +762,8 @@ def kirchhoff_stress_adjoint(
 # form): after every G2P, the particles' deviation from the rig (each particle the blend of its parts' driven
 # motions) is removed within the rig's degrees of freedom (a translation and a small rotation per part, a
 # least-squares fit in the mass metric), from positions and velocities; what the rig does not control stays with
-# the physics. Adjoints: Warp's generated ones for drive_sums and drive_apply, launched with ``adjoint=True`` by the
-# solver; drive_solve is a symmetric matrix product and is its own adjoint.
+# the physics. Adjoints: hand-written for drive_apply and drive_sums (checked against finite differences in the tests);
+# drive_solve is a symmetric matrix product and is its own adjoint.
 # ----------------------------------------------------------------------------------------------------
 
 
@@ -915,3 +915,121 @@ def drive_apply(
     v_out[p] = v[p] - dv
     C_out[p] = C[p] - skew(w_v)
     F_out[p] = rotation_from_vector(-w_x) * F[p]
+
+
+
+@wp.func
+def rodrigues_coefficients(t2: float) -> wp.vec4:
+    """(a, b, a'/t, b'/t) of exp([w]x) = I + a(t) [w]x + b(t) [w]x^2 at t^2 = |w|^2 (the series near zero)."""
+    if t2 < 1.0e-10:
+        return wp.vec4(1.0, 0.5, -1.0 / 3.0, -1.0 / 12.0)
+    t = wp.sqrt(t2)
+    st = wp.sin(t)
+    ct = wp.cos(t)
+    return wp.vec4(st / t, (1.0 - ct) / t2, (t * ct - st) / (t2 * t), (t * st - 2.0 * (1.0 - ct)) / (t2 * t2))
+
+
+@wp.func
+def rotation_vector_gradient(w: wp.vec3, H: wp.mat33, c: wp.vec4) -> wp.vec3:
+    """d/dw of <H, exp([w]x)> (Frobenius product), ``c`` = :func:`rodrigues_coefficients` of |w|^2: with
+    [w]x^2 = w w^T - t^2 I the product is tr H + a (w . s) + b (w^T H w - t^2 tr H), s = vee(H - H^T)."""
+    s = wp.vec3(H[2, 1] - H[1, 2], H[0, 2] - H[2, 0], H[1, 0] - H[0, 1])
+    t2 = wp.dot(w, w)
+    tr = H[0, 0] + H[1, 1] + H[2, 2]
+    quad = wp.dot(w, H * w) - t2 * tr
+    return c[0] * s + (c[2] * wp.dot(w, s) + c[3] * quad) * w + c[1] * ((H + wp.transpose(H)) * w - 2.0 * tr * w)
+
+
+@wp.kernel
+def drive_apply_adjoint(
+    F_out: wp.array(dtype=wp.mat33),
+    slot_part: wp.array2d(dtype=wp.int32),
+    slot_weight: wp.array2d(dtype=float),
+    slot_offset: wp.array2d(dtype=wp.vec3),
+    turn: wp.array(dtype=wp.mat33),
+    theta: wp.array2d(dtype=wp.vec3),
+    adj_x_out: wp.array(dtype=wp.vec3),
+    adj_v_out: wp.array(dtype=wp.vec3),
+    adj_C_out: wp.array(dtype=wp.mat33),
+    adj_F_out: wp.array(dtype=wp.mat33),
+    adj_x: wp.array(dtype=wp.vec3),
+    adj_v: wp.array(dtype=wp.vec3),
+    adj_C: wp.array(dtype=wp.mat33),
+    adj_F: wp.array(dtype=wp.mat33),
+    adj_theta: wp.array2d(dtype=wp.vec3),
+):
+    """The adjoint of :func:`drive_apply`: dL/d(state after G2P) and dL/dtheta (accumulated; must be zeroed) from
+    dL/d(corrected state). Only F's correction is non-linear; its input F is recovered from the corrected one
+    (F = exp([w_x]x) F_out), so the state after G2P need not be recomputed.
+
+    Args:
+        F_out: (P,) the corrected deformation gradients; slot_part ... theta: as in :func:`drive_apply`.
+        adj_x_out, adj_v_out, adj_C_out, adj_F_out: (P,) dL/d of the corrected state.
+        adj_x, adj_v, adj_C, adj_F: (P,) written: dL/d of the state after G2P (x and v before the moments' share).
+        adj_theta: (B, 4) accumulates dL/dtheta.
+    """
+    p = wp.tid()
+    w_x = wp.vec3(0.0)
+    w_v = wp.vec3(0.0)
+    for k in range(4):
+        b = slot_part[p, k]
+        if b >= 0:
+            w_x = w_x + slot_weight[p, k] * theta[b, 1]
+            w_v = w_v + slot_weight[p, k] * theta[b, 3]
+    ax = adj_x_out[p]
+    av = adj_v_out[p]
+    aC = adj_C_out[p]
+    aF = adj_F_out[p]
+    # F_out = exp(-[w_x]x) F: d/dw_x of <aF, exp(-[w_x]x) F> = -(d/du of <aF F^T, exp([u]x)> at u = -w_x)
+    c = rodrigues_coefficients(wp.dot(w_x, w_x))
+    K = skew(w_x)
+    undo = wp.identity(n=3, dtype=float) + c[0] * K + c[1] * K * K  # exp([w_x]x), the inverse of the correction
+    adj_x[p] = ax
+    adj_v[p] = av
+    adj_C[p] = aC
+    adj_F[p] = undo * aF
+    F_mid = undo * F_out[p]
+    g_x = -rotation_vector_gradient(-w_x, aF * wp.transpose(F_mid), c)
+    # C_out = C - [w_v]x: d<aC, [w]x>/dw = vee(aC - aC^T)
+    g_v = -wp.vec3(aC[2, 1] - aC[1, 2], aC[0, 2] - aC[2, 0], aC[1, 0] - aC[0, 1])
+    for k in range(4):
+        b = slot_part[p, k]
+        if b >= 0:
+            r = turn[b] * slot_offset[p, k]
+            w = slot_weight[p, k]
+            wp.atomic_add(adj_theta, b, 0, -w * ax)
+            wp.atomic_add(adj_theta, b, 1, w * (wp.cross(ax, r) + g_x))
+            wp.atomic_add(adj_theta, b, 2, -w * av)
+            wp.atomic_add(adj_theta, b, 3, w * (wp.cross(av, r) + g_v))
+
+
+@wp.kernel
+def drive_sums_adjoint(
+    slot_part: wp.array2d(dtype=wp.int32),
+    slot_weight: wp.array2d(dtype=float),
+    slot_offset: wp.array2d(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    turn: wp.array(dtype=wp.mat33),
+    adj_sums: wp.array2d(dtype=wp.vec3),
+    adj_x: wp.array(dtype=wp.vec3),
+    adj_v: wp.array(dtype=wp.vec3),
+):
+    """The adjoint of :func:`drive_sums` in x and v (the moments are linear in them): adds dL/dx and dL/dv.
+
+    Args:
+        slot_part ... turn: as in :func:`drive_sums`; adj_sums: (B, 4) dL/d of the summed moments.
+        adj_x, adj_v: (P,) accumulate.
+    """
+    p = wp.tid()
+    gu = wp.vec3(0.0)
+    ge = wp.vec3(0.0)
+    for k in range(4):
+        b = slot_part[p, k]
+        if b >= 0:
+            r = turn[b] * slot_offset[p, k]
+            m = mass[p] * slot_weight[p, k]
+            # d/du of A . (r x u) = A x r
+            gu = gu + m * (adj_sums[b, 0] + wp.cross(adj_sums[b, 1], r))
+            ge = ge + m * (adj_sums[b, 2] + wp.cross(adj_sums[b, 3], r))
+    adj_x[p] = adj_x[p] + gu
+    adj_v[p] = adj_v[p] + ge

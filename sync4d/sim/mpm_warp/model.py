@@ -206,7 +206,6 @@ class Workspace:
         shape = (self.threads, num_parts, 4)
         self.drive_mid = WarpState.empty(self.n, self.device)
         self.adj_drive_mid = WarpState.empty(self.n, self.device)
-        self.drive_scratch = WarpState.empty(self.n, self.device)
         self.drive_sums_all = wp.zeros(shape, dtype=wp.vec3, device=self.device)
         self.adj_drive_sums_all = wp.zeros(shape, dtype=wp.vec3, device=self.device)
         self.drive_sums_of = [self.drive_sums_all[t] for t in range(self.threads)]

@@ -174,36 +174,35 @@ class Launch:
         i, o = self.drive_apply_args(s.parts(ws.bounds)[t], out.parts(ws.bounds)[t], substep, t)
         wp.launch(K.drive_apply, dim=self.count(t), inputs=i, outputs=o, device=ws.device)
 
-    def drive_adjoint(self, s: WarpState, adj_out: WarpState, adj_mid: WarpState, substep: int) -> None:
-        """dL/d(state after G2P) into ``adj_mid`` from dL/d(state after the drive) ``adj_out``: Warp's generated
-        adjoints of :func:`K.drive_apply`, the solve (its own adjoint), then :func:`K.drive_sums`'s (``s`` is the
-        state after G2P and the fit ``ws.drive_theta`` is its own)."""
+    def drive_adjoint(self, out: WarpState, adj_out: WarpState, adj_mid: WarpState, substep: int) -> None:
+        """dL/d(state after G2P) into ``adj_mid`` from dL/d(state after the drive) ``adj_out``, by the hand-written
+        adjoints of :func:`K.drive_apply`, the solve (its own adjoint) and :func:`K.drive_sums`. ``out`` is the
+        corrected state and ``ws.drive_theta`` the fit that corrected it."""
         ws = self.ws
-        sp, op, mp = s.parts(ws.bounds), adj_out.parts(ws.bounds), adj_mid.parts(ws.bounds)
-        scratch = ws.drive_scratch.parts(ws.bounds)
+        d = self.drive
+        assert d is not None
+        ep, op, mp = out.parts(ws.bounds), adj_out.parts(ws.bounds), adj_mid.parts(ws.bounds)
 
         def apply_adjoint(t: int) -> None:
-            for a in mp[t].arrays():
-                a.zero_()
             ws.adj_drive_sums_of[t].zero_()
-            i, o = self.drive_apply_args(sp[t], scratch[t], substep, t)
-            adj_i = [*mp[t].arrays(), None, None, None, None, ws.adj_drive_sums_of[t]]
-            wp.launch(K.drive_apply, dim=self.count(t), inputs=i, outputs=o, adj_inputs=adj_i,
-                      adj_outputs=list(op[t].arrays()), adjoint=True, device=ws.device)
+            wp.launch(K.drive_apply_adjoint, dim=self.count(t),
+                      inputs=[ep[t].F, self.slot_part_of[t], self.slot_weight_of[t], self.slot_offset_of[t],
+                              d.turn[substep], ws.drive_theta, *op[t].arrays()],
+                      outputs=[*mp[t].arrays(), ws.adj_drive_sums_of[t]], device=ws.device)
 
         def sums_adjoint(t: int) -> None:
-            i, o = self.drive_sums_args(sp[t], substep, t)
-            adj_i = [mp[t].x, mp[t].v, None, None, None, None, None, None, None, None]
-            wp.launch(K.drive_sums, dim=self.count(t), inputs=i, outputs=o, adj_inputs=adj_i,
-                      adj_outputs=[ws.adj_drive_total], adjoint=True, device=ws.device)
+            wp.launch(K.drive_sums_adjoint, dim=self.count(t),
+                      inputs=[self.slot_part_of[t], self.slot_weight_of[t], self.slot_offset_of[t], self.mass_of[t],
+                              d.turn[substep], ws.adj_drive_total],
+                      outputs=[mp[t].x, mp[t].v], device=ws.device)
 
         ws.run(apply_adjoint)
         wp.launch(K.sum_slices, dim=ws.adj_drive_theta.shape, inputs=[ws.adj_drive_sums_all],
                   outputs=[ws.adj_drive_theta], device=ws.device)
-        assert self.drive is not None
-        wp.launch(K.drive_solve, dim=ws.adj_drive_total.shape, inputs=[self.drive.solve, self.drive.turn[substep],
+        wp.launch(K.drive_solve, dim=ws.adj_drive_total.shape, inputs=[d.solve, d.turn[substep],
                   ws.adj_drive_theta], outputs=[ws.adj_drive_total], device=ws.device)
         ws.run(sums_adjoint)
+
 
 def step(
     launch: Launch,
@@ -282,15 +281,16 @@ def step_adjoint(
     *,
     p2g_done: bool = False,
     prefetch: WarpState | None = None,
+    held: tuple[WarpState, wp.array] | None = None,
 ) -> None:
     """Reverse one substep: given dL/d(state_out) in ``adj_out``, write dL/d(state_in) into ``adj_in``.
 
     ``p2g_done``: the grids and rotations already hold this substep's P2G of ``s``; ``prefetch``: the
     state of the substep reversed next, whose P2G (with rotations) each thread runs right after its P2G
-    adjoint.
+    adjoint; ``held``: with a drive, the substep's end state and the drive's fit ``theta`` (B, 4) it applied.
 
     Rebuilds the substep's grid from ``s`` (P2G + grid update), then runs the adjoints in reverse order: the
-    drive (after a G2P that recovers the state it corrected), G2P, grid update, and P2G fused with the
+    drive (from the end state and the fit it applied), G2P, grid update, and P2G fused with the
     fixed-corotated stress, all by hand-written kernels (checked
     against finite differences and against Warp's generated adjoints in the tests). The grid mass is
     differentiated like every other input.
@@ -331,10 +331,10 @@ def step_adjoint(
         if prefetch is not None:  # after this thread's adjoint has read its chunk's rotations
             launch.p2g(prefetch, substep - 1, t, store_rotation=True)
 
-    if launch.drive is not None:  # the drive's adjoint first: adj_out then stands for the state after G2P
-        ws.run(lambda t: launch.g2p_and_sums(s, ws.drive_mid, substep, t))
-        launch.drive_total(substep)
-        launch.drive_adjoint(ws.drive_mid, adj_out, ws.adj_drive_mid, substep)
+    if held is not None:  # the drive's adjoint first: adj_out then stands for the state after G2P
+        out, theta = held
+        wp.copy(ws.drive_theta, theta)
+        launch.drive_adjoint(out, adj_out, ws.adj_drive_mid, substep)
         op = ws.adj_drive_mid.parts(ws.bounds)
     ws.run(g2p_adjoint)
     ws.run(grid_update_adjoint)
@@ -350,6 +350,10 @@ class RolloutPlan:
     checkpoint_every: int
     frame_index: int
     checkpoints: list[WarpState] = field(default_factory=list)
+    # with a drive and checkpoints: the fit theta (B, 4) of every substep and the rollout's end state (the backward
+    # undoes each substep's correction instead of recomputing its G2P)
+    thetas: list[wp.array] = field(default_factory=list)
+    final: WarpState | None = None
 
     def forward(
         self,
@@ -376,8 +380,12 @@ class RolloutPlan:
                     self.checkpoints.append(cur.clone())
             prefetch = s + 1 < self.substeps
             step(self.launch, cur, nxt, s, p2g_done=p2g_done, prefetch=prefetch, timers=timers)
+            if store and self.launch.drive is not None:
+                self.thetas.append(wp.clone(ws.drive_theta))
             p2g_done = prefetch and timers is None
             cur, nxt = nxt, cur
+        if store and self.launch.drive is not None:
+            self.final = cur.clone()
         return cur
 
     def segment_states(self, seg_id: int, p2g_done: bool) -> list[WarpState]:
@@ -393,6 +401,20 @@ class RolloutPlan:
                  prefetch_rotation=True)
             states.append(out)
         return states
+
+    def held_end(self, states: list[WarpState], seg_id: int, j: int) -> tuple[WarpState, wp.array] | None:
+        """With a drive, substep ``j`` of segment ``seg_id``'s end state (the next substep's start: in ``states``,
+        the next checkpoint or the rollout's end) and its fit; None without a drive."""
+        if self.launch.drive is None:
+            return None
+        if j + 1 < len(states):
+            end = states[j + 1]
+        elif seg_id + 1 < len(self.checkpoints):
+            end = self.checkpoints[seg_id + 1]
+        else:
+            assert self.final is not None
+            end = self.final
+        return end, self.thetas[seg_id * self.checkpoint_every + j]
 
     def backward(self, grads: list[torch.Tensor | None], like: torch.Tensor) -> list[torch.Tensor]:
         """dL/d(x, v, F, C) of the rollout's input from dL/d of its output (None = zero)."""
@@ -412,7 +434,8 @@ class RolloutPlan:
             s0 = seg_id * k
             for j in reversed(range(len(states))):
                 nxt = states[j - 1] if j > 0 else (self.checkpoints[seg_id - 1] if seg_id > 0 else None)
-                step_adjoint(self.launch, states[j], adj_next, adj_cur, s0 + j, p2g_done=p2g_done, prefetch=nxt)
+                step_adjoint(self.launch, states[j], adj_next, adj_cur, s0 + j, p2g_done=p2g_done, prefetch=nxt,
+                             held=self.held_end(states, seg_id, j))
                 p2g_done = nxt is not None
                 adj_next, adj_cur = adj_cur, adj_next
         out = [g.to(like.device) for g in adj_next.to_torch()]
