@@ -13,6 +13,7 @@ from sync4d.errors import InputError
 from sync4d.frontend import FrontEndConfig, Prompt, complete_video, run_front_end
 from sync4d.frontend.bundle import bundle_adjust
 from sync4d.frontend.camera import static_camera
+from sync4d.frontend.checks import check_subject
 from sync4d.frontend.geometry import intrinsics_from_fov, pose_matrix, project
 from sync4d.geometry import rotation_angle_deg, rotation_vector_to_matrix
 from sync4d.frontend.outputs import write_video_inputs
@@ -128,6 +129,25 @@ def test_a_subject_leaving_the_frame_is_refused():
     clip, _ = square_clip(14, speed=6.0, start=60.0)  # out of view from frame 12 on
     with pytest.raises(InputError, match="leaves the frame"):
         run_front_end(clip, FrontEndConfig())
+
+
+def test_a_subject_shrinking_inside_the_frame_is_in_view_and_one_shrinking_at_the_border_left():
+    """A lid turned edge-on leaves a thin mask in mid-frame: still in view. The same thin mask at the border, or
+    nothing at all, is a subject that left."""
+    masks = np.zeros((8, 60, 80), bool)
+    masks[:, 20:40, 30:50] = True
+    masks[3:6, 20:40] = False
+    masks[3:6, 28:31, 30:50] = True  # 3 of 20 rows: 15 % of its area, away from the border
+    check_subject(masks, min_area=0.004, source="clip.mp4")
+    at_border = masks.copy()
+    at_border[3:6] = False
+    at_border[3:6, 28:31, 0:20] = True
+    with pytest.raises(InputError, match="clip.mp4: the subject leaves the frame \\(frames 3, 4, 5\\)"):
+        check_subject(at_border, min_area=0.004, source="clip.mp4")
+    empty = masks.copy()
+    empty[3:6] = False
+    with pytest.raises(InputError, match="leaves the frame"):
+        check_subject(empty, min_area=0.004, source="clip.mp4")
 
 
 @pytest.mark.parametrize("prompt", [(500.0, 20.0), (10.0, 10.0, 40.0, 300.0), (-1.0, 5.0), (30.0, 30.0, 20.0, 40.0)])

@@ -10,7 +10,9 @@ from sync4d.errors import InputError
 MIN_FRAMES = 3
 #: every frame within this many grey levels (mean absolute difference) of the first: a still image
 STILL_LEVELS = 0.5
-#: a frame whose subject is smaller than this share of its typical area has lost it (it left the frame)
+#: a frame whose subject is smaller than this share of its typical area has lost it (it left the frame) when
+#: what is left of it is nothing or touches the frame's border; a subject shrinking inside the frame (a lid turned
+#: edge-on, a part that stopped moving) is still in view
 GONE_SHARE = 0.25
 
 
@@ -50,7 +52,8 @@ def check_prompt(prompt: tuple[float, ...], frame: int, width: int, height: int,
 
 def check_subject(masks: np.ndarray, *, min_area: float, source: str) -> None:
     """Refuse masks with no subject, or a subject that leaves the frame: its mask (nearly) empty in some
-    frame while it fills others (a subject only cut by the border, feet or a tail, still counts as in view).
+    frame while it fills others, or shrunk and on the frame's border (a subject only cut by the border, feet or
+    a tail, still counts as in view, and so does one shrunk inside the frame).
 
     Raises:
         InputError: naming the video and the frames.
@@ -61,7 +64,8 @@ def check_subject(masks: np.ndarray, *, min_area: float, source: str) -> None:
         raise InputError(f"{source}: no subject found (nothing moves against the background); film a moving "
                          "subject, or point at it: reference.prompt=[x, y] or [x0, y0, x1, y1]")
     typical = float(np.median(area[area >= min_area]))
-    gone = np.flatnonzero(area < GONE_SHARE * typical)
+    on_border = masks[:, 0].any(1) | masks[:, -1].any(1) | masks[:, :, 0].any(1) | masks[:, :, -1].any(1)
+    gone = np.flatnonzero((area < GONE_SHARE * typical) & ((area < min_area) | on_border))
     if len(gone):
         raise InputError(f"{source}: the subject leaves the frame (frames {summary(gone)}); trim the clip with "
                          "reference.max_frames / reference.stride to where it stays in view")
