@@ -37,6 +37,11 @@ MIN_COMMON = 12
 MAX_STEP_DEG = 12.0
 #: a moving-camera solution is trusted when its median reprojection error stays below this [px]
 MAX_BUNDLE_ERROR_PX = 1.0
+#: without given intrinsics, the focal lengths the camera is solved from, as factors of the field-of-view guess's
+#: (a ratio of 1.25 apart: about 79 to 37 deg at the 66 deg guess). The bundle adjustment refines the focal only
+#: near its start (its reprojection error is flat over +-10 %), so every start is adjusted, a parabola through the
+#: best start's and its neighbours' errors (in log focal) gives one more start, and the lowest error is kept
+FOCAL_STARTS = (0.8, 1.0, 1.25, 1.5625, 1.953125)
 
 
 @dataclass(frozen=True)
@@ -48,7 +53,7 @@ class CameraFit:
         extrinsics: (T, 4, 4) world-to-camera per frame, world = frame 0's camera.
         static: the camera was found not to move.
         mode: ``static``, ``rotation`` (turns only, no parallax) or ``full`` (turns and moves).
-        focal_source: ``given``, ``fov_guess`` or ``bundle`` (refined).
+        focal_source: ``given``, ``fov_guess`` or ``bundle`` (refined from the best of several starts).
         reprojection_px: median reprojection error of the background points after adjustment [px] (0 when
             static or rotation-only).
         background_points: (M, 3) triangulated background points [world units] (empty unless ``full``).
@@ -236,9 +241,8 @@ def incremental_poses(tracks: Tracks, K: np.ndarray, k: int) -> tuple[np.ndarray
 
 
 def solve_camera(tracks: Tracks, K: np.ndarray, config: CameraConfig, *, focal_given: bool) -> CameraFit:
-    """The camera of a clip from its background tracks (see the module's docstring)."""
-    from sync4d.frontend.bundle import bundle_adjust
-
+    """The camera of a clip from its background tracks (see the module's docstring); without ``focal_given`` and
+    with ``config.refine_focal``, solved from each of :data:`FOCAL_STARTS` and the best kept."""
     n_frames = tracks.num_frames
     source = "given" if focal_given else "fov_guess"
     empty = np.zeros((0, 3))
@@ -248,6 +252,59 @@ def solve_camera(tracks: Tracks, K: np.ndarray, config: CameraConfig, *, focal_g
         return CameraFit(K, np.tile(np.eye(4), (n_frames, 1, 1)), True, "static", source, 0.0, empty)
     if static_camera(tracks, config.static_px):
         return CameraFit(K, np.tile(np.eye(4), (n_frames, 1, 1)), True, "static", source, 0.0, empty)
+    if focal_given or not config.refine_focal:
+        return moving_camera(tracks, K, config, focal_given=focal_given)
+    return focal_search(tracks, K, config)
+
+
+def with_focal(K: np.ndarray, factor: float) -> np.ndarray:
+    """``K`` with its focal length scaled by ``factor``."""
+    out = np.array(K, dtype=np.float64)
+    out[0, 0] *= factor
+    out[1, 1] *= factor
+    return out
+
+
+def parabola_vertex(x: np.ndarray, y: np.ndarray) -> float | None:
+    """The x of the minimum of the parabola through three points, None when it opens downwards."""
+    a, b, _ = np.polyfit(x, y, 2)
+    return float(-b / (2 * a)) if a > 0 else None
+
+
+def focal_search(tracks: Tracks, K: np.ndarray, config: CameraConfig) -> CameraFit:
+    """:func:`moving_camera` from every focal of :data:`FOCAL_STARTS`, one more from the parabola's minimum
+    through the best start and its neighbours; the moving-camera solution that reprojects best (else the
+    guess's)."""
+    fits = [moving_camera(tracks, with_focal(K, f), config, focal_given=False, warn=False) for f in FOCAL_STARTS]
+    error = np.array([reprojection_or_inf(fit) for fit in fits])
+    if not np.isfinite(error).any():  # no start gave a moving camera: the guess's answer, said as such
+        return moving_camera(tracks, K, config, focal_given=False)
+    best = int(np.argmin(error))
+    if 0 < best < len(error) - 1 and np.isfinite(error[best - 1:best + 2]).all():
+        vertex = parabola_vertex(np.log(FOCAL_STARTS[best - 1:best + 2]), error[best - 1:best + 2])
+        if vertex is not None:
+            fits.append(moving_camera(tracks, with_focal(K, float(np.exp(vertex))), config, focal_given=False,
+                                      warn=False))
+    chosen = min(fits, key=reprojection_or_inf)
+    log.info("frontend camera: focal %.1f px (starts %s: errors %s px)", chosen.K[0, 0],
+             ", ".join(f"{K[0, 0] * f:.0f}" for f in FOCAL_STARTS), np.round(error, 3).tolist())
+    return chosen
+
+
+def reprojection_or_inf(fit: CameraFit) -> float:
+    """A moving-camera fit's median reprojection error [px]; inf for any other mode."""
+    return fit.reprojection_px if fit.mode == "full" else float("inf")
+
+
+def moving_camera(tracks: Tracks, K: np.ndarray, config: CameraConfig, *, focal_given: bool,
+                  warn: bool = True) -> CameraFit:
+    """A moving camera's poses from ``K``: the best pair's relative pose, PnP for the rest, a bundle adjustment
+    (the focal refined unless ``focal_given``); a turning-only camera when there is too little parallax or the
+    solution does not fit (a warning unless not ``warn``: one of several starts)."""
+    from sync4d.frontend.bundle import bundle_adjust
+
+    source = "given" if focal_given else "fov_guess"
+    empty = np.zeros((0, 3))
     k, parallax = best_pair(tracks, K)
     log.info("frontend camera: best pair (0, %d), rotation-compensated parallax %.2f px", k, parallax)
     if k == 0 or parallax < PARALLAX_PX:
@@ -256,7 +313,7 @@ def solve_camera(tracks: Tracks, K: np.ndarray, config: CameraConfig, *, focal_g
     adjusted = bundle_adjust(tracks, K, poses, points, iterations=config.bundle_iters,
                              refine_focal=config.refine_focal and not focal_given, scale_frame=k)
     if not adjusted.median_error_px <= MAX_BUNDLE_ERROR_PX:
-        log.warning("frontend camera: the moving-camera solution does not fit (PnP placed %.0f%% of the frames, "
+        (log.warning if warn else log.info)("frontend camera: the moving-camera solution does not fit (PnP placed %.0f%% of the frames, "
                     "%.2f px after adjustment); a turning-only camera is used", 100 * placed, adjusted.median_error_px)
         return CameraFit(K, rotation_only_poses(tracks, K), False, "rotation", source, 0.0, empty)
     if adjusted.focal_changed:
