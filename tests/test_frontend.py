@@ -13,7 +13,7 @@ from sync4d.errors import InputError
 from sync4d.frontend import FrontEndConfig, Prompt, complete_video, run_front_end
 from sync4d.frontend.bundle import bundle_adjust
 from sync4d.frontend.camera import moving_camera, parabola_vertex, solve_camera, static_camera
-from sync4d.frontend.checks import check_subject
+from sync4d.frontend.checks import bridge_dropouts, check_subject
 from sync4d.frontend.geometry import intrinsics_from_fov, pose_matrix, project
 from sync4d.geometry import rotation_angle_deg, rotation_vector_to_matrix
 from sync4d.frontend.outputs import write_video_inputs
@@ -105,6 +105,27 @@ def test_bundle_adjustment_recovers_poses_from_noisy_starts():
     err = rotation_angle_deg(result.poses[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2))
     assert err.max() < 0.05 and result.median_error_px < 0.05
     assert static_camera(tracks, 0.35) is False
+
+
+def test_a_frame_the_detector_missed_is_bridged_and_a_subject_that_left_is_not():
+    masks = np.zeros((10, 60, 80), bool)
+    for t in range(10):
+        masks[t, 20:40, 10 + 2 * t: 30 + 2 * t] = True
+    missed = masks.copy()
+    missed[4] = False  # one frame, and two in a row: held frames on both sides
+    missed[7:9] = False
+    bridged = bridge_dropouts(missed, 0.004)
+    assert np.array_equal(bridged[4], masks[3]) and np.array_equal(bridged[7], masks[6])
+    assert np.array_equal(bridged[8], masks[9]) and np.array_equal(bridged[[0, 1, 2, 3, 5, 6, 9]], masks[[0, 1, 2, 3, 5, 6, 9]])
+    check_subject(bridged, min_area=0.004, source="clip.mp4")
+    three = masks.copy()
+    three[4:7] = False  # three in a row: more than a miss
+    assert not bridge_dropouts(three, 0.004)[4:7].any()
+    left = masks.copy()
+    left[8:] = False  # gone to the end: no held frame after
+    assert not bridge_dropouts(left, 0.004)[8:].any()
+    with pytest.raises(InputError, match="leaves the frame"):
+        check_subject(bridge_dropouts(left, 0.004), min_area=0.004, source="clip.mp4")
 
 
 def test_a_focal_far_from_the_guess_is_found_by_the_search_over_starts():

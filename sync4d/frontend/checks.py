@@ -10,6 +10,9 @@ from sync4d.errors import InputError
 MIN_FRAMES = 3
 #: every frame within this many grey levels (mean absolute difference) of the first: a still image
 STILL_LEVELS = 0.5
+#: at most this many frames in a row lost between frames that hold the subject are a detector's miss, not a
+#: subject that left: they take the nearest held frame's mask (:func:`bridge_dropouts`)
+MAX_DROPOUT = 2
 #: a frame whose subject is smaller than this share of its typical area has lost it (it left the frame) when
 #: what is left of it is nothing or touches the frame's border; a subject shrinking inside the frame (a lid turned
 #: edge-on, a part that stopped moving) is still in view
@@ -50,6 +53,37 @@ def check_prompt(prompt: tuple[float, ...], frame: int, width: int, height: int,
         raise InputError(f"reference.prompt_frame={frame}: the clip has frames 0..{n_frames - 1}")
 
 
+def lost_frames(masks: np.ndarray, min_area: float) -> np.ndarray:
+    """(T,) bool: frames whose subject is lost: its mask (nearly) empty, or under ``GONE_SHARE`` of its typical
+    area and on the frame's border (all False when no frame holds a subject)."""
+    area = masks.reshape(len(masks), -1).mean(axis=1)
+    if float(area.max()) < min_area:
+        return np.zeros(len(masks), bool)
+    typical = float(np.median(area[area >= min_area]))
+    on_border = masks[:, 0].any(1) | masks[:, -1].any(1) | masks[:, :, 0].any(1) | masks[:, :, -1].any(1)
+    return (area < GONE_SHARE * typical) & ((area < min_area) | on_border)
+
+
+def bridge_dropouts(masks: np.ndarray, min_area: float) -> np.ndarray:
+    """``masks`` (T, H, W) bool with every run of at most ``MAX_DROPOUT`` lost frames (:func:`lost_frames`) that
+    has held frames on both sides given the nearest held frame's mask (the earlier one on a tie)."""
+    lost = lost_frames(masks, min_area)
+    out = masks.copy()
+    t = 0
+    while t < len(masks):
+        if not lost[t]:
+            t += 1
+            continue
+        end = t
+        while end < len(masks) and lost[end]:
+            end += 1
+        if t > 0 and end < len(masks) and end - t <= MAX_DROPOUT:
+            for s in range(t, end):
+                out[s] = masks[t - 1] if s - (t - 1) <= end - s else masks[end]
+        t = end
+    return out
+
+
 def check_subject(masks: np.ndarray, *, min_area: float, source: str) -> None:
     """Refuse masks with no subject, or a subject that leaves the frame: its mask (nearly) empty in some
     frame while it fills others, or shrunk and on the frame's border (a subject only cut by the border, feet or
@@ -58,14 +92,11 @@ def check_subject(masks: np.ndarray, *, min_area: float, source: str) -> None:
     Raises:
         InputError: naming the video and the frames.
     """
-    n_frames = len(masks)
-    area = masks.reshape(n_frames, -1).mean(axis=1)
+    area = masks.reshape(len(masks), -1).mean(axis=1)
     if float(area.max()) < min_area:
         raise InputError(f"{source}: no subject found (nothing moves against the background); film a moving "
                          "subject, or point at it: reference.prompt=[x, y] or [x0, y0, x1, y1]")
-    typical = float(np.median(area[area >= min_area]))
-    on_border = masks[:, 0].any(1) | masks[:, -1].any(1) | masks[:, :, 0].any(1) | masks[:, :, -1].any(1)
-    gone = np.flatnonzero((area < GONE_SHARE * typical) & ((area < min_area) | on_border))
+    gone = np.flatnonzero(lost_frames(masks, min_area))
     if len(gone):
         raise InputError(f"{source}: the subject leaves the frame (frames {summary(gone)}); trim the clip with "
                          "reference.max_frames / reference.stride to where it stays in view")

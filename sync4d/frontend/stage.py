@@ -15,7 +15,7 @@ import numpy as np
 
 from sync4d.errors import InputError
 from sync4d.frontend.camera import CameraFit, background_only, solve_camera, static_camera
-from sync4d.frontend.checks import check_clip, check_prompt, check_subject
+from sync4d.frontend.checks import bridge_dropouts, check_clip, check_prompt, check_subject
 from sync4d.frontend.config import FrontEndConfig, SubjectConfig
 from sync4d.frontend.geometry import ground_up, intrinsics_from_fov
 from sync4d.frontend.motion import motion_evidence
@@ -176,6 +176,7 @@ def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | N
         method = choose_method(config.subject, prompt, work)
         masks_work = subject_masks(work, grey, method, config.subject, static=static_camera(tracks, config.camera.static_px),
                                    prompt=prompt, factor=factor, source=clip.source)
+        masks_work = bridge_dropouts(masks_work, config.subject.min_area)  # a frame the detector missed
         check_subject(masks_work, min_area=config.subject.min_area, source=clip.source)
     if camera_given and clip.extrinsics is not None:
         fit = CameraFit(K_work, np.asarray(clip.extrinsics, np.float64), False, "given", "given", 0.0, np.zeros((0, 3)))
