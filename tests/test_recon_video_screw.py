@@ -110,35 +110,3 @@ def test_the_depth_reversed_hinge_images_the_same_and_reverses_back() -> None:
         back = jt.mirrored(mirror, 1)
         assert angle_deg(back.axes[1].numpy(), axes[1]) < 1e-6
         assert torch.allclose(back.values, model.values) and torch.allclose(back.pivots(), model.pivots(), atol=0.05)
-
-
-def test_a_door_turned_into_its_cabinet_hides_its_seen_tracks() -> None:
-    """A door beside a cabinet's front face (both at 1 m, the hinge line between them, image-vertical) turned
-    up to 160 deg: outwards it lies in front of the face and every track it was seen by stays visible; turned the
-    other way (into the cabinet, what a depth reversal reads) it lies behind the face, and the seen tracks
-    are hidden: the occlusion order the depth-reversal judgement uses."""
-    frames, f, size = 4, 100.0, 64
-    cam = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
-    uu, vv = np.meshgrid(np.arange(3.0, 62.0, 2.0), np.arange(14.0, 50.0, 2.0))
-    uv0 = np.stack([uu.ravel(), vv.ravel()], 1)
-    uv0 = uv0[np.abs(uv0[:, 0] - size / 2) > 0.5]
-    rays = np.concatenate([(uv0 - size / 2) / f, np.ones((len(uv0), 1))], 1)
-    labels = (uv0[:, 0] > size / 2).astype(int)  # 0: the cabinet's face (left), 1: the door (right)
-    d = torch.float64
-    scene = jt.Scene(rays=torch.as_tensor(rays, dtype=d), centre=torch.zeros(3, dtype=d),
-                     K=torch.as_tensor(cam, dtype=d), w2c=torch.eye(4, dtype=d),
-                     tracks=torch.zeros(frames, len(uv0), 2, dtype=d),
-                     trusted=torch.ones(frames, len(uv0), dtype=torch.bool),
-                     verified=torch.ones(frames, len(uv0), dtype=torch.bool),
-                     outside=torch.zeros(frames, size, size, dtype=d), cover_px=[torch.zeros(0, 2, dtype=d)] * frames,
-                     root_motion=torch.as_tensor(np.tile(np.eye(4), (frames, 1, 1)), dtype=d), stride=2.0,
-                     width=0.6, z_ref=1.0)
-    hidden = {}
-    for sign in (1.0, -1.0):  # about +y: +150 deg swings the door's far edge towards the camera
-        values = np.zeros((frames, 2))
-        values[:, 1] = sign * np.radians([0.0, 30.0, 150.0, 160.0])  # never edge-on, where no track is seen
-        model = jt.Articulation(scene, labels, 0, ["root", "hinge"], np.array([[0.0, 0, 0], [0.0, 1.0, 0]]),
-                                np.array([[0.0, 0, 0], [0.0, 0.0, 1.0]]), values, np.zeros(len(uv0)))
-        hidden[sign] = jt.hidden_observations(model)
-    seen = int(labels.sum()) * (frames - 1)
-    assert hidden[1.0] <= 0.05 * seen and hidden[-1.0] >= 0.3 * seen, (hidden, seen)

@@ -23,8 +23,7 @@ drawer's box) also covers mask pixels. The winner is refined, relabelled and ref
 
 Then the joint stage: every hinge is set beside its depth reversal (its surface, axis and pivot reflected
 through the fronto-parallel plane at its depth, its angles negated: nearly the same images under
-near-affine viewing, a basin the search can settle in) and the reading the data terms prefer is kept, or,
-when they tie, the one that hides fewer of its seen tracks (the occlusion order a reversal breaks); each
+near-affine viewing, a basin the search can settle in) and the reading the data terms prefer is kept; each
 part is freed (a rigid motion per frame on top of its joint, fitted to the same terms), and its joint is fitted
 to that motion relative to the root over the whole clip (:mod:`sync4d.recon.video.screw`: hinge, slide or
 fixed by penalised residual, robust over frames), the part re-posed on it and refined.
@@ -594,35 +593,18 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) 
 
 
 def depth_reversals(model: Articulation, tracks: Tracks, config: FitConfig) -> Articulation:
-    """Each hinge part against its depth reversal (:func:`mirrored`), refined the same way. The two readings
-    draw nearly the same images, so the data terms (:func:`kind_loss`) often nearly tie; what a reversal
-    breaks is the occlusion order (a door reversed turns into its cabinet and behind it). When the data terms
-    tie (within the margin by which joint kinds are called, ``SLIDE_PREFERENCE``), the reading that hides
-    fewer of the moving parts' verified track observations (:func:`hidden_observations`) is kept; otherwise
-    the one the data terms prefer."""
+    """Each hinge part against its depth reversal (:func:`mirrored`), refined the same way; the reading the
+    data terms (:func:`kind_loss`) prefer is kept."""
     pairs = neighbour_pairs(tracks.uv0, model.labels.numpy(), tracks.stride)
-    best, best_score = model, (kind_loss(model, config), hidden_observations(model))
+    best, best_kind = model, kind_loss(model, config)
     for b in [b for b, kind in enumerate(model.kinds) if kind == "hinge"]:
         trial = mirrored(best, b)
         optimise(trial, config, config.steps // 4, pairs, windows=1)
-        score = (kind_loss(trial, config), hidden_observations(trial))
-        log.info("recon=video: part %d reversed in depth: kind loss %.4f, hidden observations %d (as found %.4f, %d)",
-                 b, *score, *best_score)
-        tie = abs(score[0] - best_score[0]) <= SLIDE_PREFERENCE * min(score[0], best_score[0])
-        if (score[1], score[0]) < (best_score[1], best_score[0]) if tie else score[0] < best_score[0]:
-            best, best_score = trial, score
+        trial_kind = kind_loss(trial, config)
+        log.info("recon=video: part %d reversed in depth: kind loss %.4f (as found %.4f)", b, trial_kind, best_kind)
+        if trial_kind < best_kind:
+            best, best_kind = trial, trial_kind
     return best
-
-
-def hidden_observations(model: Articulation) -> int:
-    """How many verified track observations of the moving parts (frames 1..) the model puts behind another
-    modelled point (:func:`visible`): a verified track still matches its frame-0 patch, so it was seen."""
-    sc = model.scene
-    with torch.no_grad():
-        posed = model.posed()
-        seen = visible(project(sc, posed), to_camera(sc, posed)[..., 2], sc.stride)
-        observed = sc.verified & (model.labels != model.root)[None]
-        return int((observed[1:] & ~seen[1:]).sum())
 
 
 def free_motions(model: Articulation, config: FitConfig, steps: int) -> np.ndarray:
