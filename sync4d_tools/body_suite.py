@@ -359,7 +359,7 @@ def fit_to_truth(prob: QuadrupedProblem, params: Params, target: torch.Tensor, i
         joints, _ = qf.pose_body(prob.tt, params)
         loss = 100 * ((joints[:, ids] - target) / params["log_scale"].exp()).pow(2).sum(-1).mean()
         if priors:
-            lengths, limit = qf.shape_priors(prob.tt, params, cfg)
+            lengths, limit = qf.shape_priors(prob, params, cfg)
             loss = loss + cfg.length_weight * lengths + cfg.limit_weight * limit
         loss.backward()
         opt.step()

@@ -19,7 +19,6 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -30,9 +29,6 @@ from sync4d.recon.pose.templates import BodyTemplate, body_template
 from sync4d.rng import deterministic_torch
 from sync4d.surface import area_samples
 from sync4d.types import Camera
-
-if TYPE_CHECKING:
-    from sync4d.recon.pose.pose_prior import PosePrior
 
 log = logging.getLogger(__name__)
 SMOOTH_FPS = 30.0  # the frame rate at which smooth_weight is stated
@@ -65,8 +61,6 @@ class QuadrupedFitConfig:
         joint_limit_deg: rotation of a joint from the template allowed without penalty [deg].
         leg_off_plane_deg: rotation of a leg joint about the axes other than the lateral one allowed without
             penalty [deg].
-        pose_weight: the pose prior learned from the AI4Animation dog trot (:mod:`sync4d.recon.pose.pose_prior`):
-            its negative log-likelihood per dimension of the joint rotations.
         smooth_weight: squared accelerations of the root-relative joints and the root (template units) at 30
             frames a second; other frame rates scale second differences by (fps / 30)^2.
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
@@ -89,7 +83,6 @@ class QuadrupedFitConfig:
     limit_weight: float = 1.0
     joint_limit_deg: float = 50.0
     leg_off_plane_deg: float = 15.0
-    pose_weight: float = 0.02
     smooth_weight: float = 5.0
     background_threshold: float = 30.0
 
@@ -169,13 +162,8 @@ def body_samples(tt: TemplateTensors, verts: torch.Tensor) -> torch.Tensor:
     return (verts[:, tt.sample_corners] * tt.sample_bary[None, ..., None]).sum(2)
 
 
-def pose_joints(tt: TemplateTensors, params: Params) -> torch.Tensor:
-    """(T, J, 3) joints [m] of ``params`` (first camera frame)."""
-    return skeleton(tt, params)[0]
-
-
-def skeleton(tt: TemplateTensors, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
-    """(T, J, 3) joints and (T, J, 3, 3) joint world rotations of ``params``."""
+def pose_body(tt: TemplateTensors, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
+    """(T, J, 3) joints and (T, V, 3) skinned vertices [m] of ``params`` (first camera frame)."""
     scale = params["log_scale"].exp()
     rot_local = rotation_vector_to_matrix_torch(params["local"])
     n = len(tt.parents)
@@ -186,13 +174,7 @@ def skeleton(tt: TemplateTensors, params: Params) -> tuple[torch.Tensor, torch.T
         off = (tt.joints[j] - tt.joints[p]) * torch.exp(params["log_len"][j]) * scale
         pos.append(pos[p] + rots[p] @ off)
         rots.append(rots[p] @ rot_local[:, j])
-    return torch.stack(pos, 1), torch.stack(rots, 1)
-
-
-def pose_body(tt: TemplateTensors, params: Params) -> tuple[torch.Tensor, torch.Tensor]:
-    """(T, J, 3) joints and (T, V, 3) skinned vertices [m] of ``params`` (first camera frame)."""
-    scale = params["log_scale"].exp()
-    joints, world_rot = skeleton(tt, params)
+    joints, world_rot = torch.stack(pos, 1), torch.stack(rots, 1)
     child_len = torch.cat([params["log_len"], params["log_len"].new_zeros(1)])[torch.tensor(tt.child)].exp()
     girth = (params["log_thick"] + params["log_girth"]).exp()
     local_off = (tt.along * child_len[tt.top][..., None] + tt.across * girth[tt.top][..., None]) * scale
@@ -319,11 +301,6 @@ class QuadrupedProblem:
         self.cams = None if rel is None else torch.tensor(rel, dtype=DTYPE)
         self.rate = fps / SMOOTH_FPS
         self.flow = None if frames is None or len(frames) < 2 else torch.tensor(video_flow(frames, uv), dtype=DTYPE)
-        self.pose_prior: PosePrior | None = None
-        if config.pose_weight > 0:
-            from sync4d.recon.pose.pose_prior import dog_trot_prior  # it builds on this module
-
-            self.pose_prior = dog_trot_prior(config.template)
 
     def cams_of(self, frames: np.ndarray) -> torch.Tensor | None:
         return None if self.cams is None else self.cams[torch.as_tensor(frames)]
@@ -355,16 +332,16 @@ def silhouette_terms(prob: QuadrupedProblem, frames: np.ndarray, joints: torch.T
     return bce, dist.pow(2).mean(), occ
 
 
-def shape_priors(tt: TemplateTensors, params: Params, config: QuadrupedFitConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def shape_priors(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """The unweighted bone length and girth prior and the joint-limit penalty of ``params``."""
-    twin = tt.twin
+    twin = prob.tt.twin
     lengths = params["log_len"].new_zeros(())
     for key in ("log_len", "log_girth"):
         v = params[key]
         lengths = lengths + v.pow(2).mean() + (v - v[twin]).pow(2).mean()
     local = params["local"]
     limit = torch.relu(local.norm(dim=-1) - math.radians(config.joint_limit_deg)).pow(2).mean()
-    off = local[:, tt.leg_joints, :2].norm(dim=-1)  # legs swing about the lateral (z) axis
+    off = local[:, prob.tt.leg_joints, :2].norm(dim=-1)  # legs swing about the lateral (z) axis
     limit = limit + torch.relu(off - math.radians(config.leg_off_plane_deg)).pow(2).mean()
     return lengths, limit
 
@@ -390,10 +367,9 @@ def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config
     """
     joints, verts = pose_body(prob.tt, params)
     bce, inside, occ = silhouette_terms(prob, frames, joints, verts, params["log_scale"].exp())
-    lengths, limit = shape_priors(prob.tt, params, config)
-    pose = prob.pose_prior.nll(params["local"]) if prob.pose_prior is not None else bce.new_zeros(())
+    lengths, limit = shape_priors(prob, params, config)
     total = (config.silhouette_weight * bce + config.inside_weight * inside + config.length_weight * lengths
-             + config.limit_weight * limit + config.pose_weight * pose
+             + config.limit_weight * limit
              + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
     return total, joints, occ
 
