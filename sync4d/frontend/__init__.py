@@ -4,8 +4,8 @@ reconstruction (shared by every subject kind).
 Modules: :mod:`~sync4d.frontend.config` (options), :mod:`~sync4d.frontend.stage` (``run_front_end``),
 :mod:`~sync4d.frontend.checks` (refusals), :mod:`~sync4d.frontend.tracks` (corner tracks),
 :mod:`~sync4d.frontend.camera` and :mod:`~sync4d.frontend.bundle` (the camera),
-:mod:`~sync4d.frontend.motion` (what moves against the background), :mod:`~sync4d.frontend.segment`
-(GrabCut and propagation), :mod:`~sync4d.frontend.person` (people), :mod:`~sync4d.frontend.outputs`
+:mod:`~sync4d.frontend.motion` (what moves against the background), :mod:`~sync4d.frontend.parallax` and
+:mod:`~sync4d.frontend.sweep` (the parts that never move), :mod:`~sync4d.frontend.segment` (GrabCut and propagation), :mod:`~sync4d.frontend.person` (people), :mod:`~sync4d.frontend.outputs`
 (``masks.mp4``, ``camera.json``).
 """
 

@@ -60,15 +60,15 @@ def off_plane(grey: np.ndarray, t: int, others: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def attached_parts(candidate: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def attached_parts(candidate: np.ndarray, mask: np.ndarray, reach: int = 2) -> np.ndarray:
     """(H, W) bool: the parts of ``candidate`` (off-plane pixels) that belong with ``mask``: cleaned (an
-    opening of 1 px, a closing of 2 px), outside the mask, touching it (within 2 px), not touching the image
-    border (the room runs out of the picture, a subject in view does not) and thick (:data:`THICKNESS`)."""
+    opening of 1 px, a closing of 2 px), outside the mask, touching it (within ``reach`` px), not touching the
+    image border (the room runs out of the picture, a subject in view does not) and thick (:data:`THICKNESS`)."""
     import cv2
 
     parts = morph(morph(candidate, "open", 1), "close", 2) & ~mask
     labels, _ = components(parts)
-    touching = np.unique(labels[morph(mask, "dilate", 2) & (labels > 0)])
+    touching = np.unique(labels[morph(mask, "dilate", reach) & (labels > 0)])
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     keep = np.setdiff1d(touching, border)
     if not len(keep):
@@ -136,7 +136,12 @@ def join_static_parts(frames: np.ndarray, grey: np.ndarray, masks: np.ndarray,
     parts, have = measured_parts(grey, masks, flows)
     if not parts.any():
         return masks
-    parts = carry_parts(parts, have, masks, flows)
+    return refine_joined(frames, masks, carry_parts(parts, have, masks, flows), iterations)
+
+
+def refine_joined(frames: np.ndarray, masks: np.ndarray, parts: np.ndarray, iterations: int) -> np.ndarray:
+    """(T, H, W) bool each frame's mask joined by its ``parts`` (T, H, W) bool and, where a part joined,
+    refined by GrabCut (``iterations``); each mask stays one connected piece."""
     out = masks.copy()
     for joined_at in np.flatnonzero(parts.reshape(len(parts), -1).any(axis=1)):
         joined = largest_component(masks[joined_at] | parts[joined_at])

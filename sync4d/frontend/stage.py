@@ -2,7 +2,9 @@
 
 Order: the clip is checked (length, still image, prompt); frames are scaled to ``work_size``; background
 corners are tracked; the subject is found (a person, what moves, or the prompt) and followed; the camera
-is solved from the tracks off the subject; masks and intrinsics are scaled back to the video's size.
+is solved from the tracks off the subject; under a moving camera, a subject found by its motion is joined by
+its never-moving parts too low for parallax (:mod:`~sync4d.frontend.sweep`); masks and intrinsics are scaled
+back to the video's size.
 """
 
 from __future__ import annotations
@@ -23,7 +25,8 @@ from sync4d.frontend.parallax import join_static_parts
 from sync4d.frontend.segment import (
     box_grabcut, drop_plate, follow, grabcut, largest_component, seed_from_motion, seed_from_prompt,
 )
-from sync4d.frontend.tracks import track_corners
+from sync4d.frontend.sweep import join_raised_parts
+from sync4d.frontend.tracks import Tracks, track_corners
 from sync4d.types import Camera, VideoClip
 
 log = logging.getLogger(__name__)
@@ -141,6 +144,14 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, config: Subje
     return join_static_parts(work, grey, masks, flows, config.grabcut_iters) if method == "motion" else masks
 
 
+def solved_camera(tracks: Tracks, masks: np.ndarray, K: np.ndarray, config: FrontEndConfig, focal_given: bool
+                  ) -> CameraFit:
+    """The camera solved from the ``tracks`` off the subject's ``masks`` (T, h, w) bool, from intrinsics ``K``
+    (3, 3) [px at work size], in the front end's world (the first camera turned to Y up)."""
+    fit = solve_camera(background_only(tracks, masks), K, config.camera, focal_given=focal_given)
+    return replace(fit, extrinsics=fit.extrinsics @ CAMERA_TO_YUP, background_points=fit.background_points * [1, -1, -1])
+
+
 def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | None = None, masks_given: bool = False,
                   camera_given: bool = False) -> FrontEndResult:
     """The subject's masks and the camera of ``clip`` (see the module docstring).
@@ -181,10 +192,11 @@ def run_front_end(clip: VideoClip, config: FrontEndConfig, *, prompt: Prompt | N
     if camera_given and clip.extrinsics is not None:
         fit = CameraFit(K_work, np.asarray(clip.extrinsics, np.float64), False, "given", "given", 0.0, np.zeros((0, 3)))
     else:
-        fit = solve_camera(background_only(tracks, masks_work), K_work, config.camera, focal_given=focal_given)
+        fit = solved_camera(tracks, masks_work, K_work, config, focal_given)
+        if method == "motion" and fit.mode == "full":  # parts too low for parallax: a sweep over the clip
+            masks_work = join_raised_parts(work, grey, masks_work, fit.K, fit.extrinsics, fit.background_points,
+                                           config.subject.grabcut_iters)
     K_full = np.diag([1.0 / factor, 1.0 / factor, 1.0]) @ fit.K
-    if not (camera_given and clip.extrinsics is not None):  # world: the first camera's, turned to Y up
-        fit = replace(fit, extrinsics=fit.extrinsics @ CAMERA_TO_YUP, background_points=fit.background_points * [1, -1, -1])
     fit = replace(fit, K=K_full)
     masks = clip.masks if masks_given else resize_masks(masks_work, height, width)
     out = replace(clip, masks=np.ascontiguousarray(masks), intrinsics=K_full, extrinsics=fit.extrinsics).validate()
