@@ -855,8 +855,7 @@ def match_structure(
     root = np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [int(cand[c]) for _, c in pairs])))
     point_part = label_regions(tgt_sk.points @ rot.T, tgt_sk.graph, root, limbs, ref_sk.points[in_trunk],
                                ref_labels[in_trunk], thickness=tgt_thick, reach=config.limb_reach,
-                               trunk_thickness=None if tgt_thick is None else float(tgt_thick[tgt_sk.core].max()),
-                               up=up)
+                               trunk_thickness=None if tgt_thick is None else float(tgt_thick[tgt_sk.core].max()))
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
     matched_branches = np.array([(r, int(cand[c])) for r, c in pairs], dtype=np.int64).reshape(-1, 2)
