@@ -252,9 +252,14 @@ def solve_camera(tracks: Tracks, K: np.ndarray, config: CameraConfig, *, focal_g
         return CameraFit(K, np.tile(np.eye(4), (n_frames, 1, 1)), True, "static", source, 0.0, empty)
     if static_camera(tracks, config.static_px):
         return CameraFit(K, np.tile(np.eye(4), (n_frames, 1, 1)), True, "static", source, 0.0, empty)
-    if focal_given or not config.refine_focal:
-        return moving_camera(tracks, K, config, focal_given=focal_given)
-    return focal_search(tracks, K, config)
+    from threadpoolctl import threadpool_limits
+
+    # the adjustment's matrices are small: BLAS threads only fight over the cores (a 320x480 clip's camera:
+    # 13 s CPU on one thread, 24 s on two, more under load), and one thread gives the same answer anywhere
+    with threadpool_limits(limits=1, user_api="blas"):
+        if focal_given or not config.refine_focal:
+            return moving_camera(tracks, K, config, focal_given=focal_given)
+        return focal_search(tracks, K, config)
 
 
 def with_focal(K: np.ndarray, factor: float) -> np.ndarray:
