@@ -189,7 +189,8 @@ class MotionEvidence:
             known subject part holds still there.
         flows: ``{(t, s): (H, W, 2) flow from t to s [px]}`` for |t - s| = 1.
         explained: (T, H, W) bool, pixels (textured or not) the background's motion explains in every
-            neighbouring pair, as ``still`` without asking for texture (a plain floor tile included).
+            neighbouring pair, as ``still`` without asking for texture (a plain floor tile included); the
+            front end adds those whose picture it explains a few frames away (:func:`picture_explained`).
     """
 
     moving: np.ndarray

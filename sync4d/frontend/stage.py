@@ -111,7 +111,8 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, config: Subje
                          person_masks(PersonModels(), work, config.person_threshold, source=source)])
     evidence = motion_evidence(grey, static=static, sigma=config.motion_sigma, min_px=config.min_motion_px)
     # the floor beside a moving subject: its flow is dragged along, its picture is the floor's a few frames away
-    evidence = replace(evidence, explained=evidence.explained | picture_explained(work, grey, static=static))
+    pictured = picture_explained(work, grey, static=static)
+    evidence = replace(evidence, explained=pictured if evidence.explained is None else evidence.explained | pictured)
     moving, flows = evidence.moving, evidence.flows
     h, w = grey.shape[1:]
     if method == "prompt":
