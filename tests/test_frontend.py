@@ -339,6 +339,20 @@ def test_the_background_a_still_camera_sees_is_explained_and_the_square_is_not()
     assert evidence.explained[3][far[3]].mean() > 0.8 and evidence.explained[3][truth[3]].mean() < 0.2
 
 
+@pytest.mark.parametrize("pan_px", [0.0, 2.0])
+def test_the_floor_beside_a_moving_square_is_explained_by_its_picture_and_the_square_is_not(pan_px: float):
+    from sync4d.frontend.motion import picture_explained
+    from sync4d.frontend.segment import morph
+
+    clip, truth = square_clip(10, pan_px=pan_px)
+    grey = clip.frames.mean(axis=3).astype(np.uint8)
+    explained = picture_explained(clip.frames, grey, static=pan_px == 0.0)
+    for t in (4, 5):  # frames with two frames before and after: what the square covers there is floor now
+        beside = morph(truth[t], "dilate", 6) & ~morph(truth[t], "dilate", 2)  # the blur and 1 px reach 2 px
+        assert explained[t][beside].mean() > 0.8
+        assert explained[t][truth[t]].mean() < 0.05
+
+
 def test_the_suites_box_objects_move_one_part_and_hold_their_body():
     from sync4d_tools.frontend_suite import BOX_OBJECTS, box_subject
 

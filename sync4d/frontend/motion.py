@@ -27,6 +27,12 @@ NEAR = np.ones((5, 5), np.uint8)
 STILL_PX = 0.5
 #: a pixel is textured when its 5x5 neighbourhood's grey levels spread by more than this (std)
 TEXTURE_LEVELS = 6.0
+#: the picture's consistency is tested against the frames this many frames before and after ...
+PICTURE_OFFSETS = (2, 4)
+#: ... a pixel whose picture (and its neighbours' within 1 px) one of the background's planes brings from at
+#: least this many of them within ``PICTURE_LEVELS`` (RGB distance, of 255) is background, whatever its flow
+PICTURE_MATCHES = 2
+PICTURE_LEVELS = 10.0
 
 
 def dense_flow(grey_a: np.ndarray, grey_b: np.ndarray) -> np.ndarray:
@@ -74,6 +80,28 @@ def plane_predictions(here: np.ndarray, there: np.ndarray, index: np.ndarray,
     return predictions, spreads
 
 
+def pixel_grid(height: int, width: int) -> np.ndarray:
+    """(H * W, 2) every pixel's position (u, v) [px], row by row."""
+    uu, vv = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    return np.stack([uu, vv], axis=-1).reshape(-1, 2)
+
+
+def background_planes(flow: np.ndarray, *, static: bool) -> tuple[list[np.ndarray], list[float]]:
+    """Where the background's planes send every pixel of a (H, W, 2) ``flow`` [px] (each (H * W, 2) [px];
+    :func:`plane_predictions`), and each plane's robust spread [px]; a static camera's one plane stays put."""
+    h, w = flow.shape[:2]
+    here = pixel_grid(h, w)
+    if static:
+        return [here], [0.25]
+    grid = grid_points(h, w, GRID_SAMPLES)
+    ring = (grid[:, 0] == grid[:, 0].min()) | (grid[:, 0] == grid[:, 0].max()) \
+        | (grid[:, 1] == grid[:, 1].min()) | (grid[:, 1] == grid[:, 1].max())
+    predictions, spreads = plane_predictions(here, here + flow.reshape(-1, 2), grid[:, 1] * w + grid[:, 0], ring)
+    if not predictions:
+        return [here], [max(float(np.median(np.linalg.norm(flow, axis=-1))), 0.25)]
+    return predictions, spreads
+
+
 def background_residual(flow: np.ndarray, *, static: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the background's motion cannot explain in a flow field: the residual in units of the
     background's robust spread (H, W), in pixels (H, W), and where the background's motion sends each
@@ -90,16 +118,8 @@ def background_residual(flow: np.ndarray, *, static: bool) -> tuple[np.ndarray, 
         static: the camera does not move (the background's motion is zero; spread 0.25 px assumed).
     """
     h, w = flow.shape[:2]
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    here = np.stack([uu, vv], axis=-1).reshape(-1, 2)
-    there = here + flow.reshape(-1, 2)
-    grid = grid_points(h, w, GRID_SAMPLES)
-    ring = (grid[:, 0] == grid[:, 0].min()) | (grid[:, 0] == grid[:, 0].max()) \
-        | (grid[:, 1] == grid[:, 1].min()) | (grid[:, 1] == grid[:, 1].max())
-    predictions, spreads = ([here], [0.25]) if static else \
-        plane_predictions(here, there, grid[:, 1] * w + grid[:, 0], ring)
-    if not predictions:
-        predictions, spreads = [here], [max(float(np.median(np.linalg.norm(flow, axis=-1))), 0.25)]
+    there = pixel_grid(h, w) + flow.reshape(-1, 2)
+    predictions, spreads = background_planes(flow, static=static)
     stacked = np.stack([np.linalg.norm(p - there, axis=1) for p in predictions])
     best = np.argmin(stacked, axis=0)
     residual = stacked[best, np.arange(stacked.shape[1])]
@@ -120,6 +140,44 @@ def photometric_change(grey_t: np.ndarray, grey_s: np.ndarray, target: np.ndarra
     return np.abs(a - warped)
 
 
+def picture_matches(frame_t: np.ndarray, frame_s: np.ndarray, grey_t: np.ndarray, grey_s: np.ndarray, *,
+                    static: bool) -> np.ndarray:
+    """(H, W) bool: pixels of frame t (blurred RGB, float) whose picture one of the background's planes
+    (fitted to the dense flow t -> s, :func:`background_planes`) brings from frame s within
+    ``PICTURE_LEVELS``, their neighbours within 1 px too; where a plane maps outside frame s, no match."""
+    import cv2
+
+    h, w = grey_t.shape
+    flow = np.zeros((h, w, 2), np.float32) if static else dense_flow(grey_t, grey_s)
+    out = np.zeros((h, w), bool)
+    for target in background_planes(flow, static=static)[0]:
+        source = target.reshape(h, w, 2).astype(np.float32)
+        warped = cv2.remap(frame_s, source[..., 0], source[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=(-1e3, -1e3, -1e3))
+        differs = np.linalg.norm(frame_t - warped, axis=-1) > PICTURE_LEVELS
+        out |= cv2.dilate(differs.astype(np.uint8), np.ones((3, 3), np.uint8)) == 0
+    return out
+
+
+def picture_explained(frames: np.ndarray, grey: np.ndarray, *, static: bool) -> np.ndarray:
+    """(T, H, W) bool: pixels whose picture the background's planes bring from at least ``PICTURE_MATCHES`` of
+    the frames ``PICTURE_OFFSETS`` before and after (:func:`picture_matches`).
+
+    A moving subject's flow drags the floor beside it along (DIS smooths across its outline), so the flow
+    alone cannot call that floor background; its picture can: under the floor's homography it is the same a
+    few frames away, where a moving subject's is not (it has moved, or the camera's parallax has moved it).
+    """
+    import cv2
+
+    blurred = np.stack([cv2.GaussianBlur(f.astype(np.float32), (3, 3), 0) for f in frames])
+    counts = np.zeros(grey.shape, np.int32)
+    for t in range(len(frames)):
+        for s in (t + d * o for o in PICTURE_OFFSETS for d in (-1, 1)):
+            if 0 <= s < len(frames):
+                counts[t] += picture_matches(blurred[t], blurred[s], grey[t], grey[s], static=static)
+    return counts >= PICTURE_MATCHES
+
+
 @dataclass(frozen=True)
 class MotionEvidence:
     """What moves in a clip.
@@ -131,7 +189,8 @@ class MotionEvidence:
             known subject part holds still there.
         flows: ``{(t, s): (H, W, 2) flow from t to s [px]}`` for |t - s| = 1.
         explained: (T, H, W) bool, pixels (textured or not) the background's motion explains in every
-            neighbouring pair, as ``still`` without asking for texture (a plain floor tile included).
+            neighbouring pair, as ``still`` without asking for texture (a plain floor tile included); the
+            front end adds those whose picture it explains a few frames away (:func:`picture_explained`).
     """
 
     moving: np.ndarray

@@ -20,7 +20,7 @@ from sync4d.frontend.camera import CameraFit, background_only, solve_camera, sta
 from sync4d.frontend.checks import bridge_dropouts, check_clip, check_prompt, check_subject
 from sync4d.frontend.config import FrontEndConfig, SubjectConfig
 from sync4d.frontend.geometry import ground_up, intrinsics_from_fov
-from sync4d.frontend.motion import motion_evidence
+from sync4d.frontend.motion import motion_evidence, picture_explained
 from sync4d.frontend.parallax import join_static_parts
 from sync4d.frontend.segment import (
     box_grabcut, drop_plate, follow, grabcut, largest_component, seed_from_motion, seed_from_prompt,
@@ -113,6 +113,9 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, config: Subje
         return np.stack([largest_component(m) for m in
                          person_masks(PersonModels(), work, config.person_threshold, source=source)])
     evidence = motion_evidence(grey, static=static, sigma=config.motion_sigma, min_px=config.min_motion_px)
+    # the floor beside a moving subject: its flow is dragged along, its picture is the floor's a few frames away
+    pictured = picture_explained(work, grey, static=static)
+    evidence = replace(evidence, explained=pictured if evidence.explained is None else evidence.explained | pictured)
     moving, flows = evidence.moving, evidence.flows
     h, w = grey.shape[1:]
     if method == "prompt":
