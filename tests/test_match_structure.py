@@ -594,3 +594,23 @@ def test_a_foot_points_where_the_toes_reach_and_a_turned_foot_costs() -> None:
     half = foot_disagreement(limbs, limbs, yaw_rotations("y", 2)[1])
     assert same[0, 0] < 1e-9 and half[0, 0] > 0.99 * np.linalg.norm(feet[0])
     assert same[1, 1] == 0.0 and half[1, 1] == 0.0 and half[0, 1] == 0.0
+
+
+def test_left_over_limbs_take_the_free_branches_off_the_trunk_at_least_cost() -> None:
+    """Branches no limb holds and no matched branch is nested with (the outermost of them) go to the
+    left-over limbs by least cost, whatever the miss cost; a branch nested with a matched one is never free."""
+    from sync4d.match.skeleton import Branch, CurveSkeleton
+    from sync4d.match.structure import free_branches, pair_leftovers
+
+    parents = [-1, 0, 1, 1, 0, 4]  # 1 parts into 2 and 3; 4 carries 5
+    branches = tuple(Branch((i,), p, (), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(3),
+                            np.zeros(3), 0.0, 1.0) for i, p in enumerate(parents))
+    skeleton = CurveSkeleton(np.zeros((1, 3)), np.zeros(1), 0, np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                    branches, 0.1)
+    cand = np.arange(1, 6)  # candidate c is branch c + 1
+    pairs = [(0, 1)]  # limb 0 holds branch 2
+    assert free_branches(pairs, skeleton, cand) == [2, 3]  # branches 3 and 4 (5 is inside 4; 1 holds 2)
+    cost = np.full((3, 5), 9.0)
+    cost[1, 3], cost[2, 2], cost[1, 2], cost[2, 3] = 5.0, 6.0, 4.0, 8.0
+    assert pair_leftovers(pairs, cost, skeleton, cand) == [(0, 1), (1, 3), (2, 2)]  # 5 + 6 < 4 + 8
+    assert pair_leftovers([(0, 1), (1, 2), (2, 3)], cost, skeleton, cand) == [(0, 1), (1, 2), (2, 3)]

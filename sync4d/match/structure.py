@@ -38,6 +38,7 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from sync4d.match.align import axis_rotation, chamfer_distance
+from sync4d.match.consistency import consistency
 from sync4d.match.regions import label_regions, local_thickness
 from sync4d.match.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton, neighbour_graph
 
@@ -775,19 +776,94 @@ def split_limb(limbs: list[Any], pairs: list[tuple[int, int]], ref_limb: int, br
 def repair_pairs(pairs: list[tuple[int, int]], ref_limbs: LimbSet, tgt_limbs: LimbSet, tgt_sk: CurveSkeleton,
                  cand: np.ndarray, rot: np.ndarray, symmetry: tuple[list[tuple[int, int]], np.ndarray] | None,
                  attach: tuple[np.ndarray, np.ndarray], config: StructureConfig, up: int, ref_scale: np.ndarray,
-                 tgt_scale: np.ndarray) -> list[tuple[int, int]]:
+                 tgt_scale: np.ndarray) -> tuple[list[tuple[int, int]], np.ndarray]:
     """The chosen turn's (reference limb, candidate) pairs after :func:`mirror_repair`, :func:`straddle_repair`
-    and :func:`complete_partners` (with left/right partners and their plane, ``symmetry``); ``tgt_scale``: the
-    target's horizontal spread (:func:`horizontal_scale`)."""
+    and :func:`complete_partners` (with left/right partners and their plane, ``symmetry``), and the turn's (R, T)
+    limb costs; ``tgt_scale``: the target's horizontal spread (:func:`horizontal_scale`)."""
     if config.mirror_repair and len(pairs):
         pairs = mirror_repair(pairs, ref_limbs, tgt_limbs, rot, up, ref_scale, tgt_scale, symmetry)
+    cost = limb_cost(ref_limbs, tgt_limbs, rot, config, up=up, ref_scale=ref_scale, ref_attach=attach[0],
+                     tgt_scale=horizontal_scale(tgt_sk.points, rot, up), tgt_attach=attach[1])
     if symmetry is not None and len(pairs):
         partners, normal = symmetry
-        cost = limb_cost(ref_limbs, tgt_limbs, rot, config, up=up, ref_scale=ref_scale, ref_attach=attach[0],
-                         tgt_scale=horizontal_scale(tgt_sk.points, rot, up), tgt_attach=attach[1])
         pairs = straddle_repair(pairs, partners, cost, (tgt_sk.points @ rot.T) / tgt_scale @ normal, tgt_limbs)
         pairs = complete_partners(pairs, partners, tgt_limbs, tgt_sk, cand, rot, normal, tgt_scale)
-    return pairs
+    return pairs, cost
+
+
+def free_branches(pairs: list[tuple[int, int]], skeleton: CurveSkeleton, cand: np.ndarray) -> list[int]:
+    """Candidate indices of the target branches no matched branch is nested with, the outermost of them only
+    (a free branch whose parent branch is free too is part of that parent's limb)."""
+    taken = [int(cand[c]) for _, c in pairs]
+
+    def nested(b: int, others: list[int]) -> bool:
+        return any(skeleton.is_ancestor(b, t) or skeleton.is_ancestor(t, b) for t in others if t != b)
+
+    free = [c for c in range(len(cand)) if not nested(int(cand[c]), taken) and int(cand[c]) not in taken]
+    return [c for c in free if not any(skeleton.is_ancestor(int(cand[o]), int(cand[c])) for o in free if o != c)]
+
+
+def pair_leftovers(pairs: list[tuple[int, int]], cost: np.ndarray, skeleton: CurveSkeleton, cand: np.ndarray
+                   ) -> list[tuple[int, int]]:
+    """Left-over reference limbs and left-over target branches paired with each other at least cost (R, T),
+    whatever the miss cost: a branch the assignment left over hangs off the trunk as a limb does, and as
+    trunk it would take the trunk's parts (a lamp's shade as the chest) where any limb is nearer its role."""
+    left = [r for r in range(cost.shape[0]) if r not in dict(pairs)]
+    free = free_branches(pairs, skeleton, cand)
+    if not left or not free:
+        return pairs
+    rows, cols = linear_sum_assignment(cost[np.ix_(left, free)])
+    return sorted(pairs + [(left[i], free[j]) for i, j in zip(rows, cols)])
+
+
+@dataclass(frozen=True)
+class TargetLabelling:
+    """What labelling the target's skeleton points from a set of (reference limb, candidate) pairs needs:
+    the reference's skeleton, limbs, labels and trunk parts, the target's skeleton and candidate limbs, the
+    chosen turn, the left/right ``symmetry`` (partners, plane normal) or None, both shapes' horizontal
+    spreads, the target's local thickness (or None), B and the options."""
+
+    ref_sk: CurveSkeleton
+    ref_limbs: LimbSet
+    ref_labels: np.ndarray
+    trunk: list[int]
+    tgt_sk: CurveSkeleton
+    tgt_limbs: LimbSet
+    rotation: np.ndarray
+    symmetry: tuple[list[tuple[int, int]], np.ndarray] | None
+    ref_scale: np.ndarray
+    tgt_scale: np.ndarray
+    tgt_thick: np.ndarray | None
+    num_parts: int
+    config: StructureConfig
+
+    def transfer(self, r: int, t: int) -> np.ndarray:
+        """The reference limb r's parts carried along the target candidate t (:func:`transfer_along`)."""
+        return transfer_along(self.ref_sk, self.ref_limbs, r, self.ref_labels, self.tgt_sk, self.tgt_limbs, t,
+                              self.num_parts, self.config.profile_bins)
+
+    def label(self, pairs: list[tuple[int, int]]) -> tuple[list[tuple[int, int]], np.ndarray]:
+        """The pairs after :func:`split_partners` and the (M,) reference part of every target skeleton point."""
+        limbs = [(self.tgt_limbs.members[t], self.transfer(r, t)) for r, t in pairs]
+        sk, rot = self.tgt_sk, self.rotation
+        if self.symmetry is not None and len(pairs):
+            partners, normal = self.symmetry
+            for y, t, half in split_partners(pairs, partners, self.ref_limbs.base / self.ref_scale, normal,
+                                             (sk.points @ rot.T) / self.tgt_scale, self.tgt_limbs):
+                limbs, pairs = split_limb(limbs, pairs, y, t, half, self.transfer(y, t))
+        in_trunk = np.isin(self.ref_labels, self.trunk)
+        cand = np.arange(1, len(sk.branches))
+        root = np.flatnonzero(np.isin(sk.branch, trunk_branches(sk, [int(cand[c]) for _, c in pairs])))
+        thick = self.tgt_thick
+        return pairs, label_regions(sk.points @ rot.T, sk.graph, root, limbs, self.ref_sk.points[in_trunk],
+                                    self.ref_labels[in_trunk], thickness=thick, reach=self.config.limb_reach,
+                                    trunk_thickness=None if thick is None else float(thick[sk.core].max()))
+
+    def kept(self, point_part: np.ndarray) -> float:
+        """connected x contacts of a labelling of the target's points against the reference's
+        (:func:`sync4d.match.consistency.consistency`): the share of the reference's structure it keeps."""
+        return consistency(self.tgt_sk.points, point_part, self.ref_sk.points, self.ref_labels,
+                           self.num_parts).kept
 
 
 def match_structure(
@@ -842,20 +918,17 @@ def match_structure(
     partners = limb_partners(limb_parts, parent, ref_limbs.base, ref_limbs.length)
     symmetry = (partners, partner_plane(ref_limbs.base, partners, up, ref_scale)) if partners else None
     tgt_scale = horizontal_scale(tgt_points, rot, up)
-    pairs = repair_pairs(pairs, ref_limbs, tgt_limbs, tgt_sk, cand, rot, symmetry, attach, config, up, ref_scale,
-                         tgt_scale)
-    limbs = [(tgt_limbs.members[t], transfer_along(ref_sk, ref_limbs, r, ref_labels, tgt_sk, tgt_limbs, t, num_parts,
-                                                   config.profile_bins)) for r, t in pairs]
-    if symmetry is not None and len(pairs):
-        for y, t, half in split_partners(pairs, partners, ref_limbs.base / ref_scale, symmetry[1],
-                                         (tgt_sk.points @ rot.T) / tgt_scale, tgt_limbs):
-            parts = transfer_along(ref_sk, ref_limbs, y, ref_labels, tgt_sk, tgt_limbs, t, num_parts, config.profile_bins)
-            limbs, pairs = split_limb(limbs, pairs, y, t, half, parts)
-    in_trunk = np.isin(ref_labels, trunk)
-    root = np.flatnonzero(np.isin(tgt_sk.branch, trunk_branches(tgt_sk, [int(cand[c]) for _, c in pairs])))
-    point_part = label_regions(tgt_sk.points @ rot.T, tgt_sk.graph, root, limbs, ref_sk.points[in_trunk],
-                               ref_labels[in_trunk], thickness=tgt_thick, reach=config.limb_reach,
-                               trunk_thickness=None if tgt_thick is None else float(tgt_thick[tgt_sk.core].max()))
+    pairs, cost = repair_pairs(pairs, ref_limbs, tgt_limbs, tgt_sk, cand, rot, symmetry, attach, config, up,
+                               ref_scale, tgt_scale)
+    context = TargetLabelling(ref_sk, ref_limbs, ref_labels, trunk, tgt_sk, tgt_limbs, rot, symmetry, ref_scale,
+                              tgt_scale, tgt_thick, num_parts, config)
+    more = pair_leftovers(pairs, cost, tgt_sk, cand)
+    found = len(more) > len(pairs)
+    pairs, point_part = context.label(pairs)
+    if found:
+        more, more_part = context.label(more)
+        if context.kept(more_part) >= context.kept(point_part):
+            pairs, point_part = more, more_part
     matched = {r for r, _ in pairs}
     leftover = tuple(tuple(p) for i, p in enumerate(limb_parts) if i not in matched)
     matched_branches = np.array([(r, int(cand[c])) for r, c in pairs], dtype=np.int64).reshape(-1, 2)
