@@ -23,9 +23,9 @@ drawer's box) also covers mask pixels. The winner is refined, relabelled and ref
 
 Then the joint stage: every hinge is set beside its depth reversal (its surface, axis and pivot reflected
 through the fronto-parallel plane at its depth, its angles negated: nearly the same images under
-near-affine viewing, a basin the search can settle in); a part whose free motion over the whole clip is a hinge
-keeps the reading that hides fewer of its seen tracks (the occlusion order a reversal breaks; the data terms
-on a tie), any other part the reading the data terms prefer. Each part is then freed (a rigid motion per
+near-affine viewing, a basin the search can settle in) and the reading the data terms prefer is kept, or, when
+they tie on a part whose free motion over the whole clip is a hinge, the one that hides fewer of its seen tracks
+(the occlusion order a reversal breaks). Each part is then freed (a rigid motion per
 frame on top of its joint, fitted to the same terms), and its joint is fitted to that motion relative to the
 root over the whole clip (:mod:`sync4d.recon.video.screw`: hinge, slide or fixed by penalised residual,
 robust over frames), the part re-posed on it and refined.
@@ -598,10 +598,11 @@ def depth_reversals(model: Articulation, tracks: Tracks, config: FitConfig
                     ) -> tuple[Articulation, list[ScrewFit | None] | None]:
     """Each hinge part against its depth reversal (:func:`mirrored`), refined the same way. The two readings
     draw nearly the same images, so the data terms (:func:`kind_loss`) often nearly tie; what a reversal
-    breaks is the occlusion order (a door reversed turns into its cabinet and behind it). A part that turns
-    as a hinge over the whole clip (its free motion's screw fit, :func:`screw_fits`) keeps the reading that
-    hides fewer of its verified track observations (:func:`hidden_observations`; the data terms on a tie);
-    any other part (a slide read as a hinge, whose reversal the occlusions say nothing about) the reading the
+    breaks is the occlusion order (a door reversed turns into its cabinet and behind it). When the data terms
+    tie (within ``SLIDE_PREFERENCE``, the margin by which joint kinds are called) on a part that turns as a
+    hinge over the whole clip (its free motion's screw fit, :func:`screw_fits`), the reading that hides fewer
+    of the moving parts' verified track observations (:func:`hidden_observations`) is kept; otherwise (and
+    always for a slide read as a hinge, whose reversal the occlusions say nothing about) the reading the
     data terms prefer. Returns the kept model and the found reading's screw fits when it was kept (else
     None), which :func:`refit_joints` then need not recompute."""
     pairs = neighbour_pairs(tracks.uv0, model.labels.numpy(), tracks.stride)
@@ -614,8 +615,8 @@ def depth_reversals(model: Articulation, tracks: Tracks, config: FitConfig
         by_motion = fit.kind if (fit := fits[b]) is not None else "-"
         log.info("recon=video: part %d reversed in depth: kind loss %.4f, hidden observations %d (as found %.4f, "
                  "%d; by its motion a %s)", b, *score, *best_score, by_motion)
-        turns = by_motion == "hinge"
-        if (score[1], score[0]) < (best_score[1], best_score[0]) if turns else score[0] < best_score[0]:
+        tie = by_motion == "hinge" and abs(score[0] - best_score[0]) <= SLIDE_PREFERENCE * min(score[0], best_score[0])
+        if (score[1], score[0]) < (best_score[1], best_score[0]) if tie else score[0] < best_score[0]:
             best, best_score = trial, score
     return best, fits if best is model else None
 
