@@ -8,8 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from sync4d.recon.video import joints as jt
-from sync4d.recon.video.screw import ScrewFit, fit_screw, hinge_angles, joint_motions
-from sync4d.recon.video.stages import Tracks
+from sync4d.recon.video.screw import fit_screw, hinge_angles, joint_motions
 
 K = np.array([[200.0, 0, 80.0], [0, 200.0, 60.0], [0, 0, 1.0]])
 STRIDE = 2.0
@@ -111,75 +110,3 @@ def test_the_depth_reversed_hinge_images_the_same_and_reverses_back() -> None:
         back = jt.mirrored(mirror, 1)
         assert angle_deg(back.axes[1].numpy(), axes[1]) < 1e-6
         assert torch.allclose(back.values, model.values) and torch.allclose(back.pivots(), model.pivots(), atol=0.05)
-
-
-def door_beside_a_face(sign: float, towards: float = 1.0, frames: int = 4) -> jt.Articulation:
-    """A door beside a cabinet's front face (both at 1 m, the hinge line between them, image-vertical) turned
-    ``sign`` x (0, 30, 150, 160) deg about +y: +1 swings its far edge towards the camera (outwards), -1 into
-    the cabinet; never edge-on, where no track is seen. Its tracks lie ``towards`` of the way from where its
-    depth reversal projects to where it projects (1: its own image)."""
-    f, size = 100.0, 64
-    cam = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
-    uu, vv = np.meshgrid(np.arange(3.0, 62.0, 2.0), np.arange(14.0, 50.0, 2.0))
-    uv0 = np.stack([uu.ravel(), vv.ravel()], 1)
-    uv0 = uv0[np.abs(uv0[:, 0] - size / 2) > 0.5]
-    rays = np.concatenate([(uv0 - size / 2) / f, np.ones((len(uv0), 1))], 1)
-    labels = (uv0[:, 0] > size / 2).astype(int)  # 0: the cabinet's face (left), 1: the door (right)
-    d = torch.float64
-    scene = jt.Scene(rays=torch.as_tensor(rays, dtype=d), centre=torch.zeros(3, dtype=d),
-                     K=torch.as_tensor(cam, dtype=d), w2c=torch.eye(4, dtype=d),
-                     tracks=torch.zeros(frames, len(uv0), 2, dtype=d),
-                     trusted=torch.ones(frames, len(uv0), dtype=torch.bool),
-                     verified=torch.ones(frames, len(uv0), dtype=torch.bool),
-                     outside=torch.zeros(frames, size, size, dtype=d), cover_px=[torch.zeros(0, 2, dtype=d)] * frames,
-                     root_motion=torch.as_tensor(np.tile(np.eye(4), (frames, 1, 1)), dtype=d), stride=2.0,
-                     width=0.6, z_ref=1.0)
-    values = np.zeros((frames, 2))
-    values[:, 1] = sign * np.radians([0.0, 30.0, 150.0, 160.0])
-    model = jt.Articulation(scene, labels, 0, ["root", "hinge"], np.array([[0.0, 0, 0], [0.0, 1.0, 0]]),
-                            np.array([[0.0, 0, 0], [0.0, 0.0, 1.0]]), values, np.zeros(len(uv0)))
-    with torch.no_grad():
-        own = jt.project(scene, model.posed())
-        model.values[:, 1] *= -1.0
-        reversed_uv = jt.project(scene, model.posed())
-        model.values[:, 1] *= -1.0
-        scene.tracks.copy_(towards * own + (1.0 - towards) * reversed_uv)
-    return model
-
-
-def test_a_door_turned_into_its_cabinet_hides_its_seen_tracks() -> None:
-    """Outwards the door lies in front of the face and every track it was seen by stays visible; turned into
-    the cabinet (what a depth reversal reads) it lies behind the face and the seen tracks are hidden: the
-    occlusion order the depth-reversal judgement uses."""
-    hidden = {sign: jt.hidden_observations(door_beside_a_face(sign)) for sign in (1.0, -1.0)}
-    seen = int((door_beside_a_face(1.0).labels == 1).sum()) * 3
-    assert hidden[1.0] <= 0.05 * seen and hidden[-1.0] >= 0.3 * seen, (hidden, seen)
-
-
-def reversal_of_door_read_inwards(towards: float
-                                  ) -> tuple[jt.Articulation, jt.Articulation, list[ScrewFit | None] | None]:
-    """(found, kept, the found reading's screw fits when it was kept) of the joint stage's depth-reversal
-    judgement on the door read turned into its cabinet, its tracks ``towards`` of the way to that reading."""
-    found = door_beside_a_face(-1.0, towards)
-    sc = found.scene
-    tracks = Tracks(uv0=sc.tracks[0].numpy(), uv=sc.tracks.numpy(), trusted=sc.trusted.numpy(),
-                    verified=sc.verified.numpy(), stride=2)
-    kept, fits = jt.depth_reversals(found, tracks, jt.FitConfig(steps=16, workers=1))
-    return found, kept, fits
-
-
-def test_a_turning_hinge_keeps_the_depth_reading_that_hides_fewer_seen_tracks_when_the_data_tie() -> None:
-    """Tracks 54 % of the way to the inward reading: the data terms prefer it by 2 % (a tie); the door turns
-    as a hinge over the whole clip, so its reversal, turned outwards and hiding fewer of the tracks it was seen
-    by, is kept (and the found reading's screw fits are not handed on: the model changed)."""
-    found, kept, fits = reversal_of_door_read_inwards(0.54)
-    assert kept is not found and fits is None
-    assert float((kept.values[-1, 1] * kept.axes[1, 1]).detach()) > 0.0  # turned outwards: +y, positive angles
-    assert jt.hidden_observations(kept) < jt.hidden_observations(found)
-
-
-def test_the_data_terms_decide_the_depth_reversal_when_they_do_not_tie() -> None:
-    """Tracks 58 % of the way to the inward reading: the data terms prefer it by 16 %, beyond the tie margin,
-    and it is kept although it hides more seen tracks (its screw fits handed on)."""
-    found, kept, fits = reversal_of_door_read_inwards(0.58)
-    assert kept is found and fits is not None and fits[1] is not None and fits[1].kind == "hinge"

@@ -23,12 +23,10 @@ drawer's box) also covers mask pixels. The winner is refined, relabelled and ref
 
 Then the joint stage: every hinge is set beside its depth reversal (its surface, axis and pivot reflected
 through the fronto-parallel plane at its depth, its angles negated: nearly the same images under
-near-affine viewing, a basin the search can settle in) and the reading the data terms prefer is kept, or, when
-they tie on a part whose free motion over the whole clip is a hinge, the one that hides fewer of its seen tracks
-(the occlusion order a reversal breaks). Each part is then freed (a rigid motion per
-frame on top of its joint, fitted to the same terms), and its joint is fitted to that motion relative to the
-root over the whole clip (:mod:`sync4d.recon.video.screw`: hinge, slide or fixed by penalised residual,
-robust over frames), the part re-posed on it and refined.
+near-affine viewing, a basin the search can settle in) and the reading the data terms prefer is kept; each
+part is freed (a rigid motion per frame on top of its joint, fitted to the same terms), and its joint is fitted
+to that motion relative to the root over the whole clip (:mod:`sync4d.recon.video.screw`: hinge, slide or
+fixed by penalised residual, robust over frames), the part re-posed on it and refined.
 """
 
 from __future__ import annotations
@@ -587,49 +585,26 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) 
     best_loss = optimise(best, config, config.steps // 2, pairs, windows=1)
     for _ in range(config.relabel_rounds):
         best_loss = relabel_and_refine(best, tracks, config, config.steps // 2)
-    best, fits = depth_reversals(best, tracks, config)
-    refit_joints(best, config, fits)
+    best = depth_reversals(best, tracks, config)
+    refit_joints(best, tracks, config)
     best_loss = optimise(best, config, config.steps // 4, neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride),
                          windows=1)
     return joint_fit_of(best, best_loss, history)
 
 
-def depth_reversals(model: Articulation, tracks: Tracks, config: FitConfig
-                    ) -> tuple[Articulation, list[ScrewFit | None] | None]:
-    """Each hinge part against its depth reversal (:func:`mirrored`), refined the same way. The two readings
-    draw nearly the same images, so the data terms (:func:`kind_loss`) often nearly tie; what a reversal
-    breaks is the occlusion order (a door reversed turns into its cabinet and behind it). When the data terms
-    tie (within ``SLIDE_PREFERENCE``, the margin by which joint kinds are called) on a part that turns as a
-    hinge over the whole clip (its free motion's screw fit, :func:`screw_fits`), the reading that hides fewer
-    of the moving parts' verified track observations (:func:`hidden_observations`) is kept; otherwise (and
-    always for a slide read as a hinge, whose reversal the occlusions say nothing about) the reading the
-    data terms prefer. Returns the kept model and the found reading's screw fits when it was kept (else
-    None), which :func:`refit_joints` then need not recompute."""
+def depth_reversals(model: Articulation, tracks: Tracks, config: FitConfig) -> Articulation:
+    """Each hinge part against its depth reversal (:func:`mirrored`), refined the same way; the reading the
+    data terms (:func:`kind_loss`) prefer is kept."""
     pairs = neighbour_pairs(tracks.uv0, model.labels.numpy(), tracks.stride)
-    fits = screw_fits(model, config)
-    best, best_score = model, (kind_loss(model, config), hidden_observations(model))
+    best, best_kind = model, kind_loss(model, config)
     for b in [b for b, kind in enumerate(model.kinds) if kind == "hinge"]:
         trial = mirrored(best, b)
         optimise(trial, config, config.steps // 4, pairs, windows=1)
-        score = (kind_loss(trial, config), hidden_observations(trial))
-        by_motion = fit.kind if (fit := fits[b]) is not None else "-"
-        log.info("recon=video: part %d reversed in depth: kind loss %.4f, hidden observations %d (as found %.4f, "
-                 "%d; by its motion a %s)", b, *score, *best_score, by_motion)
-        tie = by_motion == "hinge" and abs(score[0] - best_score[0]) <= SLIDE_PREFERENCE * min(score[0], best_score[0])
-        if (score[1], score[0]) < (best_score[1], best_score[0]) if tie else score[0] < best_score[0]:
-            best, best_score = trial, score
-    return best, fits if best is model else None
-
-
-def hidden_observations(model: Articulation) -> int:
-    """How many verified track observations of the moving parts (frames 1..) the model puts behind another
-    modelled point (:func:`visible`): a verified track still matches its frame-0 patch, so it was seen."""
-    sc = model.scene
-    with torch.no_grad():
-        posed = model.posed()
-        seen = visible(project(sc, posed), to_camera(sc, posed)[..., 2], sc.stride)
-        observed = sc.verified & (model.labels != model.root)[None]
-        return int((observed[1:] & ~seen[1:]).sum())
+        trial_kind = kind_loss(trial, config)
+        log.info("recon=video: part %d reversed in depth: kind loss %.4f (as found %.4f)", b, trial_kind, best_kind)
+        if trial_kind < best_kind:
+            best, best_kind = trial, trial_kind
+    return best
 
 
 def free_motions(model: Articulation, config: FitConfig, steps: int) -> np.ndarray:
@@ -651,10 +626,10 @@ def free_motions(model: Articulation, config: FitConfig, steps: int) -> np.ndarr
     return out
 
 
-def screw_fits(model: Articulation, config: FitConfig) -> list[ScrewFit | None]:
+def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list[ScrewFit | None]:
     """Every moving part's joint fitted to its freely recovered motion relative to the root over the whole
-    clip (:func:`~sync4d.recon.video.screw.fit_screw`: kind by evidence, robust over frames); root and parts
-    of fewer than 3 points: None. The model is left as it was."""
+    clip (:func:`~sync4d.recon.video.screw.fit_screw`: kind by evidence, robust over frames), the model
+    set to those joints and refined; returns the screw fits (root: None)."""
     sc = model.scene
     motions = free_motions(model, config, config.steps // 8)
     root_motion = sc.root_motion.numpy()
@@ -667,32 +642,23 @@ def screw_fits(model: Articulation, config: FitConfig) -> list[ScrewFit | None]:
         world = np.einsum("tij,tnj->tni", root_motion[:, :3, :3], x) + root_motion[:, None, :3, 3]
         return project(sc, torch.as_tensor(world)).numpy()
 
-    fits: list[ScrewFit | None] = []
-    for b in range(len(model.kinds)):
-        own = labels == b
-        fits.append(None if b == model.root or own.sum() < 3 else
-                    fit_screw(inv_root @ motions[:, b], rest[own], project_np, sc.stride))
-    return fits
-
-
-def refit_joints(model: Articulation, config: FitConfig, fits: list[ScrewFit | None] | None = None
-                 ) -> list[ScrewFit | None]:
-    """The model set to every moving part's joint from its whole motion (``fits``, the model's own
-    :func:`screw_fits` when None); returns the screw fits (root: None)."""
-    sc = model.scene
-    fits = screw_fits(model, config) if fits is None else fits
     kinds, axes = list(model.kinds), model.axes.detach().numpy().copy()
     pivots = model.pivots().detach().numpy().copy()
     values = np.concatenate([np.zeros((1, len(kinds))), model.values.detach().numpy()], 0)
-    for b, screw in enumerate(fits):
-        if screw is None:
+    fits: list[ScrewFit | None] = []
+    for b in range(len(kinds)):
+        own = labels == b
+        if b == model.root or own.sum() < 3:
+            fits.append(None)
             continue
+        screw = fit_screw(inv_root @ motions[:, b], rest[own], project_np, sc.stride)
         log.info("recon=video: part %d's joint from its whole motion: %s (costs %s; was a %s)", b, screw.kind,
                  {k: round(float(v), 1) for k, v in screw.costs.items()}, kinds[b])
         kinds[b], axes[b] = screw.kind, screw.axis if screw.kind != "fixed" else axes[b]
         if screw.kind == "hinge":
             pivots[b] = screw.pivot
         values[:, b] = screw.values / (sc.width if screw.kind == "slide" else 1.0)
+        fits.append(screw)
     with torch.no_grad():
         model.kinds = kinds
         model.axes.copy_(torch.as_tensor(axes))
