@@ -247,9 +247,8 @@ def fill_holes(mask: np.ndarray, share: float) -> np.ndarray:
 def revealed(carried: np.ndarray, likeness: np.ndarray, explained: np.ndarray) -> np.ndarray:
     """(H, W) bool: the pixels within ``REVEAL`` x the ``carried`` mask's size of it whose ``likeness``
     (H, W) is at least ``SURE_LIKENESS`` and that ``explained`` (H, W) bool does not hold: a part of the
-    subject coming into view. The flow carries only what the previous frame showed, and a band seen
-    edge-on drags the flow of the background along (the default film's lid: its far end lost in frames
-    13-18, ``docs/results/video_frontend.md``)."""
+    subject coming into view, which the flow cannot carry: it carries only what the previous frame showed
+    (measured on the default film's lid, ``docs/results/video_frontend.md``)."""
     reach = morph(carried, "dilate", int(REVEAL * size_of(carried)) + 1)
     return reach & (likeness >= SURE_LIKENESS) & ~explained
 
@@ -261,7 +260,7 @@ def follow(frames: np.ndarray, start: int, first: np.ndarray, evidence: MotionEv
     from the moving pixels within the first pass's masks against everything outside them (every frame), so
     a floor tile of the subject's shade that the flow dragged along is the background's colour there.
     Holes under ``HOLE_SHARE`` of a mask are filled. ``reveal``: grow the carried masks by :func:`revealed`
-    (a moving camera: under a static one it joined floor tiles of a dog's hooves' shade, measured)."""
+    (the front end asks it under a moving camera only; why: ``docs/results/video_frontend.md``)."""
     masks = propagate(frames, start, first, evidence, iterations, reveal=reveal)
     subject = masks & evidence.moving
     if subject.sum() >= first.sum():
