@@ -306,6 +306,24 @@ def test_the_clip_colour_model_tells_the_subject_from_the_background():
     assert model.support == 1.0 and (like[:, :4] > 0.9).all() and (like[:, 4:] < 0.1).all()
 
 
+def test_a_part_coming_into_view_joins_when_surely_the_subjects_colour_and_unexplained():
+    from sync4d.frontend.segment import REVEAL, revealed
+
+    carried = np.zeros((60, 60), bool)
+    carried[20:40, 20:40] = True  # size 20: the reach is REVEAL x 20 + 1 px
+    reach = int(REVEAL * 20) + 1
+    likeness = np.zeros((60, 60))
+    explained = np.zeros((60, 60), bool)
+    likeness[20:40, 40:40 + reach] = 1.0  # right: the subject's colours, unexplained -> joins
+    likeness[40:40 + reach, 20:40] = 0.6  # below: more the subject's than not, but not surely -> stays out
+    likeness[20 - reach:20, 20:40] = 1.0  # above: the subject's colours, but the background explains it
+    explained[20 - reach:20, 20:40] = True
+    likeness[20:40, 40 + reach + 3:] = 1.0  # beyond the reach: stays out
+    out = revealed(carried, likeness, explained)
+    assert out[20:40, 40:40 + reach].all()
+    assert not out[40:, :].any() and not out[:20, :].any() and not out[:, 40 + reach:].any()
+
+
 def test_a_static_camera_mask_drops_what_shows_the_background_plate():
     from sync4d.frontend.segment import drop_plate
 

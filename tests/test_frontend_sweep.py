@@ -133,3 +133,23 @@ def test_the_default_films_laptop_keeps_its_base_from_the_video_alone():
     iou = (found & subject).sum(axis=(1, 2)) / (found | subject).sum(axis=(1, 2))
     assert np.median(iou) >= 0.8
     assert np.median((found & base).sum(axis=(1, 2)) / base.sum(axis=(1, 2))) >= 0.9
+
+
+@pytest.mark.slow
+def test_the_default_films_lid_coming_into_view_is_kept_from_the_video_alone():
+    """The same film: the lid turns from edge-on to showing its back in frames 11-18, where the flow carried
+    too little of it (recall 0.65-0.83 a frame at seed 0); the pixels of surely its colours that the
+    background does not explain join the carried mask (``segment.revealed``)."""
+    from dataclasses import replace
+
+    from sync4d.frontend import FrontEndConfig, run_front_end
+    from sync4d.scenes.laptop import LaptopReference, filmed_laptop_case
+
+    source, truth = filmed_laptop_case(LaptopReference(LaptopReference.Config(), seed=0).film_settings())
+    clip = source.video
+    assert clip is not None
+    found = run_front_end(replace(clip, intrinsics=None, extrinsics=None, masks=np.zeros_like(clip.masks)),
+                          FrontEndConfig()).clip.masks
+    lid = truth["part_labels"] == 2
+    recall = (found & lid).sum(axis=(1, 2)) / lid.sum(axis=(1, 2))
+    assert recall[11:19].min() >= 0.8

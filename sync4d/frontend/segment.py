@@ -28,6 +28,10 @@ EXPLAINED_KEEP = 0.75
 HOLE_SHARE = 0.01
 #: a carried mask is the subject lost when less than this share of the first frame's colour support remains
 LOST_SUPPORT = 0.5
+#: under a moving camera a carried mask is joined by the pixels within this share of its size of surely the
+#: subject's colours that the background's motion does not explain: a part coming into view (a lid turning from
+#: edge-on), which the flow cannot carry and GrabCut (at most ``GROWTH``) grows back too slowly
+REVEAL = 0.2
 
 
 def disk(radius: int) -> np.ndarray:
@@ -240,23 +244,34 @@ def fill_holes(mask: np.ndarray, share: float) -> np.ndarray:
     return mask | np.isin(labels, small)
 
 
+def revealed(carried: np.ndarray, likeness: np.ndarray, explained: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels within ``REVEAL`` x the ``carried`` mask's size of it whose ``likeness``
+    (H, W) is at least ``SURE_LIKENESS`` and that ``explained`` (H, W) bool does not hold: a part of the
+    subject coming into view, which the flow cannot carry: it carries only what the previous frame showed
+    (measured on the default film's lid, ``docs/results/video_frontend.md``)."""
+    reach = morph(carried, "dilate", int(REVEAL * size_of(carried)) + 1)
+    return reach & (likeness >= SURE_LIKENESS) & ~explained
+
+
 def follow(frames: np.ndarray, start: int, first: np.ndarray, evidence: MotionEvidence,
-           iterations: int) -> np.ndarray:
+           iterations: int, *, reveal: bool = False) -> np.ndarray:
     """(T, H, W) bool masks of the subject: :func:`propagate` twice. The first pass's colour model learns
     the subject from every moving pixel, floor between a small animal's legs included; the second learns it
     from the moving pixels within the first pass's masks against everything outside them (every frame), so
     a floor tile of the subject's shade that the flow dragged along is the background's colour there.
-    Holes under ``HOLE_SHARE`` of a mask are filled."""
-    masks = propagate(frames, start, first, evidence, iterations)
+    Holes under ``HOLE_SHARE`` of a mask are filled. ``reveal``: grow the carried masks by :func:`revealed`
+    (the front end asks it under a moving camera only; why: ``docs/results/video_frontend.md``)."""
+    masks = propagate(frames, start, first, evidence, iterations, reveal=reveal)
     subject = masks & evidence.moving
     if subject.sum() >= first.sum():
         outside = ~np.stack([morph(m, "dilate", 2) for m in masks])
-        masks = propagate(frames, start, first, evidence, iterations, clip_colour_model(frames, subject, outside))
+        masks = propagate(frames, start, first, evidence, iterations, clip_colour_model(frames, subject, outside),
+                          reveal=reveal)
     return np.stack([fill_holes(m, HOLE_SHARE) for m in masks])
 
 
 def propagate(frames: np.ndarray, start: int, first: np.ndarray, evidence: MotionEvidence,
-              iterations: int, model: ColourModel | None = None) -> np.ndarray:
+              iterations: int, model: ColourModel | None = None, *, reveal: bool = False) -> np.ndarray:
     """(T, H, W) bool masks carried from frame ``start`` (mask ``first``) forwards and backwards along the
     flow, each carried mask joined by what moves just around it and refined by GrabCut.
 
@@ -266,7 +281,8 @@ def propagate(frames: np.ndarray, start: int, first: np.ndarray, evidence: Motio
     drags along falls off), and loses the patches the background's motion explains
     (:attr:`MotionEvidence.explained`) whose colours are not surely the subject's; a mask whose colours stop being the subject's (less than half the model's support) is
     the subject lost (it left the frame): that frame and those beyond stay empty.
-    A mask grows only where the background's motion does not surely explain the picture (``still``).
+    A mask grows only where the background's motion does not surely explain the picture (``still``); with
+    ``reveal`` it also grows by :func:`revealed` (a part coming into view).
     """
     moving, flows = evidence.moving, evidence.flows
     n_frames = len(frames)
@@ -285,14 +301,17 @@ def propagate(frames: np.ndarray, start: int, first: np.ndarray, evidence: Motio
             carried = pull_warp(masks[t - step], flows[(t, t - step)])
             if not carried.any():
                 break
-            like = model.likeness(frames[t]) > 0.5
+            likeness = model.likeness(frames[t])
+            like = likeness > 0.5
             joined = carried | (near_motion(moving[t], carried) & like)
             sure = morph(carried, "erode", int(0.15 * size_of(carried))) & like
             refined = grabcut(frames[t], joined, sure=sure, iterations=iterations)
+            if reveal and evidence.explained is not None:
+                refined |= revealed(carried, likeness, evidence.explained[t])
             refined &= carried | ~evidence.still[t]
             refined &= like
             if evidence.explained is not None:  # a patch of floor dragged along, not a lone pixel, not surely subject
-                doubtful = morph(evidence.explained[t], "open", 1) & (model.likeness(frames[t]) < SURE_LIKENESS)
+                doubtful = morph(evidence.explained[t], "open", 1) & (likeness < SURE_LIKENESS)
                 trimmed = refined & ~doubtful
                 # ... unless that is much of the mask: the subject holding still against the background
                 refined = trimmed if trimmed.sum() >= EXPLAINED_KEEP * refined.sum() else refined

@@ -140,7 +140,7 @@ def subject_masks(work: np.ndarray, grey: np.ndarray, method: str, config: Subje
         first = largest_component(grabcut(work[start], region, sure=np.zeros_like(region),
                                           iterations=max(config.grabcut_iters, 1)))
     log.info("frontend: subject seeded in frame %d (%d px at work size)", start, int(first.sum()))
-    masks = follow(work, start, first, evidence, config.grabcut_iters)
+    masks = follow(work, start, first, evidence, config.grabcut_iters, reveal=not static)
     if static:  # a subject found by its motion under a static camera: what shows the background plate is floor
         return drop_plate(work, masks) if method == "motion" else masks
     # a moving camera: the subject's parts that never move stand off the room's planes (parallax)
