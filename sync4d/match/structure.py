@@ -23,8 +23,10 @@ Left/right: limbs hanging from the same trunk part with as many parts are partne
 a partner left over takes the free branch at the mirror image of the other's (:func:`complete_partners`),
 and a tail holding that branch hands it over (:func:`mirror_repair`); a partner on a side branch while the
 other holds a branch straddling the plane hands the side branch to a left-over pair (:func:`straddle_repair`).
-The branches between the root and a matched limb's branch are trunk (:func:`trunk_branches`). Unmatched
-reference limbs are reported (``StructureMatch.leftover``).
+The branches between the root and a matched limb's branch are trunk (:func:`trunk_branches`). Limbs still
+unmatched then take the outermost free branches at least cost, whatever the miss cost (:func:`pair_leftovers`),
+when that labelling keeps at least as much of the reference's structure (:meth:`TargetLabelling.kept`).
+Unmatched reference limbs are reported (``StructureMatch.leftover``).
 """
 
 from __future__ import annotations
@@ -796,10 +798,9 @@ def free_branches(pairs: list[tuple[int, int]], skeleton: CurveSkeleton, cand: n
     (a free branch whose parent branch is free too is part of that parent's limb)."""
     taken = [int(cand[c]) for _, c in pairs]
 
-    def nested(b: int, others: list[int]) -> bool:
-        return any(skeleton.is_ancestor(b, t) or skeleton.is_ancestor(t, b) for t in others if t != b)
-
-    free = [c for c in range(len(cand)) if not nested(int(cand[c]), taken) and int(cand[c]) not in taken]
+    # is_ancestor(b, b) holds, so a taken branch counts as nested with itself
+    free = [c for c in range(len(cand)) if not any(
+        skeleton.is_ancestor(int(cand[c]), t) or skeleton.is_ancestor(t, int(cand[c])) for t in taken)]
     return [c for c in free if not any(skeleton.is_ancestor(int(cand[o]), int(cand[c])) for o in free if o != c)]
 
 
