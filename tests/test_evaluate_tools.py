@@ -568,6 +568,26 @@ def test_default_scene_splits_the_hinge_error_and_scores_the_camera() -> None:
     assert camera_errors(None, true)["camera_rot_deg"] is None
 
 
+def test_default_scene_jitter_perturbs_the_poses_by_its_scale_only() -> None:
+    """``--jitter``'s perturbation turns each pose by about the scale [rad] and moves it by about the scale x the
+    path's reach; a zero scale leaves the poses as they were; the poses stay rigid."""
+    from scipy.spatial.transform import Rotation
+
+    from sync4d_tools.default_scene import perturbed_poses
+
+    poses = np.tile(np.eye(4), (40, 1, 1))
+    poses[:, :3, :3] = Rotation.from_rotvec(np.linspace(0.0, 0.3, 40)[:, None] * [0.0, 1.0, 0.0]).as_matrix()
+    poses[:, 0, 3] = np.linspace(0.0, 2.0, 40)
+    np.testing.assert_array_equal(perturbed_poses(poses, 0.0, np.random.default_rng(0)), poses)
+    moved = perturbed_poses(poses, 1e-3, np.random.default_rng(0))
+    turn = Rotation.from_matrix(moved[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2)).magnitude()
+    assert 0.8e-3 < np.median(turn) < 2.5e-3  # |N(0, s^2 I_3)|: median about 1.54 s
+    shift = np.linalg.norm(moved[:, :3, 3] - poses[:, :3, 3], axis=1) / 2.0
+    assert 0.8e-3 < np.median(shift) < 2.5e-3
+    np.testing.assert_allclose(moved[:, :3, :3] @ np.swapaxes(moved[:, :3, :3], 1, 2), np.tile(np.eye(3), (40, 1, 1)),
+                               atol=1e-12)
+
+
 @pytest.mark.slow
 def test_default_scene_scores_the_default_run(tmp_path: Path) -> None:
     """The default run's own stages at seed 0: the shell's top goes to the reconstructed lid."""
