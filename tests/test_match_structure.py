@@ -614,3 +614,32 @@ def test_left_over_limbs_take_the_free_branches_off_the_trunk_at_least_cost() ->
     cost[1, 3], cost[2, 2], cost[1, 2], cost[2, 3] = 5.0, 6.0, 4.0, 8.0
     assert pair_leftovers(pairs, cost, skeleton, cand) == [(0, 1), (1, 3), (2, 2)]  # 5 + 6 < 4 + 8
     assert pair_leftovers([(0, 1), (1, 2), (2, 3)], cost, skeleton, cand) == [(0, 1), (1, 2), (2, 3)]
+
+
+def test_a_capsules_radius_and_the_lone_limbs_thickness_turn_a_target_round() -> None:
+    """part_radius reads a cylinder's radius off its surface. Between the best turn and the best one at least
+    90 deg away, the one whose lone limbs (no left/right partner) are as thick, relative to the trunk, as the
+    reference's comes first: a raised thin tail is no head. Partner limbs do not count, and without a lone
+    limb matched on both sides, or with the same thickness both ways, the order stays."""
+    from sync4d.match.heading import face_by_thickness, part_radius, target_thickness, thickness_disagreement
+    from sync4d.match.structure import yaw_rotations
+
+    angle = np.linspace(0.0, 2 * np.pi, 60, endpoint=False)
+    ring = np.stack([0.3 * np.cos(angle), np.zeros(60), 0.3 * np.sin(angle)], axis=1)
+    cylinder = np.concatenate([ring + [0.0, h, 0.0] for h in np.linspace(0.0, 2.0, 20)])
+    assert abs(part_radius(cylinder, np.zeros(len(cylinder), dtype=np.int64), [0]) - 0.3) < 1e-6
+    thickness = np.array([1.0, 0.5, 0.2, 0.3, 0.3])
+    tgt = target_thickness(thickness, (np.array([1]), np.array([2]), np.array([3]), np.array([4])), np.array([0]))
+    assert np.allclose(tgt, [0.5, 0.2, 0.3, 0.3])
+    ref = np.array([0.5, 0.2, 0.3, 0.3])  # head, tail, two partner legs
+    lone = {0, 1}
+    ahead, behind = yaw_rotations("y", 2)
+    turned_round = (1.0, ahead, [(0, 1), (1, 0), (2, 2), (3, 3)], 1.0)  # the head on the thin branch
+    facing = (2.0, behind, [(0, 0), (1, 1), (2, 3), (3, 2)], 2.0)
+    assert thickness_disagreement(facing[2], ref, tgt, lone) < 1e-12
+    assert face_by_thickness([turned_round, facing], ref, tgt, lone)[0] is facing
+    assert face_by_thickness([facing, turned_round], ref, tgt, lone)[0] is facing
+    legs_only = (2.0, behind, [(2, 3), (3, 2)], 2.0)
+    assert face_by_thickness([turned_round, legs_only], ref, tgt, lone)[0] is turned_round
+    swapped_legs = (2.0, behind, [(0, 1), (1, 0), (2, 3), (3, 2)], 2.0)
+    assert face_by_thickness([turned_round, swapped_legs], ref, tgt, lone)[0] is turned_round

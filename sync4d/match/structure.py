@@ -13,7 +13,9 @@ unit RMS radius; both upright along ``up_axis``). Then:
    where it ends, its direction, its length and where its foot points (:func:`limb_cost`); a limb may stay unmatched at cost
    ``miss_cost`` (a target with fewer limbs: a cross, a table), and an assignment that holds a subtree
    and one of its descendants is re-solved with that pair forbidden (:func:`assign_limbs`). The turn of
-   lowest assignment cost plus chamfer distance wins: the shapes need not face the same way;
+   lowest assignment cost plus chamfer distance wins (the shapes need not face the same way), unless the best
+   turn at least 90 deg from it gives the limbs without a left/right partner (a head, a tail) branches whose
+   thickness agrees better with theirs (:func:`sync4d.match.heading.face_by_thickness`);
 3. a matched target subtree takes the reference limb's parts by relative geodesic position along it
    (0 where it leaves the trunk, 1 at its tip), so a longer or bent limb keeps its thigh/shin/foot
    proportions (:func:`transfer_along`); everything else (trunk, unmatched target branches) takes the
@@ -41,6 +43,7 @@ from scipy.spatial import cKDTree
 
 from sync4d.match.align import axis_rotation, chamfer_distance
 from sync4d.match.consistency import consistency
+from sync4d.match.heading import face_by_thickness, reference_thickness, target_thickness
 from sync4d.match.regions import label_regions, local_thickness
 from sync4d.match.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton, neighbour_graph
 
@@ -108,6 +111,7 @@ class LimbSet:
         length: (L,) geodesic extent from the base to the tip.
         area: (L,) the limb's share of the shape's surface points (for voxels: of the outer layer).
         foot: (L, 3) where each limb's foot points (:func:`limb_feet`), or None.
+        thickness: (L,) each limb's thickness over its trunk's (:mod:`sync4d.match.heading`), or None.
     """
 
     members: tuple[np.ndarray, ...]
@@ -117,6 +121,7 @@ class LimbSet:
     length: np.ndarray
     area: np.ndarray
     foot: np.ndarray | None = None
+    thickness: np.ndarray | None = None
 
     def relative_position(self, geodesic: np.ndarray, limb: int) -> np.ndarray:
         """(Q,) relative geodesic position in [0, 1] of the limb's points (0 at the base, 1 at the tip)."""
@@ -907,6 +912,9 @@ def match_structure(
     cand = np.arange(1, len(tgt_sk.branches))
     tgt_limbs = with_feet(own_chain_tips(tgt_sk, cand, limb_descriptors(
         tgt_sk, [tgt_sk.branches[i].subtree for i in cand], tgt_depth)), tgt_sk.points, up)
+    if tgt_thick is not None:
+        ref_limbs = replace(ref_limbs, thickness=reference_thickness(ref_sk.points, ref_labels, limb_parts, trunk))
+        tgt_limbs = replace(tgt_limbs, thickness=target_thickness(tgt_thick, tgt_limbs.members, tgt_sk.core))
     rng = np.random.default_rng(0)
     ref_sub, tgt_sub = point_samples(ref_points, rng), point_samples(tgt_points, rng)
     ref_scale = horizontal_scale(ref_points, np.eye(3), up)
@@ -915,8 +923,11 @@ def match_structure(
               attach_heights(tgt_sk, tgt_limbs.members, tgt_sk.branches[0].points, up))
     turns = score_turns(ref_limbs, tgt_limbs, tgt_sk, cand, ref_sub, tgt_sub, config, up_axis, ref_scale, turn_cost,
                         attach)
-    _, rot, pairs, total = turns[0]
     partners = limb_partners(limb_parts, parent, ref_limbs.base, ref_limbs.length)
+    if tgt_limbs.thickness is not None and ref_limbs.thickness is not None:
+        lone = set(range(len(limb_parts))) - {i for pair in partners for i in pair}
+        turns = face_by_thickness(turns, ref_limbs.thickness, tgt_limbs.thickness, lone)
+    _, rot, pairs, total = turns[0]
     symmetry = (partners, partner_plane(ref_limbs.base, partners, up, ref_scale)) if partners else None
     tgt_scale = horizontal_scale(tgt_points, rot, up)
     pairs, cost = repair_pairs(pairs, ref_limbs, tgt_limbs, tgt_sk, cand, rot, symmetry, attach, config, up,
