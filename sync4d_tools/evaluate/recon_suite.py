@@ -30,6 +30,7 @@ import hashlib
 import json
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -37,6 +38,7 @@ import numpy as np
 
 from sync4d.errors import InputError
 from sync4d.recon.video import VideoFit, VideoReconstructor
+from sync4d.recon.video.reconstructor import upright_frame
 from sync4d.sources.references import VideoSource, resolve_path
 from sync4d.types import ReferenceInput
 from sync4d_tools import camera_of, video_of
@@ -76,13 +78,20 @@ def passes(joints: list[dict[str, Any]]) -> bool:
     return bool(joints) and all(r["pass"] for r in joints)
 
 
-def joint_rows(fit: VideoFit, truth: CaseTruth, mapping: np.ndarray, votes: np.ndarray) -> list[dict[str, Any]]:
-    """Per gt joint, the scores of the bone that renders most of its part (:func:`score.joint_row`)."""
+def joint_rows(fit: VideoFit, truth: CaseTruth, mapping: np.ndarray, votes: np.ndarray,
+               upright: np.ndarray | None = None) -> list[dict[str, Any]]:
+    """Per gt joint, the scores of the bone that renders most of its part (:func:`score.joint_row`); ``upright``
+    (4, 4): the fit's world is the truth's turned by it (a ``world_up`` given), so the fit is turned back."""
     ref = fit.reference
     world = np.einsum("tij,tbjk->tbik", ref.global_transforms, ref.bone_transforms)
     bones_of = {p: np.flatnonzero(mapping == p) for p in range(1, votes.shape[1])}
     base = bones_of[1][np.argmax(votes[bones_of[1], 1])] if len(bones_of[1]) else None
-    tracked = fit.means[: len(fit.joints.labels)]
+    tracked, camera = fit.means[: len(fit.joints.labels)], fit.camera
+    if upright is not None:
+        back = np.linalg.inv(upright)
+        world = back @ world @ upright
+        tracked = tracked @ back[:3, :3].T + back[:3, 3]
+        camera = replace(camera, world_to_cam=camera.world_to_cam @ upright)
     out = []
     for j in range(len(truth.kinds)):
         part = j + 2
@@ -93,7 +102,7 @@ def joint_rows(fit: VideoFit, truth: CaseTruth, mapping: np.ndarray, votes: np.n
         rel = np.einsum("tij,tjk->tik", np.linalg.inv(world[:, base]), world[:, bone])
         rel = np.einsum("ij,tjk->tik", np.linalg.inv(rel[0]), rel)  # since frame 0
         found = fit.joints.kinds[bone] if fit.joints.kinds[bone] != "root" else "none"
-        out.append(joint_row(rel, found, j, truth, fit.camera, tracked[fit.joints.labels == bone]))
+        out.append(joint_row(rel, found, j, truth, camera, tracked[fit.joints.labels == bone]))
     return out
 
 
@@ -102,9 +111,13 @@ def label_block(rendered: list[np.ndarray], mapping: np.ndarray, truth: CaseTrut
     return label_scores([mapping[r] == lab[t][lab[t] > 0] for t, r in enumerate(rendered)], seen, lab)
 
 
-def run_case(name: str, seed: int, load: Loader, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Reconstruct one case (``recon=video`` with ``overrides``) and score it, with its floor and ceiling."""
+def run_case(name: str, seed: int, load: Loader, overrides: dict[str, Any] | None = None,
+             world_up: np.ndarray | None = None) -> dict[str, Any]:
+    """Reconstruct one case (``recon=video`` with ``overrides``; the clip's world's up given when ``world_up``,
+    (3,) in the clip's world) and score it, with its floor and ceiling."""
     source, truth, variant = load()
+    if world_up is not None:
+        source = replace(source, world_up=np.asarray(world_up, np.float64) / np.linalg.norm(world_up))
     clip = video_of(source)
     clip_id = hashlib.sha1(clip.frames.tobytes() + clip.masks.tobytes()).hexdigest()[:12]
     n_parts = len(truth.kinds) + 1
@@ -112,7 +125,7 @@ def run_case(name: str, seed: int, load: Loader, overrides: dict[str, Any] | Non
     seen = truth.seen_first(fit.camera)
     rendered = rendered_labels(fit, truth.part_labels)
     mapping, votes, _ = part_mapping(rendered, truth.part_labels, fit.reference.num_bones, n_parts)
-    joints = joint_rows(fit, truth, mapping, votes)
+    joints = joint_rows(fit, truth, mapping, votes, None if source.world_up is None else upright_frame(source.world_up))
     exact = exact_splats(fit.tracks, fit.masks, truth, clip, fit.camera, fit.object_width)
     ex_rendered = rendered_labels(exact, truth.part_labels)
     ex_mapping = part_mapping(ex_rendered, truth.part_labels, exact.reference.num_bones, n_parts)[0]
@@ -286,6 +299,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--merge", nargs="*", default=[], metavar="RESULTS_JSON",
                         help="run nothing: merge these results.json files (e.g. of parallel runs) into --out")
     parser.add_argument("--frames", type=int, default=0, help="score the first N frames of every clip (0: all)")
+    parser.add_argument("--world-up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
+                        help="give the reconstruction the clips' world up (the suite's MuJoCo clips: 0 0 1), as the "
+                             "video front end gives it for a phone's video")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="recon=video overrides (dotted keys, YAML values) beside the suite's bones and seed")
     args = parser.parse_args(argv)
@@ -304,7 +320,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     rows.sort(key=lambda r: (r["case"], r["seed"]))
     cases = [] if args.merge else suite_cases(Path(args.cache), args.only, not args.no_laptops, args.seeds, args.frames)
     for name, seed, load in cases:
-        rows.append(run_case(name, seed, load, overrides))
+        rows.append(run_case(name, seed, load, overrides, args.world_up))
         print(json.dumps(rows[-1]), flush=True)
         (out / "results.json").write_text(json.dumps(rows, indent=1))  # never lose computed rows
     (out / "results.json").write_text(json.dumps(rows, indent=1))
