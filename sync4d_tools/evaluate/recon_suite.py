@@ -40,7 +40,7 @@ from sync4d.errors import InputError
 from sync4d.recon.video import VideoFit, VideoReconstructor
 from sync4d.recon.video.reconstructor import upright_frame
 from sync4d.sources.references import VideoSource, resolve_path
-from sync4d.types import ReferenceInput
+from sync4d.types import Camera, ReferenceInput
 from sync4d_tools import camera_of, video_of
 from sync4d_tools.articulated.ceiling import exact_splats, rendered_labels
 from sync4d_tools.articulated.score import constant_labels, joint_row, label_scores, missing_row
@@ -86,12 +86,11 @@ def joint_rows(fit: VideoFit, truth: CaseTruth, mapping: np.ndarray, votes: np.n
     world = np.einsum("tij,tbjk->tbik", ref.global_transforms, ref.bone_transforms)
     bones_of = {p: np.flatnonzero(mapping == p) for p in range(1, votes.shape[1])}
     base = bones_of[1][np.argmax(votes[bones_of[1], 1])] if len(bones_of[1]) else None
-    tracked, camera = fit.means[: len(fit.joints.labels)], fit.camera
+    tracked, camera = fit.means[: len(fit.joints.labels)], clip_camera(fit.camera, upright)
     if upright is not None:
         back = np.linalg.inv(upright)
         world = back @ world @ upright
         tracked = tracked @ back[:3, :3].T + back[:3, 3]
-        camera = replace(camera, world_to_cam=camera.world_to_cam @ upright)
     out = []
     for j in range(len(truth.kinds)):
         part = j + 2
@@ -104,6 +103,12 @@ def joint_rows(fit: VideoFit, truth: CaseTruth, mapping: np.ndarray, votes: np.n
         found = fit.joints.kinds[bone] if fit.joints.kinds[bone] != "root" else "none"
         out.append(joint_row(rel, found, j, truth, camera, tracked[fit.joints.labels == bone]))
     return out
+
+
+def clip_camera(camera: Camera, upright: np.ndarray | None) -> Camera:
+    """The fit's ``camera`` in the clip's world: the fit's world is the clip's turned by ``upright`` (4, 4) when
+    a ``world_up`` was given (None: the same world)."""
+    return camera if upright is None else replace(camera, world_to_cam=camera.world_to_cam @ upright)
 
 
 def label_block(rendered: list[np.ndarray], mapping: np.ndarray, truth: CaseTruth, seen: np.ndarray) -> dict[str, float]:
@@ -122,11 +127,13 @@ def run_case(name: str, seed: int, load: Loader, overrides: dict[str, Any] | Non
     clip_id = hashlib.sha1(clip.frames.tobytes() + clip.masks.tobytes()).hexdigest()[:12]
     n_parts = len(truth.kinds) + 1
     fit = build_recon(n_parts, seed, overrides).reconstruct_detailed(source)
-    seen = truth.seen_first(fit.camera)
+    upright = None if source.world_up is None else upright_frame(source.world_up)
+    camera = clip_camera(fit.camera, upright)  # the truth lives in the clip's world
+    seen = truth.seen_first(camera)
     rendered = rendered_labels(fit, truth.part_labels)
     mapping, votes, _ = part_mapping(rendered, truth.part_labels, fit.reference.num_bones, n_parts)
-    joints = joint_rows(fit, truth, mapping, votes, None if source.world_up is None else upright_frame(source.world_up))
-    exact = exact_splats(fit.tracks, fit.masks, truth, clip, fit.camera, fit.object_width)
+    joints = joint_rows(fit, truth, mapping, votes, upright)
+    exact = exact_splats(fit.tracks, fit.masks, truth, clip, camera, fit.object_width)
     ex_rendered = rendered_labels(exact, truth.part_labels)
     ex_mapping = part_mapping(ex_rendered, truth.part_labels, exact.reference.num_bones, n_parts)[0]
     labels, ceiling = label_block(rendered, mapping, truth, seen), label_block(ex_rendered, ex_mapping, truth, seen)
