@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 from sync4d.match.align import axis_rotation, chamfer_distance
 from sync4d.match.consistency import consistency
 from sync4d.match.heading import face_by_thickness, reference_thickness, target_thickness
-from sync4d.match.regions import label_regions, local_thickness
+from sync4d.match.regions import label_regions, local_thickness, trunk_column
 from sync4d.match.skeleton import CurveSkeleton, SkeletonConfig, curve_skeleton, neighbour_graph
 
 UP_AXES = {"x": 0, "y": 1, "z": 2}
@@ -861,6 +861,11 @@ class TargetLabelling:
         cand = np.arange(1, len(sk.branches))
         root = np.flatnonzero(np.isin(sk.branch, trunk_branches(sk, [int(cand[c]) for _, c in pairs])))
         thick = self.tgt_thick
+        if thick is not None:
+            column = np.unique(np.concatenate([np.zeros(0, dtype=np.int64)] + [trunk_column(
+                sk.points, sk.geodesic, sk.level_width, thick, sk.branches[0].points, self.tgt_limbs.members[t]) for _, t in pairs]))
+            limbs = [(m[~np.isin(m, column)], q[~np.isin(m, column)]) for m, q in limbs]
+            root = np.union1d(root, column)
         return pairs, label_regions(sk.points @ rot.T, sk.graph, root, limbs, self.ref_sk.points[in_trunk],
                                     self.ref_labels[in_trunk], thickness=thick, reach=self.config.limb_reach,
                                     trunk_thickness=None if thick is None else float(thick[sk.core].max()))
