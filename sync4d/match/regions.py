@@ -116,7 +116,6 @@ def label_regions(
     thickness: np.ndarray | None,
     reach: float,
     trunk_thickness: float | None = None,
-    up: int | None = None,
 ) -> np.ndarray:
     """(M,) reference part of every target point.
 
@@ -128,15 +127,12 @@ def label_regions(
         trunk_points: (K, 3) the reference's trunk points, same frame; trunk_labels: (K,) their parts.
         thickness: (M,) local thickness, or None (limbs are then not grown).
         reach, trunk_thickness: see :func:`grow_limbs` (``reach``, ``trunk``).
-        up: the up axis; with it, the legs also take what lies below the body's underside (:func:`legs_below_belly`).
     """
     out = np.full(len(points), -1, dtype=np.int64)
     for members, parts in limbs:
         out[members] = parts
     if thickness is not None and graph is not None and limbs:
         out = grow_limbs(graph, out, [m for m, _ in limbs], thickness, reach=reach, trunk=trunk_thickness)
-        if up is not None:
-            out = legs_below_belly(points, graph, out, [m for m, _ in limbs], root_points, thickness, up)
     tree = cKDTree(trunk_points)
     trunk = root_points[out[root_points] < 0]
     if len(trunk):
@@ -206,43 +202,3 @@ def trunk_column(points: np.ndarray, geodesic: np.ndarray, level_width: float, t
     if len(taken) == 0 or len(rest) < 10 or np.percentile(thickness[rest], 90) < bulb * t0:
         return none
     return taken
-
-
-def legs_below_belly(points: np.ndarray, graph: csr_matrix, labels: np.ndarray, limbs: list[np.ndarray],
-                     trunk: np.ndarray, thickness: np.ndarray, up: int, *, ground: float = 0.05,
-                     clear: float = 2.0, low: float = 2.0, column: float = 1.0) -> np.ndarray:
-    """(M,) ``labels`` with the legs that end below the body's underside grown up to it.
-
-    A leg that parts low (two legs joined above their parting, a leg whose top lies in the trunk's levels)
-    leaves its top to the trunk; below the body's underside there is nothing but legs. The legs are the
-    limbs with points in the lowest ``ground`` of the height. The underside is the ``low``-th percentile of
-    the heights of the free trunk points (``trunk``, indices) lying farther from every leg point, seen from
-    above, than ``clear`` x the thickest leg's thickness (the belly between the legs, not the legs' tops).
-    A leg whose branch ends below it takes the free points lower than it, within ``column`` x that
-    thickness of its own points seen from above, that it reaches through such points (each the part of the
-    leg point it is reached from); a leg whose branch already reaches the underside takes nothing.
-    """
-    h = points[:, up]
-    legs = [m for m in limbs if len(m) and (h[m] <= h.min() + ground * float(np.ptp(h))).any()]
-    free = labels < 0
-    body = trunk[free[trunk]]
-    if len(legs) < 2 or len(body) == 0:
-        return labels
-    flat = np.delete(points, up, axis=1)
-    radius = max(limb_thickness(thickness, m) for m in legs)
-    away = body[cKDTree(flat[np.concatenate(legs)]).query(flat[body])[0] > clear * radius]
-    if len(away) == 0:
-        return labels
-    underside = float(np.percentile(h[away], low))
-    below = np.flatnonzero(free & (h < underside))
-    if len(below) == 0:
-        return labels
-    leg_pts = np.concatenate(legs)
-    below = below[cKDTree(flat[leg_pts]).query(flat[below])[0] <= column * radius]
-    nodes = np.union1d(leg_pts, below)
-    dist, _, source = dijkstra(graph[nodes][:, nodes], directed=False, indices=np.searchsorted(nodes, leg_pts),
-                               return_predecessors=True, min_only=True)
-    grown = np.flatnonzero(np.isfinite(dist) & free[nodes])
-    out = labels.copy()
-    out[nodes[grown]] = labels[nodes[source[grown]]]
-    return out
