@@ -6,7 +6,8 @@ The limb is grown from its branch over the solid while the solid stays as thin a
 thickness, :func:`local_thickness`) and within a few limb thicknesses (:func:`grow_limbs`): it stops where
 the cross-section widens into the trunk. The trunk (the root branch's points no limb took) takes the
 reference's trunk parts by relative position (:func:`fit_spread`); the remaining points (target branches no reference limb matched)
-take the part of the region they hang from (:func:`label_regions`).
+take the part of the region they hang from (:func:`label_regions`); a matched branch's levels that continue a column-shaped trunk
+into a thicker part (a lamp's pole under its shade) are trunk (:func:`trunk_column`).
 """
 
 from __future__ import annotations
@@ -149,8 +150,6 @@ def label_regions(
     return out
 
 
-
-
 def column_axis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """The centroid (3,), principal axis (3,) of ``points`` (N, 3), and their spread along it over across it."""
     centre = points.mean(axis=0)
@@ -167,8 +166,8 @@ def off_axis(points: np.ndarray, centre: np.ndarray, axis: np.ndarray) -> np.nda
 def trunk_column(points: np.ndarray, geodesic: np.ndarray, level_width: float, thickness: np.ndarray, root: np.ndarray,
                  branch: np.ndarray, *, band: tuple[float, float] = (0.7, 1.4), bulb: float = 1.5,
                  elongation: float = 1.5, inside: float = 0.8) -> np.ndarray:
-    """The points of a matched limb's ``branch`` (indices) that continue the trunk's column: a lamp's pole above
-    the level where the levels from its middle part, up to the arm that carries the shade.
+    """The points of a matched limb's ``branch`` (indices) that continue the trunk's column: a lamp's pole from
+    its middle, where the levels part, up to the arm that carries the shade.
 
     The root branch (``root``, indices) is a column when its points spread ``elongation`` times more along their
     principal axis than across it. The branch's levels (``level_width`` of ``geodesic``) continue it from its
