@@ -643,3 +643,38 @@ def test_a_capsules_radius_and_the_lone_limbs_thickness_turn_a_target_round() ->
     assert face_by_thickness([turned_round, legs_only], ref, tgt, lone)[0] is turned_round
     swapped_legs = (2.0, behind, [(0, 1), (1, 0), (2, 3), (3, 2)], 2.0)
     assert face_by_thickness([turned_round, swapped_legs], ref, tgt, lone)[0] is turned_round
+
+
+def test_a_poles_column_stays_trunk_under_its_shade_but_not_without_one() -> None:
+    """A lamp: a pole (half-width 0.2), an arm along x at its top and a thick shade hanging from the arm. Levels
+    from the pole's middle part: the branch going up holds the pole's upper half, the arm and the shade; its
+    levels along the pole at the pole's thickness continue the trunk's column, the arm and the shade do not.
+    Without the shade (a thin arm at the end) nothing is given back: a limb thinner than the trunk stays a limb."""
+    from scipy.ndimage import distance_transform_edt
+    from scipy.sparse.csgraph import dijkstra
+
+    from sync4d.match.regions import local_thickness, trunk_column
+    from sync4d.match.skeleton import neighbour_graph
+
+    pitch = 0.1
+    axes = [np.arange(lo, hi, pitch) + pitch / 2 for lo, hi in ((-0.4, 3.2), (0.0, 4.2), (-0.8, 0.8))]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    pole = (np.abs(g[:, 0]) < 0.2) & (np.abs(g[:, 2]) < 0.2) & (g[:, 1] < 4.0)
+    arm = (g[:, 0] > -0.2) & (g[:, 0] < 2.4) & (g[:, 1] > 3.6) & (g[:, 1] < 4.0) & (np.abs(g[:, 2]) < 0.2)
+    shade = (g[:, 0] > 1.6) & (g[:, 0] < 2.8) & (g[:, 1] > 2.6) & (g[:, 1] < 3.7) & (np.abs(g[:, 2]) < 0.6)
+    for with_shade in (True, False):
+        inside = pole | arm | (shade if with_shade else False)
+        depth = distance_transform_edt(np.pad(inside.reshape([len(a) for a in axes]), 1))[1:-1, 1:-1, 1:-1]
+        pts, depth = g[inside], depth.reshape(-1)[inside] * pitch
+        thick = local_thickness(pts, depth)
+        graph = neighbour_graph(pts, 10, 4.0)
+        root = np.flatnonzero((np.abs(pts[:, 0]) < 0.2) & (pts[:, 1] > 1.5) & (pts[:, 1] < 2.5))
+        geo = dijkstra(graph, directed=False, indices=root, min_only=True)
+        branch = np.flatnonzero(pts[:, 1] >= 2.5)
+        column = trunk_column(pts, geo, 0.2, thick, root, branch)
+        if not with_shade:
+            assert len(column) == 0
+            continue
+        upper_pole = branch[(np.abs(pts[branch, 0]) < 0.2) & (pts[branch, 1] < 3.4)]
+        assert np.isin(upper_pole, column).mean() > 0.9                    # the pole up to below the arm
+        assert not np.isin(column, np.flatnonzero(pts[:, 0] > 0.5)).any()  # neither the arm nor the shade

@@ -6,7 +6,8 @@ The limb is grown from its branch over the solid while the solid stays as thin a
 thickness, :func:`local_thickness`) and within a few limb thicknesses (:func:`grow_limbs`): it stops where
 the cross-section widens into the trunk. The trunk (the root branch's points no limb took) takes the
 reference's trunk parts by relative position (:func:`fit_spread`); the remaining points (target branches no reference limb matched)
-take the part of the region they hang from (:func:`label_regions`).
+take the part of the region they hang from (:func:`label_regions`); a matched branch's levels that continue a column-shaped trunk
+into a thicker part (a lamp's pole under its shade) are trunk (:func:`trunk_column`).
 """
 
 from __future__ import annotations
@@ -147,3 +148,56 @@ def label_regions(
     if len(rest):
         out[rest] = trunk_labels[tree.query(points[rest])[1]]
     return out
+
+
+def column_axis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The centroid (3,), principal axis (3,) of ``points`` (N, 3), and their spread along it over across it."""
+    centre = points.mean(axis=0)
+    _, spread, axes = np.linalg.svd(points - centre, full_matrices=False)
+    return centre, axes[0], float(spread[0] / max(spread[1], 1e-12))
+
+
+def off_axis(points: np.ndarray, centre: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """(N,) distance of ``points`` from the line through ``centre`` along the unit ``axis``."""
+    q = points - centre
+    return np.linalg.norm(q - np.outer(q @ axis, axis), axis=1)
+
+
+def trunk_column(points: np.ndarray, geodesic: np.ndarray, level_width: float, thickness: np.ndarray, root: np.ndarray,
+                 branch: np.ndarray, *, band: tuple[float, float] = (0.7, 1.4), bulb: float = 1.5,
+                 elongation: float = 1.5, inside: float = 0.8) -> np.ndarray:
+    """The points of a matched limb's ``branch`` (indices) that continue the trunk's column: a lamp's pole from
+    its middle, where the levels part, up to the arm that carries the shade.
+
+    The root branch (``root``, indices) is a column when its points spread ``elongation`` times more along their
+    principal axis than across it. The branch's levels (``level_width`` of ``geodesic``) continue it from its
+    base on while ``inside`` of a level's points lie within the column's radius of its axis (refitted to the
+    root and the levels taken so far: a short root's axis tilts) and the level is as thick as the column (its
+    median local thickness within ``band`` x the root's). They are given back only when the rest of the branch
+    ends in a part at least ``bulb`` times thicker than the column (its 90th percentile): a thin column carrying
+    a thick bulb (a pole and its shade) rather than a limb leaving the trunk; a head or a tail thinner than the
+    trunk never is.
+    """
+    none = np.zeros(0, dtype=np.int64)
+    if len(root) < 10 or len(branch) < 10:
+        return none
+    centre, axis, ratio = column_axis(points[root])
+    if ratio < elongation:
+        return none
+    t0, radius = float(np.median(thickness[root])), float(off_axis(points[root], centre, axis).max())
+    level = np.floor((geodesic[branch] - geodesic[branch].min()) / max(level_width, 1e-9)).astype(np.int64)
+    column = [root]
+    for k in range(int(level.max()) + 1):
+        here = branch[level == k]
+        if len(here) == 0:
+            continue
+        thick = float(np.median(thickness[here])) / max(t0, 1e-12)
+        if (off_axis(points[here], centre, axis) <= radius).mean() < inside or not band[0] <= thick <= band[1]:
+            break
+        column.append(here)
+        centre, axis, _ = column_axis(points[np.concatenate(column)])
+    taken = np.concatenate(column[1:]) if len(column) > 1 else none
+    rest = np.setdiff1d(branch, taken)
+    if len(taken) == 0 or len(rest) < 10 or np.percentile(thickness[rest], 90) < bulb * t0:
+        return none
+    return taken
