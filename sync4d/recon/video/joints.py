@@ -42,6 +42,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from sync4d.forked import run_forked, usable_workers
+from sync4d.recon.video.gravity import aligned_axis
 from sync4d.recon.video.screw import ScrewFit, fit_screw
 from sync4d.recon.video.stages import PartInit, Tracks
 from sync4d.types import Camera
@@ -102,6 +103,7 @@ class Scene:
         w2c_t: (T, 4, 4) world -> camera of every frame when the camera moves (None: ``w2c`` in every frame);
             then the still root stays put in the world and the camera's own translation fixes the scale.
         depth0: (N,) frame-0 depths to start from [m] (None: ``z_ref`` for every point).
+        up: (3,) the world's up when known (None: unknown); joint axes near level or vertical are tried there.
     """
 
     rays: torch.Tensor
@@ -120,6 +122,7 @@ class Scene:
     flow: torch.Tensor | None = None
     w2c_t: torch.Tensor | None = None
     depth0: torch.Tensor | None = None
+    up: torch.Tensor | None = None
 
 
 @dataclass
@@ -196,9 +199,11 @@ def _rodrigues_batch(rotvec: torch.Tensor) -> torch.Tensor:
 
 def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit, z_ref: float,
                root_motion: np.ndarray, rng: np.random.Generator, *, cover_samples: int = 400,
-               extrinsics: np.ndarray | None = None, depth0: np.ndarray | None = None) -> Scene:
+               extrinsics: np.ndarray | None = None, depth0: np.ndarray | None = None,
+               up: np.ndarray | None = None) -> Scene:
     """The fit's tensors: rays, tracks, distance-to-mask images and the pixels left to the moving parts
-    (``extrinsics`` (T, 4, 4): the per-frame camera when it moves; ``depth0`` (N,) [m]: starting depths)."""
+    (``extrinsics`` (T, 4, 4): the per-frame camera when it moves; ``depth0`` (N,) [m]: starting depths;
+    ``up`` (3,): the world's up when known)."""
     c2w = np.linalg.inv(camera.world_to_cam)
     homo = np.concatenate([tracks.uv0, np.ones((len(tracks.uv0), 1))], 1)
     rays = (np.linalg.inv(camera.K) @ homo.T).T @ c2w[:3, :3].T
@@ -225,7 +230,8 @@ def make_scene(tracks: Tracks, masks: np.ndarray, camera: Camera, init: PartInit
                  root_motion=torch.as_tensor(root_motion, dtype=d), stride=float(tracks.stride),
                  width=float(span * z_ref / camera.K[0, 0]), z_ref=z_ref, flow=_flow_tensor(tracks),
                  w2c_t=None if extrinsics is None else torch.as_tensor(extrinsics, dtype=d),
-                 depth0=None if depth0 is None else torch.as_tensor(depth0, dtype=d))
+                 depth0=None if depth0 is None else torch.as_tensor(depth0, dtype=d),
+                 up=None if up is None else torch.as_tensor(up, dtype=d))
 
 
 def _flow_tensor(tracks: Tracks) -> torch.Tensor | None:
@@ -587,9 +593,46 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) 
         best_loss = relabel_and_refine(best, tracks, config, config.steps // 2)
     best = depth_reversals(best, tracks, config)
     refit_joints(best, tracks, config)
-    best_loss = optimise(best, config, config.steps // 4, neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride),
-                         windows=1)
+    pairs = neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride)
+    best_loss = optimise(best, config, config.steps // 4, pairs, windows=1)
+    if scene.up is not None:
+        best, best_loss = gravity_aligned(best, config, pairs, best_loss)
     return joint_fit_of(best, best_loss, history)
+
+
+def gravity_aligned(model: Articulation, config: FitConfig, pairs: torch.Tensor, loss: float
+                    ) -> tuple[Articulation, float]:
+    """``model`` with its joint axes near level or vertical put exactly there (:mod:`.gravity`) and its joints
+    refined with the axes so held, beside ``model``'s joints refined as long with the axes free; the surfaces
+    are held in both (refined under a held axis they warp to imitate the free one's motion: the filmed laptop's
+    lid 1.0 -> 2.1x as thick). The aligned reading is kept unless the free one explains the images
+    ``SLIDE_PREFERENCE`` better (:func:`kind_loss`; fewer degrees of freedom win a tie, as a slide does against
+    a hinge). Returns the model kept and its data loss (``model`` and ``loss`` when no axis is near)."""
+    assert model.scene.up is not None
+    up = model.scene.up.numpy()
+    with torch.no_grad():
+        axes = model.axes.numpy().copy()
+        values = np.concatenate([np.zeros((1, len(model.kinds))), model.values.numpy()], 0)
+    aligned = axes.copy()
+    for b, kind in enumerate(model.kinds):
+        target = aligned_axis(axes[b], up) if kind in ("hinge", "slide") else None
+        if target is not None:
+            aligned[b] = target * np.linalg.norm(axes[b])
+    if np.array_equal(aligned, axes):
+        return model, loss
+    trials = [copy_with(model, list(model.kinds), a, values) for a in (aligned, axes)]
+    losses, kinds = [], []
+    for trial, held in zip(trials, (True, False)):
+        frozen = [trial.plane, trial.resid] + ([trial.axes] if held else [])
+        for p in frozen:  # Adam skips a parameter without a gradient
+            p.requires_grad_(False)
+        losses.append(optimise(trial, config, config.steps // 8, pairs, windows=1))
+        kinds.append(kind_loss(trial, config))
+        for p in frozen:
+            p.requires_grad_(True)
+    log.info("recon=video: axes level or vertical: kind loss %.4f (axes free %.4f)", kinds[0], kinds[1])
+    keep = 0 if kinds[0] <= kinds[1] * (1.0 + SLIDE_PREFERENCE) else 1
+    return trials[keep], losses[keep]
 
 
 def depth_reversals(model: Articulation, tracks: Tracks, config: FitConfig) -> Articulation:

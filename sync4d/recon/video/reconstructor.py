@@ -161,7 +161,10 @@ class VideoReconstructor:
         log.info("recon=video: %d points (stride %d px), root part %d %s (median motion %s px), camera %s",
                  len(tracks.uv0), tracks.stride, init.root, "static" if init.root_static else "moving",
                  np.round(init.motion_px, 2), "moving" if extrinsics is not None else "static")
-        scene = make_scene(tracks, masks, camera, init, z_ref, root_motion, rng, extrinsics=extrinsics, depth0=depth0)
+        # the reference is Y up when the world's up is known (above): joints near level or vertical are tried there
+        up = np.array([0.0, 1.0, 0.0]) if source.world_up is not None else None
+        scene = make_scene(tracks, masks, camera, init, z_ref, root_motion, rng, extrinsics=extrinsics, depth0=depth0,
+                           up=up)
         threads = torch.get_num_threads()
         # the fit's tensors are small: one thread is several times faster than two fighting for a shared
         # CPU (measured 6.7 s vs 90 s for the same short fit on this machine under load)
