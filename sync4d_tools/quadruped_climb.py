@@ -72,7 +72,7 @@ def search(c: Clip, cfg: qf.QuadrupedFitConfig) -> list[tuple[str, qf.Params]]:
     up_cam = c.w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
     starts = qf.first_frame_starts(c.prob, c.masks[0], up_cam, cfg)
     out = []
-    for _, k, params in sorted(starts, key=lambda x: x[0])[: cfg.tracks]:
+    for _, k, params in qf.ranked_starts(c.prob, starts)[: cfg.tracks]:
         full = qf.track(c.prob, params, cfg, len(c.frames))
         qf.run_steps(c.prob, c.frames, full, cfg, cfg.iterations)
         for pairs in ((), ("f",), ("h",), ("f", "h")):
@@ -82,6 +82,45 @@ def search(c: Clip, cfg: qf.QuadrupedFitConfig) -> list[tuple[str, qf.Params]]:
     return out
 
 
+def true_heading(c: Clip, up_cam: np.ndarray) -> float:
+    """The truth's first-frame heading [deg] in the starts' convention (0 = :func:`qf.heading_rotation`'s angle 0):
+    the pelvis-to-neck direction about the camera-frame up."""
+    from scipy.spatial.transform import Rotation
+
+    truth_cam = c.truth[0] @ c.w2c[0][:3, :3].T + c.w2c[0][:3, 3]
+    fwd = truth_cam[c.names.index("neck")] - truth_cam[c.names.index("pelvis")]
+    base = Rotation.from_rotvec(qf.heading_rotation(up_cam, 0.0)).as_matrix()
+    local = base.T @ fwd  # template axes: facing -x, +z the left
+    return float(np.degrees(np.arctan2(local[2], -local[0])) % 360)
+
+
+def every_heading(c: Clip, cfg: qf.QuadrupedFitConfig, save: str | None, pick: list[int] | None = None) -> list[dict]:
+    """Every start heading tracked and refined as :func:`qf.best_hypothesis` does the best ``tracks``: per heading and
+    leg swap the clip loss, the cross-entropy, the optical-flow error and the mpjpe (the climb's step "true masks
+    and camera, the heading given" is the row of the true heading)."""
+    up_cam = c.w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
+    truth = true_heading(c, up_cam)
+    print(json.dumps({"true_heading_deg": round(truth, 1)}), flush=True)
+    starts = qf.first_frame_starts(c.prob, c.masks[0], up_cam, cfg)
+    rows, kept = [], []
+    for first, k, params in starts:
+        if pick is not None and k not in pick:
+            continue
+        cue = qf.gait_cue(c.prob, params)
+        full = qf.track(c.prob, params, cfg, len(c.frames))
+        loss = qf.run_steps(c.prob, c.frames, full, cfg, cfg.iterations)[0]
+        kept.append({n: v.detach().clone() for n, v in full.items()})
+        for pairs in ((), ("f",), ("h",), ("f", "h")):
+            trial = {**full, "local": qf.swap_legs(c.prob.tt, full["local"].detach(), pairs)}
+            rows.append({"heading": 360 * k / cfg.starts, "swapped": "+".join(pairs) or "none",
+                         "first_loss": round(first, 4), "gait_cue": round(cue, 3), "loss": round(loss, 4),
+                         "flow_error": round(qf.flow_error(c.prob, trial), 4), **c.terms(trial), **c.score(trial)})
+            print(json.dumps(rows[-1]), flush=True)
+    if save:
+        torch.save({"true_heading_deg": truth, "tracks": kept}, save)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clip", required=True, help="a rendered quadruped clip (body_suite's folder)")
@@ -89,12 +128,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--load", help="hypotheses saved by --save, refined under --set")
     parser.add_argument("--set", nargs="*", default=[], help="QuadrupedFitConfig fields, name=value")
     parser.add_argument("--steps", type=int, default=140, help="clip steps for B and each loaded hypothesis")
-    parser.add_argument("--pick", default="", help="comma-separated indices of the loaded hypotheses")
+    parser.add_argument("--headings", action="store_true", help="track every start heading (no B); --save keeps them")
+    parser.add_argument("--pick", default="", help="comma-separated indices of the loaded hypotheses (with --headings: of the start headings)")
     args = parser.parse_args(argv)
     base = qf.QuadrupedFitConfig()
     over: dict[str, Any] = {k: type(getattr(base, k))(v) for k, v in (s.split("=", 1) for s in args.set)}
     cfg = qf.QuadrupedFitConfig(**over)
     c = Clip(Path(args.clip), cfg)
+    if args.headings:
+        return every_heading(c, cfg, args.save, [int(i) for i in args.pick.split(",")] if args.pick else None)
     rows = [truth_started(c, cfg, args.steps)]
     print(json.dumps(rows[-1]), flush=True)
     if args.save:

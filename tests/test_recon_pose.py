@@ -603,6 +603,34 @@ def test_quadruped_fit_is_reproducible_on_two_threads(shared_data: Path) -> None
     assert np.array_equal(runs[0], runs[1])
 
 
+def test_gait_cue_tells_the_way_the_paws_push(shared_data: Path) -> None:
+    """The paws' motion relative to the body: the mask's bottom band moving toward +u (image right) while the rest
+    stands still says the animal faces -u; a start facing -u scores negative (ranked first), its reversal positive."""
+    import math
+
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    _, _, camera, masks, _ = _template_clip()
+    prob = qf.QuadrupedProblem(masks, camera, qf.QuadrupedFitConfig())
+    inside = prob.target > 0.5
+    v = prob.uv[:, 1]
+    flow = torch.zeros(len(masks) - 1, len(v), 2)
+    for t in range(len(flow)):
+        low = v >= v[inside[t]].max() - 0.2 * (v[inside[t]].max() - v[inside[t]].min())
+        flow[t, inside[t] & low, 0] = 1.0  # the paws slide toward +u
+    prob.flow = flow
+    prob.feet = qf.feet_motion(prob.target, flow, prob.uv, 0.2)
+    assert (prob.feet[:, 0] > 0).all() and torch.allclose(prob.feet[:, 1], torch.zeros(len(flow)))
+    up, root = np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, 2.0])
+    facing_left = qf.start_params(prob, qf.heading_rotation(up, 0.0), root, 0.6)  # heading 0 faces -u
+    facing_right = qf.start_params(prob, qf.heading_rotation(up, math.pi), root, 0.6)
+    assert qf.gait_cue(prob, facing_left) < 0 < qf.gait_cue(prob, facing_right)
+    starts = [(0.1, 1, facing_right), (0.2, 0, facing_left)]
+    assert [k for _, k, _ in qf.ranked_starts(prob, starts)] == [0, 1]
+
+
 def test_quadruped_climb_needs_a_clip() -> None:
     """sync4d_tools.quadruped_climb: --clip is required (argparse exits 2 before any work)."""
     import pytest

@@ -65,6 +65,8 @@ class QuadrupedFitConfig:
             frames a second; other frame rates scale second differences by (fps / 30)^2.
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
+        feet_band: the bottom fraction of the mask's height whose motion relative to the body tells the way the
+            animal faces (:func:`gait_cue`).
     """
 
     template: str = "fox"
@@ -85,6 +87,7 @@ class QuadrupedFitConfig:
     leg_off_plane_deg: float = 15.0
     smooth_weight: float = 5.0
     background_threshold: float = 30.0
+    feet_band: float = 0.2
 
 
 @dataclass(frozen=True)
@@ -301,6 +304,7 @@ class QuadrupedProblem:
         self.cams = None if rel is None else torch.tensor(rel, dtype=DTYPE)
         self.rate = fps / SMOOTH_FPS
         self.flow = None if frames is None or len(frames) < 2 else torch.tensor(video_flow(frames, uv), dtype=DTYPE)
+        self.feet = None if self.flow is None else feet_motion(self.target, self.flow, self.uv, config.feet_band)
 
     def cams_of(self, frames: np.ndarray) -> torch.Tensor | None:
         return None if self.cams is None else self.cams[torch.as_tensor(frames)]
@@ -437,6 +441,35 @@ def flow_error(prob: QuadrupedProblem, params: Params) -> float:
     return float(err[keep].mean()) / (2 * prob.tau) if keep.any() else 0.0
 
 
+def feet_motion(target: torch.Tensor, flow: torch.Tensor, uv: torch.Tensor, low: float) -> torch.Tensor:
+    """(T-1, 2) image motion [px] of the mask's lowest cells (the bottom ``low`` of its height each frame: the
+    paws on the ground) minus the mean motion of the whole mask, from frame t to t+1."""
+    out = []
+    for t in range(len(flow)):
+        inside = target[t] > 0.5
+        v = uv[:, 1][inside]
+        feet = uv[:, 1] >= v.max() - low * (v.max() - v.min())
+        out.append(flow[t][inside & feet].mean(0) - flow[t][inside].mean(0))
+    return torch.stack(out)
+
+
+def gait_cue(prob: QuadrupedProblem, params: Params) -> float:
+    """The paws' motion relative to the body along the body's projected tail-to-head axis [grid cells a frame]:
+    negative when the body faces the way it walks (a paw on the ground moves toward the tail relative to the
+    body, whether the animal walks in place or across the image). ``params`` of one frame (a start) are held
+    over the clip. 0 without the video's frames."""
+    if prob.feet is None:
+        return 0.0
+    tmpl = prob.tt.template
+    with torch.no_grad():
+        joints = pose_body(prob.tt, params)[0][:, [tmpl.head, tmpl.tail]]
+        joints = joints.expand(len(prob.target), 2, 3) if len(joints) == 1 else joints
+        uv = project_points(to_cameras(joints, prob.cams), prob.K)[:-1]
+        axis = uv[:, 0] - uv[:, 1]
+        along = (prob.feet * axis).sum() / axis.norm(dim=-1).sum().clamp_min(1e-9)
+    return float(along) / (2 * prob.tau)
+
+
 RIGID = ("root_rot", "root_pos", "log_scale", "log_thick")
 CLIP = ("log_len", "log_girth", "log_scale", "log_thick")
 
@@ -526,13 +559,23 @@ def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: 
                 ).requires_grad_(True) for k in frames[0]}
 
 
+def ranked_starts(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]]
+                  ) -> list[tuple[float, int, Params]]:
+    """The starts facing the way the paws say the animal walks (:func:`gait_cue` <= 0) first, each group by its
+    first-frame loss: the silhouette alone hardly tells head from tail (a reversed fit bends to match)."""
+    cue = {k: gait_cue(prob, params) for _, k, params in starts}
+    for loss, k, _ in starts:
+        log.info("quadruped start heading %.0f deg: loss %.4f, gait cue %.3f", 360 * k / len(starts), loss, cue[k])
+    return sorted(starts, key=lambda x: (cue[x[1]] > 0, x[0]))
+
+
 def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
                     n: int) -> Params:
     """The best of the ``tracks`` lowest-loss starts, tracked and refined on the clip, each with and without
     its fore and/or hind legs swapped: by the optical flow's agreement (the clip loss without video frames)."""
     best: tuple[float, Params] | None = None
     swaps = ((), ("f",), ("h",), ("f", "h")) if prob.flow is not None else ((),)
-    for _, k, params in sorted(starts, key=lambda x: x[0])[: config.tracks]:
+    for _, k, params in ranked_starts(prob, starts)[: config.tracks]:
         full = track(prob, params, config, n)
         loss, _, _ = run_steps(prob, np.arange(n), full, config, config.iterations)
         for pairs in swaps:
