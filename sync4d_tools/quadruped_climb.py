@@ -3,13 +3,16 @@
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --save hyps.pt          # main's search
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --load hyps.pt \\
         --set inside_weight=0.2 --steps 60 --pick 0,4                                                # re-judged
+    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --headings [--pick 0]    # every heading
 
 The first form runs the fit's search (first-frame starts, ``tracks`` tracks refined on the clip, each with its
 legs swapped: the hypotheses) with the defaults, saves them and scores each (loss, optical-flow error, mpjpe
 in % of the height as ``body_suite`` scores). Both forms then fit ``B`` (the template fitted to the truth joints
 under the fit's priors, then the silhouette clip fit from there, as ``body_suite --split`` does) and, with
 ``--load``, refine every saved hypothesis the same ``--steps`` under the configuration given by ``--set``: the
-truth is the objective's minimum on this clip when B's loss is below every hypothesis'. Prints JSON rows.
+truth is the objective's minimum on this clip when B's loss is below every hypothesis'. ``--headings`` instead
+tracks every start heading (or those ``--pick`` names) as the fit tracks its best ``tracks``, and scores each
+with its gait cue, loss, flow error and mpjpe (the truth's heading printed first). Prints JSON rows.
 """
 
 from __future__ import annotations
