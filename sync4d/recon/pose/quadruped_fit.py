@@ -25,7 +25,7 @@ import torch
 
 from sync4d.errors import InputError
 from sync4d.geometry import rotation_vector_to_matrix_torch
-from sync4d.recon.pose.templates import BodyTemplate, body_template
+from sync4d.recon.pose.templates import LEG_PREFIXES, BodyTemplate, body_template
 from sync4d.rng import deterministic_torch
 from sync4d.surface import area_samples
 from sync4d.types import Camera
@@ -35,6 +35,9 @@ SMOOTH_FPS = 30.0  # the frame rate at which smooth_weight is stated
 DTYPE = torch.float32
 SAMPLES = 1200  # surface samples of the template drawn as discs for the silhouette
 SAMPLE_RADIUS = 0.6  # disc radius in units of the samples' mean spacing (fills the gaps between them)
+# |gait cue| [grid cells a frame] below which no start's paws are seen to move (an animal standing still): the
+# walking clips measure 0.1-0.6, optical flow's noise on a still body about 0.001
+GAIT_DEAD_BAND = 0.05
 Params = dict[str, torch.Tensor]
 
 
@@ -454,19 +457,25 @@ def feet_motion(target: torch.Tensor, flow: torch.Tensor, uv: torch.Tensor, low:
 
 
 def gait_cue(prob: QuadrupedProblem, params: Params) -> float:
-    """The paws' motion relative to the body along the body's projected tail-to-head axis [grid cells a frame]:
-    negative when the body faces the way it walks (a paw on the ground moves toward the tail relative to the
-    body, whether the animal walks in place or across the image). ``params`` of one frame (a start) are held
-    over the clip. 0 without the video's frames."""
+    """The paws' image motion relative to the body along the image motion a start predicts for a paw stepping toward
+    its head [grid cells a frame]: negative when the start faces the way the animal walks (a paw on the ground moves
+    toward the tail relative to the body, whether the animal walks in place or across the image). The prediction
+    moves the paws' centre a tenth of the body length along the tail-to-head direction and projects it through each
+    frame's camera, so that a paw slipping away from a camera the animal faces counts (it rises in the image, as the
+    head-to-tail axis may too). ``params`` of one frame (a start) are held over the clip. 0 without the video's
+    frames."""
     if prob.feet is None:
         return 0.0
     tmpl = prob.tt.template
+    paws = [int(tmpl.leg(p)[-1]) for p in LEG_PREFIXES]
     with torch.no_grad():
-        joints = pose_body(prob.tt, params)[0][:, [tmpl.head, tmpl.tail]]
-        joints = joints.expand(len(prob.target), 2, 3) if len(joints) == 1 else joints
-        uv = project_points(to_cameras(joints, prob.cams), prob.K)[:-1]
-        axis = uv[:, 0] - uv[:, 1]
-        along = (prob.feet * axis).sum() / axis.norm(dim=-1).sum().clamp_min(1e-9)
+        joints = pose_body(prob.tt, params)[0]
+        joints = joints.expand(len(prob.target), *joints.shape[1:]) if len(joints) == 1 else joints
+        paw = joints[:, paws].mean(1)
+        step = 0.1 * (joints[:, tmpl.head] - joints[:, tmpl.tail])
+        uv = project_points(to_cameras(torch.stack([paw, paw + step], 1), prob.cams), prob.K)[:-1]
+        ahead = uv[:, 1] - uv[:, 0]
+        along = (prob.feet * ahead).sum() / ahead.norm(dim=-1).sum().clamp_min(1e-9)
     return float(along) / (2 * prob.tau)
 
 
@@ -562,10 +571,13 @@ def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: 
 def ranked_starts(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]]
                   ) -> list[tuple[float, int, Params]]:
     """The starts facing the way the paws say the animal walks (:func:`gait_cue` <= 0) first, each group by its
-    first-frame loss: the silhouette alone hardly tells head from tail (a reversed fit bends to match)."""
+    first-frame loss: the silhouette alone hardly tells head from tail (a reversed fit bends to match). By the loss
+    alone when no start's cue reaches :data:`GAIT_DEAD_BAND`."""
     cue = {k: gait_cue(prob, params) for _, k, params in starts}
     for loss, k, _ in starts:
         log.info("quadruped start heading %.0f deg: loss %.4f, gait cue %.3f", 360 * k / len(starts), loss, cue[k])
+    if max(abs(c) for c in cue.values()) < GAIT_DEAD_BAND:  # the paws do not move: the animal does not walk
+        return sorted(starts, key=lambda x: x[0])
     return sorted(starts, key=lambda x: (cue[x[1]] > 0, x[0]))
 
 
