@@ -25,7 +25,7 @@ import torch
 
 from sync4d.errors import InputError
 from sync4d.geometry import rotation_vector_to_matrix_torch
-from sync4d.recon.pose.templates import LEG_PREFIXES, BodyTemplate, body_template
+from sync4d.recon.pose.templates import BodyTemplate, body_template
 from sync4d.rng import deterministic_torch
 from sync4d.surface import area_samples
 from sync4d.types import Camera
@@ -35,9 +35,6 @@ SMOOTH_FPS = 30.0  # the frame rate at which smooth_weight is stated
 DTYPE = torch.float32
 SAMPLES = 1200  # surface samples of the template drawn as discs for the silhouette
 SAMPLE_RADIUS = 0.6  # disc radius in units of the samples' mean spacing (fills the gaps between them)
-# |gait cue| [grid cells a frame] below which no start's paws are seen to move (an animal standing still): the
-# walking clips measure 0.1-0.6, optical flow's noise on a still body about 0.001
-GAIT_DEAD_BAND = 0.05
 Params = dict[str, torch.Tensor]
 
 
@@ -68,8 +65,6 @@ class QuadrupedFitConfig:
             frames a second; other frame rates scale second differences by (fps / 30)^2.
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
-        feet_band: the bottom fraction of the mask's height whose motion relative to the body tells the way the
-            animal faces (:func:`gait_cue`).
     """
 
     template: str = "fox"
@@ -90,7 +85,6 @@ class QuadrupedFitConfig:
     leg_off_plane_deg: float = 15.0
     smooth_weight: float = 5.0
     background_threshold: float = 30.0
-    feet_band: float = 0.2
 
 
 @dataclass(frozen=True)
@@ -307,7 +301,6 @@ class QuadrupedProblem:
         self.cams = None if rel is None else torch.tensor(rel, dtype=DTYPE)
         self.rate = fps / SMOOTH_FPS
         self.flow = None if frames is None or len(frames) < 2 else torch.tensor(video_flow(frames, uv), dtype=DTYPE)
-        self.feet = None if self.flow is None else feet_motion(self.target, self.flow, self.uv, config.feet_band)
 
     def cams_of(self, frames: np.ndarray) -> torch.Tensor | None:
         return None if self.cams is None else self.cams[torch.as_tensor(frames)]
@@ -444,41 +437,6 @@ def flow_error(prob: QuadrupedProblem, params: Params) -> float:
     return float(err[keep].mean()) / (2 * prob.tau) if keep.any() else 0.0
 
 
-def feet_motion(target: torch.Tensor, flow: torch.Tensor, uv: torch.Tensor, low: float) -> torch.Tensor:
-    """(T-1, 2) image motion [px] of the mask's lowest cells (the bottom ``low`` of its height each frame: the
-    paws on the ground) minus the mean motion of the whole mask, from frame t to t+1."""
-    out = []
-    for t in range(len(flow)):
-        inside = target[t] > 0.5
-        v = uv[:, 1][inside]
-        feet = uv[:, 1] >= v.max() - low * (v.max() - v.min())
-        out.append(flow[t][inside & feet].mean(0) - flow[t][inside].mean(0))
-    return torch.stack(out)
-
-
-def gait_cue(prob: QuadrupedProblem, params: Params) -> float:
-    """The paws' image motion relative to the body along the image motion a start predicts for a paw stepping toward
-    its head [grid cells a frame]: negative when the start faces the way the animal walks (a paw on the ground moves
-    toward the tail relative to the body, whether the animal walks in place or across the image). The prediction
-    moves the paws' centre a tenth of the body length along the tail-to-head direction and projects it through each
-    frame's camera, so that a paw slipping away from a camera the animal faces counts (it rises in the image, as the
-    head-to-tail axis may too). ``params`` of one frame (a start) are held over the clip. 0 without the video's
-    frames."""
-    if prob.feet is None:
-        return 0.0
-    tmpl = prob.tt.template
-    paws = [int(tmpl.leg(p)[-1]) for p in LEG_PREFIXES]
-    with torch.no_grad():
-        joints = pose_body(prob.tt, params)[0]
-        joints = joints.expand(len(prob.target), *joints.shape[1:]) if len(joints) == 1 else joints
-        paw = joints[:, paws].mean(1)
-        step = 0.1 * (joints[:, tmpl.head] - joints[:, tmpl.tail])
-        uv = project_points(to_cameras(torch.stack([paw, paw + step], 1), prob.cams), prob.K)[:-1]
-        ahead = uv[:, 1] - uv[:, 0]
-        along = (prob.feet * ahead).sum() / ahead.norm(dim=-1).sum().clamp_min(1e-9)
-    return float(along) / (2 * prob.tau)
-
-
 RIGID = ("root_rot", "root_pos", "log_scale", "log_thick")
 CLIP = ("log_len", "log_girth", "log_scale", "log_thick")
 
@@ -568,26 +526,13 @@ def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: 
                 ).requires_grad_(True) for k in frames[0]}
 
 
-def ranked_starts(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]]
-                  ) -> list[tuple[float, int, Params]]:
-    """The starts facing the way the paws say the animal walks (:func:`gait_cue` <= 0) first, each group by its
-    first-frame loss: the silhouette alone hardly tells head from tail (a reversed fit bends to match). By the loss
-    alone when no start's cue reaches :data:`GAIT_DEAD_BAND`."""
-    cue = {k: gait_cue(prob, params) for _, k, params in starts}
-    for loss, k, _ in starts:
-        log.info("quadruped start heading %.0f deg: loss %.4f, gait cue %.3f", 360 * k / len(starts), loss, cue[k])
-    if max(abs(c) for c in cue.values()) < GAIT_DEAD_BAND:  # the paws do not move: the animal does not walk
-        return sorted(starts, key=lambda x: x[0])
-    return sorted(starts, key=lambda x: (cue[x[1]] > 0, x[0]))
-
-
 def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
                     n: int) -> Params:
     """The best of the ``tracks`` lowest-loss starts, tracked and refined on the clip, each with and without
     its fore and/or hind legs swapped: by the optical flow's agreement (the clip loss without video frames)."""
     best: tuple[float, Params] | None = None
     swaps = ((), ("f",), ("h",), ("f", "h")) if prob.flow is not None else ((),)
-    for _, k, params in ranked_starts(prob, starts)[: config.tracks]:
+    for _, k, params in sorted(starts, key=lambda x: x[0])[: config.tracks]:
         full = track(prob, params, config, n)
         loss, _, _ = run_steps(prob, np.arange(n), full, config, config.iterations)
         for pairs in swaps:
