@@ -3,13 +3,16 @@
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --save hyps.pt          # main's search
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --load hyps.pt \\
         --set inside_weight=0.2 --steps 60 --pick 0,4                                                # re-judged
+    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --headings [--pick 0]    # every heading
 
 The first form runs the fit's search (first-frame starts, ``tracks`` tracks refined on the clip, each with its
 legs swapped: the hypotheses) with the defaults, saves them and scores each (loss, optical-flow error, mpjpe
 in % of the height as ``body_suite`` scores). Both forms then fit ``B`` (the template fitted to the truth joints
 under the fit's priors, then the silhouette clip fit from there, as ``body_suite --split`` does) and, with
 ``--load``, refine every saved hypothesis the same ``--steps`` under the configuration given by ``--set``: the
-truth is the objective's minimum on this clip when B's loss is below every hypothesis'. Prints JSON rows.
+truth is the objective's minimum on this clip when B's loss is below every hypothesis'. ``--headings`` instead
+tracks every start heading (or those ``--pick`` names) as the fit tracks its best ``tracks``, and scores each
+with its gait cue (:func:`gait_cue`), loss, flow error and mpjpe (the truth's heading printed first). Prints JSON rows.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 import torch
 
 from sync4d.recon.pose import quadruped_fit as qf
+from sync4d.recon.pose.templates import LEG_PREFIXES
 from sync4d_tools import camera_of, video_of
 from sync4d_tools import body_suite as bs
 
@@ -82,6 +86,82 @@ def search(c: Clip, cfg: qf.QuadrupedFitConfig) -> list[tuple[str, qf.Params]]:
     return out
 
 
+def feet_motion(prob: qf.QuadrupedProblem, band: float = 0.2) -> torch.Tensor | None:
+    """(T-1, 2) optical flow [px] of the mask's lowest cells (the bottom ``band`` of its height each frame: the paws
+    near the ground) minus the mean flow of the whole mask; None without the video's frames."""
+    if prob.flow is None:
+        return None
+    out = []
+    for t in range(len(prob.flow)):
+        inside = prob.target[t] > 0.5
+        v = prob.uv[:, 1][inside]
+        feet = prob.uv[:, 1] >= v.max() - band * (v.max() - v.min())
+        out.append(prob.flow[t][inside & feet].mean(0) - prob.flow[t][inside].mean(0))
+    return torch.stack(out)
+
+
+def gait_cue(prob: qf.QuadrupedProblem, feet: torch.Tensor | None, params: qf.Params) -> float:
+    """The gait cue of a start [grid cells a frame]: the paws' motion relative to the body (:func:`feet_motion`) along
+    the image motion the start predicts for its paws' centre stepping a tenth of the body length toward its head
+    (through each frame's camera; a one-frame start held over the clip), weighted by that motion's image length.
+    Negative when the start faces the way the animal walks: a paw on the ground moves toward the tail relative to
+    the body, in place or across the image. 0 without the video's frames. A diagnostic (results page): as the
+    starts' ranking it helped three rendered rows and hurt two."""
+    if feet is None:
+        return 0.0
+    tmpl = prob.tt.template
+    paws = [int(tmpl.leg(p)[-1]) for p in LEG_PREFIXES]
+    with torch.no_grad():
+        joints = qf.pose_body(prob.tt, params)[0]
+        joints = joints.expand(len(prob.target), *joints.shape[1:]) if len(joints) == 1 else joints
+        paw = joints[:, paws].mean(1)
+        step = 0.1 * (joints[:, tmpl.head] - joints[:, tmpl.tail])
+        uv = qf.project_points(qf.to_cameras(torch.stack([paw, paw + step], 1), prob.cams), prob.K)[:-1]
+        ahead = uv[:, 1] - uv[:, 0]
+        along = (feet * ahead).sum() / ahead.norm(dim=-1).sum().clamp_min(1e-9)
+    return float(along) / (2 * prob.tau)
+
+
+def true_heading(c: Clip, up_cam: np.ndarray) -> float:
+    """The truth's first-frame heading [deg] in the starts' convention (0 = :func:`qf.heading_rotation`'s angle 0):
+    the pelvis-to-neck direction about the camera-frame up."""
+    from scipy.spatial.transform import Rotation
+
+    truth_cam = c.truth[0] @ c.w2c[0][:3, :3].T + c.w2c[0][:3, 3]
+    fwd = truth_cam[c.names.index("neck")] - truth_cam[c.names.index("pelvis")]
+    base = Rotation.from_rotvec(qf.heading_rotation(up_cam, 0.0)).as_matrix()
+    local = base.T @ fwd  # template axes: facing -x, +z the left
+    return float(np.degrees(np.arctan2(local[2], -local[0])) % 360)
+
+
+def every_heading(c: Clip, cfg: qf.QuadrupedFitConfig, save: str | None, pick: list[int] | None = None) -> list[dict]:
+    """Every start heading tracked and refined as :func:`qf.best_hypothesis` does the best ``tracks``: per heading and
+    leg swap the clip loss, the cross-entropy, the optical-flow error and the mpjpe (the climb's step "true masks
+    and camera, the heading given" is the row of the true heading)."""
+    up_cam = c.w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
+    truth = true_heading(c, up_cam)
+    print(json.dumps({"true_heading_deg": round(truth, 1)}), flush=True)
+    starts = qf.first_frame_starts(c.prob, c.masks[0], up_cam, cfg)
+    feet = feet_motion(c.prob)
+    rows, kept = [], []
+    for first, k, params in starts:
+        if pick is not None and k not in pick:
+            continue
+        cue = gait_cue(c.prob, feet, params)
+        full = qf.track(c.prob, params, cfg, len(c.frames))
+        loss = qf.run_steps(c.prob, c.frames, full, cfg, cfg.iterations)[0]
+        kept.append({n: v.detach().clone() for n, v in full.items()})
+        for pairs in ((), ("f",), ("h",), ("f", "h")):
+            trial = {**full, "local": qf.swap_legs(c.prob.tt, full["local"].detach(), pairs)}
+            rows.append({"heading": 360 * k / cfg.starts, "swapped": "+".join(pairs) or "none",
+                         "first_loss": round(first, 4), "gait_cue": round(cue, 3), "loss": round(loss, 4),
+                         "flow_error": round(qf.flow_error(c.prob, trial), 4), **c.terms(trial), **c.score(trial)})
+            print(json.dumps(rows[-1]), flush=True)
+    if save:
+        torch.save({"true_heading_deg": truth, "tracks": kept}, save)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clip", required=True, help="a rendered quadruped clip (body_suite's folder)")
@@ -89,12 +169,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--load", help="hypotheses saved by --save, refined under --set")
     parser.add_argument("--set", nargs="*", default=[], help="QuadrupedFitConfig fields, name=value")
     parser.add_argument("--steps", type=int, default=140, help="clip steps for B and each loaded hypothesis")
-    parser.add_argument("--pick", default="", help="comma-separated indices of the loaded hypotheses")
+    parser.add_argument("--headings", action="store_true", help="track every start heading (no B); --save keeps them")
+    parser.add_argument("--pick", default="", help="comma-separated indices of the loaded hypotheses (with --headings: of the start headings)")
     args = parser.parse_args(argv)
     base = qf.QuadrupedFitConfig()
     over: dict[str, Any] = {k: type(getattr(base, k))(v) for k, v in (s.split("=", 1) for s in args.set)}
     cfg = qf.QuadrupedFitConfig(**over)
     c = Clip(Path(args.clip), cfg)
+    if args.headings:
+        return every_heading(c, cfg, args.save, [int(i) for i in args.pick.split(",")] if args.pick else None)
     rows = [truth_started(c, cfg, args.steps)]
     print(json.dumps(rows[-1]), flush=True)
     if args.save:

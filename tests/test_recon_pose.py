@@ -603,6 +603,33 @@ def test_quadruped_fit_is_reproducible_on_two_threads(shared_data: Path) -> None
     assert np.array_equal(runs[0], runs[1])
 
 
+def test_gait_cue_tells_the_way_the_paws_push(shared_data: Path) -> None:
+    """quadruped_climb's gait cue: the mask's bottom band moving toward +u (image right) while the rest stands still
+    says the animal faces -u; a start facing -u scores negative, its reversal positive."""
+    import math
+
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d_tools.quadruped_climb import feet_motion, gait_cue
+
+    _, _, camera, masks, _ = _template_clip()
+    prob = qf.QuadrupedProblem(masks, camera, qf.QuadrupedFitConfig())
+    assert feet_motion(prob) is None
+    inside = prob.target > 0.5
+    v = prob.uv[:, 1]
+    prob.flow = torch.zeros(len(masks) - 1, len(v), 2)
+    for t in range(len(prob.flow)):
+        low = v >= v[inside[t]].max() - 0.2 * (v[inside[t]].max() - v[inside[t]].min())
+        prob.flow[t, inside[t] & low, 0] = 1.0  # the paws slide toward +u
+    feet = feet_motion(prob)
+    assert feet is not None and (feet[:, 0] > 0).all() and torch.allclose(feet[:, 1], torch.zeros(len(feet)))
+    up, root = np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, 2.0])
+    facing_left = qf.start_params(prob, qf.heading_rotation(up, 0.0), root, 0.6)  # heading 0 faces -u
+    facing_right = qf.start_params(prob, qf.heading_rotation(up, math.pi), root, 0.6)
+    assert gait_cue(prob, feet, facing_left) < 0 < gait_cue(prob, feet, facing_right)
+
+
 def test_quadruped_climb_needs_a_clip() -> None:
     """sync4d_tools.quadruped_climb: --clip is required (argparse exits 2 before any work)."""
     import pytest
