@@ -346,23 +346,24 @@ class Articulation(torch.nn.Module):
         shift = centre - torch.einsum("tbij,tbj->tbi", rot, centre) + free[..., 3:] * self.scene.width
         return torch.cat([rot @ motion[..., :3], (rot @ motion[..., 3:])+ shift[..., None]], -1)
 
-    def swept(self, kinds: tuple[str, ...] = ("slide",)) -> torch.Tensor:
-        """(T, M, 3) world points of the parts of ``kinds`` at fractions SWEEP of each frame's joint value. A
-        sliding part's sides (a drawer's box) are the extrusion of its outline along its direction: the
-        surface a slide reveals lies on its own path, so the path covers mask pixels too (the cover term).
-        A hinge's path is not its surface (fitting with it measured worse on lids), but joint kinds are
+    def swept(self, kinds: tuple[str, ...] = ("slide",), frames: int | None = None) -> torch.Tensor:
+        """(T, M, 3) world points (of the first ``frames`` frames when given) of the parts of ``kinds`` at
+        fractions SWEEP of each frame's joint value. A sliding part's sides (a drawer's box) are the extrusion
+        of its outline along its direction: the surface a slide reveals lies on its own path, so the path
+        covers mask pixels too (the cover term). A hinge's path is not its surface (fitting with it measured
+        worse on lids), but joint kinds are
         compared with every kind's path (``kind_loss``), so that a lid read as a slide gains nothing from it."""
         use = torch.as_tensor([self.kinds[b] in kinds for b in range(len(self.kinds))])[self.labels]
         rest = self.rest()[use]
-        out = [rest[None].expand(len(self.values) + 1, -1, -1)[:, :0]]
+        out = [rest[None].expand(len(self.values) + 1, -1, -1)[:frames, :0]]
         for frac in SWEEP if use.any() else ():
-            j = self.part_transforms(frac)[:, self.labels[use]]
+            j = self.part_transforms(frac)[:frames, self.labels[use]]
             out.append(torch.einsum("tnij,nj->tni", j[..., :3], rest) + j[..., 3])
         return torch.cat(out, 1)
 
-    def posed(self) -> torch.Tensor:
-        """(T, N, 3) world points of every frame."""
-        j = self.part_transforms()[:, self.labels]  # (T, N, 3, 4)
+    def posed(self, frames: int | None = None) -> torch.Tensor:
+        """(T, N, 3) world points of every frame (of the first ``frames`` when given)."""
+        j = self.part_transforms()[:frames, self.labels]  # (T, N, 3, 4)
         return torch.einsum("tnij,nj->tni", j[..., :3], self.rest()) + j[..., 3]
 
 
@@ -386,15 +387,18 @@ def flow_term(model: Articulation, posed: torch.Tensor, uv: torch.Tensor, frames
     if sc.flow is None or frames < 2:
         return torch.zeros((), dtype=uv.dtype)
     _, _, h, w = sc.flow.shape
-    with torch.no_grad():
-        at = uv[:-1].detach()
+    moving = model.labels != model.root
+    with torch.no_grad():  # the root's points only hide others: the flow is sampled at the moving ones alone
+        pc = to_camera(sc, posed[:-1].detach())
+        seen = visible(uv[:-1].detach(), pc[..., 2], sc.stride)[:, moving]
+        at = uv[:-1, moving].detach()
         grid = torch.stack([at[..., 0] / w * 2 - 1, at[..., 1] / h * 2 - 1], -1)[:, None]
         fl = torch.nn.functional.grid_sample(sc.flow[: frames - 1], grid, align_corners=False)[:, :, 0]  # (F, 3, N)
-        pc = to_camera(sc, posed[:-1].detach())
-        ok = (fl[:, 2] > 0.99) & visible(at, pc[..., 2], sc.stride) & (model.labels != model.root)[None]
+        ok = (fl[:, 2] > 0.99) & seen
     if not ok.any():
         return torch.zeros((), dtype=uv.dtype)
-    err = ((uv[1:] - uv[:-1] - fl[:, :2].transpose(1, 2)) ** 2).sum(-1) / sc.stride**2
+    mov = uv[:, moving]
+    err = ((mov[1:] - mov[:-1] - fl[:, :2].transpose(1, 2)) ** 2).sum(-1) / sc.stride**2
     return (torch.sqrt(err + 1.0) - 1.0)[ok].mean()
 
 
@@ -404,29 +408,42 @@ def data_terms(model: Articulation, frames: int, *, with_flow: bool = True, swep
     frames 1..frames-1, in strides (see the module docstring); the chained tracks are the verified ones, or
     every trusted one when ``verified_only`` is false."""
     sc = model.scene
-    posed = model.posed()[:frames]
+    posed = model.posed(frames)
     uv_all = project(sc, posed)
     uv = uv_all[1:]
     moving = model.labels != model.root
-    trusted = (sc.verified if verified_only else sc.trusted)[1:frames] & moving[None]
-    err = ((uv - sc.tracks[1:frames]) ** 2).sum(-1) / sc.stride**2
+    # the track and inside terms count moving points only, so only theirs are compared or sampled
+    trusted = (sc.verified if verified_only else sc.trusted)[1:frames, moving]
+    err = ((uv[:, moving] - sc.tracks[1:frames, moving]) ** 2).sum(-1) / sc.stride**2
     track = (torch.sqrt(err + 1.0) - 1.0)[trusted].mean() if trusted.any() else torch.zeros((), dtype=uv.dtype)
     if with_flow:
         track = track + FLOW_WEIGHT * flow_term(model, posed, uv_all, frames)
-    inside = (sample_outside(sc, uv, 1) / sc.stride).clamp(max=10.0)[:, moving].mean()
-    uv = torch.cat([uv, project(sc, model.swept(swept)[1:frames], 1)], 1)
-    cover = []
-    for t in range(1, frames):
-        if len(sc.cover_px[t]) and moving.any():
-            pts = uv[t - 1]
-            # the nearest point by a k-d tree, the distance to it differentiated (torch.cdist is slow here); the
-            # tree is built once per query, so its cheapest build (unbalanced, loose nodes: 1.6x) wins
-            tree = cKDTree(pts.detach().numpy(), balanced_tree=False, compact_nodes=False)
-            near = torch.as_tensor(tree.query(sc.cover_px[t].numpy())[1])
-            dist = (sc.cover_px[t] - pts[near]).norm(dim=1) / sc.stride
-            cover.append(dist.clamp(max=4.0).mean())
-    cover_t = torch.stack(cover).mean() if cover else torch.zeros((), dtype=uv.dtype)
-    return track, inside, cover_t
+    inside = (sample_outside(sc, uv[:, moving], 1) / sc.stride).clamp(max=10.0).mean()
+    if not moving.any():
+        return track, inside, torch.zeros((), dtype=uv.dtype)
+    return track, inside, cover_term(sc, torch.cat([uv, project(sc, model.swept(swept, frames)[1:], 1)], 1))
+
+
+def cover_term(sc: Scene, uv: torch.Tensor) -> torch.Tensor:
+    """Mean over frames 1.. of the mean distance [strides, capped at 4] from each cover pixel to its nearest
+    projected point, uv (F, M, 2) of frames 1..F."""
+    frames = [t for t in range(1, len(uv) + 1) if len(sc.cover_px[t])]
+    if not frames:
+        return torch.zeros((), dtype=uv.dtype)
+    pts = uv[[t - 1 for t in frames]]
+    px = torch.cat([sc.cover_px[t] for t in frames])
+    counts = [len(sc.cover_px[t]) for t in frames]
+    # the nearest point by a k-d tree, the distance to it differentiated (torch.cdist is slow here); a tree
+    # per frame (one tree over all frames breaks the ties between equally near points differently), built
+    # once per query, so its cheapest build (unbalanced, loose nodes: 1.6x) wins; the distances in one pass
+    flat = pts.detach().numpy()
+    near = torch.as_tensor(np.concatenate([
+        cKDTree(flat[k], balanced_tree=False, compact_nodes=False).query(sc.cover_px[t].numpy())[1] + k * pts.shape[1]
+        for k, t in enumerate(frames)]))
+    dist = ((px - pts.reshape(-1, 2)[near]).norm(dim=1) / sc.stride).clamp(max=4.0)
+    if len(set(counts)) == 1:
+        return dist.reshape(len(frames), counts[0]).mean(1).mean()
+    return torch.stack([d.mean() for d in dist.split(counts)]).mean()
 
 
 def prior_terms(model: Articulation, pairs: torch.Tensor) -> torch.Tensor:
