@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from sync4d.forked import run_forked, usable_workers
 from sync4d.recon.video.gravity import aligned_axis
-from sync4d.recon.video.screw import ScrewFit, fit_screw
+from sync4d.recon.video.screw import Project, ScrewFit, fit_hinge, fit_screw
 from sync4d.recon.video.stages import PartInit, Tracks
 from sync4d.types import Camera
 
@@ -686,22 +686,30 @@ def free_motions(model: Articulation, config: FitConfig, steps: int) -> np.ndarr
     return out
 
 
-def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list[ScrewFit | None]:
-    """Every moving part's joint fitted to its freely recovered motion relative to the root over the whole
-    clip (:func:`~sync4d.recon.video.screw.fit_screw`: kind by evidence, robust over frames), the model
-    set to those joints and refined; returns the screw fits (root: None)."""
+def root_frame_motions(model: Articulation, config: FitConfig) -> tuple[np.ndarray, np.ndarray, Project]:
+    """Every part's free motion (:func:`free_motions`, ``config.steps // 8`` steps) relative to the root, (T, B,
+    4, 4); the rest points (N, 3); and the projection of root-frame points (T, N, 3) to each frame's pixels."""
     sc = model.scene
     motions = free_motions(model, config, config.steps // 8)
     root_motion = sc.root_motion.numpy()
-    inv_root = np.linalg.inv(root_motion)
     with torch.no_grad():
         rest = model.rest().numpy()
-    labels = model.labels.numpy()
 
     def project_np(x: np.ndarray) -> np.ndarray:
         world = np.einsum("tij,tnj->tni", root_motion[:, :3, :3], x) + root_motion[:, None, :3, 3]
         return project(sc, torch.as_tensor(world)).numpy()
 
+    inv_root = np.linalg.inv(root_motion)
+    return np.stack([inv_root @ motions[:, b] for b in range(motions.shape[1])], 1), rest, project_np
+
+
+def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list[ScrewFit | None]:
+    """Every moving part's joint fitted to its freely recovered motion relative to the root over the whole
+    clip (:func:`~sync4d.recon.video.screw.fit_screw`: kind by evidence, robust over frames), the model
+    set to those joints and refined; returns the screw fits (root: None)."""
+    sc = model.scene
+    motions, rest, project_np = root_frame_motions(model, config)
+    labels = model.labels.numpy()
     kinds, axes = list(model.kinds), model.axes.detach().numpy().copy()
     pivots = model.pivots().detach().numpy().copy()
     values = np.concatenate([np.zeros((1, len(kinds))), model.values.detach().numpy()], 0)
@@ -711,7 +719,7 @@ def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list
         if b == model.root or own.sum() < 3:
             fits.append(None)
             continue
-        screw = fit_screw(inv_root @ motions[:, b], rest[own], project_np, sc.stride)
+        screw = fit_screw(motions[:, b], rest[own], project_np, sc.stride)
         log.info("recon=video: part %d's joint from its whole motion: %s (costs %s; was a %s)", b, screw.kind,
                  {k: round(float(v), 1) for k, v in screw.costs.items()}, kinds[b])
         kinds[b], axes[b] = screw.kind, screw.axis if screw.kind != "fixed" else axes[b]
@@ -781,8 +789,72 @@ def choose_kinds(hinge: Articulation, tracks: Tracks, config: FitConfig, history
         trial_kind = kind_loss(trial, config)
         log.info("recon=video: part %d as a slide: kind loss %.4f (as a %s %.4f)", b, trial_kind, best.kinds[b], best_kind)
         if trial_kind < best_kind * (1.0 + SLIDE_PREFERENCE):
-            best, best_kind = trial, trial_kind
+            # the hinge it beat was fitted on other labels and refined less: a hinge from the slide's reading,
+            # searched and refined as the slide was, is the like-for-like rival
+            rival = hinge_from(trial, best, b, tracks, config)
+            history.append(relabel_and_refine(rival, tracks, config, config.steps // 4))
+            rival_kind = kind_loss(rival, config)
+            log.info("recon=video: part %d as a hinge from the slide's reading: kind loss %.4f (as a slide %.4f)",
+                     b, rival_kind, trial_kind)
+            best, best_kind = (trial, trial_kind) if trial_kind < rival_kind * (1.0 + SLIDE_PREFERENCE) else \
+                (rival, rival_kind)
     return best
+
+
+def hinge_from(slide: Articulation, hinge: Articulation, b: int, tracks: Tracks, config: FitConfig) -> Articulation:
+    """Part ``b`` of the slide reading ``slide`` back on a hinge, on the slide's labels, searched as
+    :func:`slide_from` searches a slide: starts from the hinge reading ``hinge``'s joint on the slide's
+    surfaces and on the hinge's own, and from the hinge fitted to the slide reading's free motion
+    (:func:`~sync4d.recon.video.screw.fit_hinge`, when a frame turns); the two best by :func:`kind_loss`
+    fitted, the better kept."""
+    kinds = list(slide.kinds)
+    kinds[b] = "hinge"
+    values = np.concatenate([np.zeros((1, len(kinds))), slide.values.detach().numpy()], 0)
+    values[:, b] = np.concatenate([[0.0], hinge.values.detach().numpy()[:, b]])
+    axes = slide.axes.detach().numpy().copy()
+    axes[b] = hinge.axes.detach().numpy()[b]
+    pivot = hinge.pivots().detach().numpy()[b]
+    trials = [with_pivot(copy_with(slide, kinds, axes.copy(), values.copy()), b, pivot) for _ in range(2)]
+    with torch.no_grad():  # the second on the hinge reading's surface of the part
+        own = trials[1].labels == b
+        trials[1].plane[b] = hinge.plane[b]
+        trials[1].resid[own] = hinge.resid[own]
+    screw = screw_hinge(slide, b, config)
+    if screw is not None:
+        axes[b], values[:, b] = screw[0], screw[2]  # copy_with's tensors share the arrays: new ones
+        trials.append(with_pivot(copy_with(slide, kinds, axes.copy(), values.copy()), b, screw[1]))
+    starts = sorted(((kind_loss(t, config), i, t) for i, t in enumerate(trials)), key=lambda x: x[:2])
+    pairs = neighbour_pairs(tracks.uv0, slide.labels.numpy(), tracks.stride)
+    picked = [trial for _, _, trial in starts[:2]]
+    fitted = run_forked([partial(fit_copy, trial, pairs, config) for trial in picked], usable_workers(config.workers))
+    loss, i = min((loss, i) for i, (loss, _) in enumerate(fitted))
+    picked[i].load_state_dict(fitted[i][1])
+    return picked[i]
+
+
+def with_pivot(model: Articulation, b: int, pivot: np.ndarray) -> Articulation:
+    """``model`` with part ``b``'s pivot at ``pivot`` (3,) [m]."""
+    with torch.no_grad():
+        model.pivot0 = model.pivots().clone()
+        model.pivot0[b] = torch.as_tensor(pivot)
+        model.pivot_delta.zero_()
+    return model
+
+
+def screw_hinge(model: Articulation, b: int, config: FitConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(axis, pivot [m], angles (T,) [rad]) of the hinge fitted to part ``b``'s free motion relative to the
+    root on a copy of ``model`` (:func:`root_frame_motions`); None when no frame turns by
+    :data:`~sync4d.recon.video.screw.MIN_ANGLE`."""
+    values = np.concatenate([np.zeros((1, len(model.kinds))), model.values.detach().numpy()], 0)
+    copy = copy_with(model, list(model.kinds), model.axes.detach().numpy().copy(), values)
+    motions, rest, project_np = root_frame_motions(copy, config)
+    own = model.labels.numpy() == b
+    x0 = rest[own]
+    target = project_np(np.einsum("tij,nj->tni", motions[:, b, :3, :3], x0) + motions[:, b, None, :3, 3])
+    axis, pivot, angles, res = fit_hinge(motions[:, b], x0, target, project_np, model.scene.stride)
+    if not np.isfinite(res).all():
+        return None
+    return axis, pivot, angles - angles[0]
 
 
 def copy_with(model: Articulation, kinds: list[str], axes: np.ndarray, values: np.ndarray) -> Articulation:
