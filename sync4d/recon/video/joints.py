@@ -802,34 +802,84 @@ def choose_kinds(hinge: Articulation, tracks: Tracks, config: FitConfig, history
 
 
 def hinge_from(slide: Articulation, hinge: Articulation, b: int, tracks: Tracks, config: FitConfig) -> Articulation:
-    """Part ``b`` of the slide reading ``slide`` back on a hinge, on the slide's labels, searched as
-    :func:`slide_from` searches a slide: starts from the hinge reading ``hinge``'s joint on the slide's
-    surfaces and on the hinge's own, and from the hinge fitted to the slide reading's free motion
-    (:func:`~sync4d.recon.video.screw.fit_hinge`, when a frame turns); the two best by :func:`kind_loss`
+    """Part ``b`` of the slide reading ``slide`` back on a hinge, on the slide's labels and surfaces, searched
+    as :func:`slide_from` searches a slide: hinge lines (the hinge reading ``hinge``'s, the part's border with
+    the root, the line in the part's plane across the slide's direction, the world's axes through the border,
+    the hinge of the slide reading's free motion), each start's angles per frame matching the slide's image
+    motion (Gauss-Newton), and the hinge reading's own joint as it was; the two best by :func:`kind_loss`
     fitted, the better kept."""
     kinds = list(slide.kinds)
     kinds[b] = "hinge"
-    values = np.concatenate([np.zeros((1, len(kinds))), slide.values.detach().numpy()], 0)
-    values[:, b] = np.concatenate([[0.0], hinge.values.detach().numpy()[:, b]])
-    axes = slide.axes.detach().numpy().copy()
-    axes[b] = hinge.axes.detach().numpy()[b]
-    pivot = hinge.pivots().detach().numpy()[b]
-    trials = [with_pivot(copy_with(slide, kinds, axes.copy(), values.copy()), b, pivot) for _ in range(2)]
-    with torch.no_grad():  # the second on the hinge reading's surface of the part
-        own = trials[1].labels == b
-        trials[1].plane[b] = hinge.plane[b]
-        trials[1].resid[own] = hinge.resid[own]
+    base = np.concatenate([np.zeros((1, len(kinds))), slide.values.detach().numpy()], 0)
+    with torch.no_grad():
+        own = (slide.labels == b).numpy()
+        x0 = slide.rest().numpy()[own]
+        target = project(slide.scene, slide.posed()[:, torch.as_tensor(own)]).numpy()
+    lines = hinge_lines(slide, hinge, b)
     screw = screw_hinge(slide, b, config)
     if screw is not None:
-        axes[b], values[:, b] = screw[0], screw[2]  # copy_with's tensors share the arrays: new ones
-        trials.append(with_pivot(copy_with(slide, kinds, axes.copy(), values.copy()), b, screw[1]))
+        lines.append((screw[0], screw[1]))
+    joints = [(axis, pivot, gauss_newton_angles(x0, axis, pivot, target, slide.scene)) for axis, pivot in lines]
+    joints.append((hinge.axes.detach().numpy()[b], hinge.pivots().detach().numpy()[b],
+                   np.concatenate([[0.0], hinge.values.detach().numpy()[:, b]])))
+    trials = []
+    for axis, pivot, angles in joints:
+        axes, values = slide.axes.detach().numpy().copy(), base.copy()  # copy_with's tensors share the arrays
+        axes[b], values[:, b] = axis, angles
+        trials.append(with_pivot(copy_with(slide, kinds, axes, values), b, pivot))
     starts = sorted(((kind_loss(t, config), i, t) for i, t in enumerate(trials)), key=lambda x: x[:2])
+    log.info("recon=video: part %d's hinge starts from the slide's reading: kind losses %s (start %s best)", b,
+             [round(k, 4) for k, _, _ in sorted(starts, key=lambda x: x[1])], starts[0][1])
     pairs = neighbour_pairs(tracks.uv0, slide.labels.numpy(), tracks.stride)
     picked = [trial for _, _, trial in starts[:2]]
     fitted = run_forked([partial(fit_copy, trial, pairs, config) for trial in picked], usable_workers(config.workers))
     loss, i = min((loss, i) for i, (loss, _) in enumerate(fitted))
     picked[i].load_state_dict(fitted[i][1])
     return picked[i]
+
+
+def hinge_lines(slide: Articulation, hinge: Articulation, b: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(unit axis, pivot [m]) hinge-line starts for part ``b`` of the slide reading: the hinge reading's line,
+    the part's border with the root (its frame-0 points nearest the root's in the image: their mean and
+    principal direction), the line in the part's plane across the slide's direction and the world's x, y, z,
+    these through the border's mean."""
+    labels = slide.labels.numpy()
+    with torch.no_grad():
+        rest = slide.rest().numpy()
+        uv0 = project(slide.scene, slide.rest(), 0).numpy()
+    own, root = np.flatnonzero(labels == b), labels == slide.root
+    dist = cKDTree(uv0[root]).query(uv0[own])[0]
+    near = rest[own[dist <= np.quantile(dist, 0.1)]]
+    pivot = near.mean(0)
+    border = np.linalg.svd(near - pivot, full_matrices=False)[2][0] if len(near) >= 3 else np.array([1.0, 0, 0])
+    normal = np.linalg.svd(rest[own] - rest[own].mean(0), full_matrices=False)[2][-1]
+    direction = slide.axes.detach().numpy()[b]
+    across = np.cross(direction, normal)
+    old = hinge.axes.detach().numpy()[b]
+    axes = [old, border, across, *np.eye(3)]
+    return [(a / max(float(np.linalg.norm(a)), 1e-12), p) for a, p in
+            zip(axes, [hinge.pivots().detach().numpy()[b]] + [pivot] * (len(axes) - 1))]
+
+
+def gauss_newton_angles(x0: np.ndarray, axis: np.ndarray, pivot: np.ndarray, target: np.ndarray, scene: Scene,
+                        iters: int = 6) -> np.ndarray:
+    """(T,) angle [rad] about the line (``pivot``, unit ``axis``) per frame whose projected rest points x0
+    (N, 3) best match target pixels (T, N, 2) (Gauss-Newton, numerical derivative; the root's motion applied),
+    0 at frame 0."""
+    g = scene.root_motion.numpy()
+
+    def pixels(theta: np.ndarray) -> np.ndarray:
+        x = np.einsum("tij,nj->tni", rodrigues_np(axis, theta), x0 - pivot) + pivot
+        x = np.einsum("tij,tnj->tni", g[:, :3, :3], x) + g[:, None, :3, 3]
+        return project(scene, torch.as_tensor(x)).numpy()
+
+    theta = np.zeros(len(target))
+    for _ in range(iters):
+        uv = pixels(theta)
+        jac = (pixels(theta + 1e-4) - uv) / 1e-4
+        step = ((target - uv) * jac).sum((1, 2)) / np.maximum((jac**2).sum((1, 2)), 1e-12)
+        theta = theta + np.clip(step, -0.5, 0.5)
+    return theta - theta[0]
 
 
 def with_pivot(model: Articulation, b: int, pivot: np.ndarray) -> Articulation:
