@@ -18,7 +18,10 @@ few axis starts. Each part's joint kind is then chosen by the data terms: the hi
 a slide from five 3D direction starts (the hinge's 3D displacement, the image motion lifted, that tilted
 45 degrees towards and away from the camera, the view ray), each with its travel matched to the hinge's
 image motion; the two best are fitted, relabelled and refined the same way, and the slide wins unless the
-hinge explains the images 5 % better. A slide's path (its outline extruded along its direction: a
+hinge explains the images 5 % better. When it wins, the hinge it beat had other labels and less refinement,
+so a hinge searched from the slide's reading the same way (hinge lines, the best of them the slide reading's
+free motion fitted as a hinge, each with its angles matched to the slide's image motion; the two best fitted,
+relabelled and refined) is put against it by the same rule. A slide's path (its outline extruded along its direction: a
 drawer's box) also covers mask pixels. The winner is refined, relabelled and refined again.
 
 Then the joint stage: every hinge is set beside its depth reversal (its surface, axis and pivot reflected
@@ -780,7 +783,8 @@ def choose_kinds(hinge: Articulation, tracks: Tracks, config: FitConfig, history
     """Each moving part as a hinge or a slide. Both readings are relabelled and refined the same way before
     their data terms are compared (labels a hinge absorbed should not decide against the slide); a hinge
     with a far pivot imitates a slide, so the slide, with fewer degrees of freedom, wins unless the hinge
-    explains the images clearly better."""
+    explains the images clearly better; a slide that wins then meets a hinge searched from its own reading
+    (:func:`hinge_from`), by the same rule."""
     relabel_and_refine(hinge, tracks, config, config.steps // 4)
     best, best_kind = hinge, kind_loss(hinge, config)
     for b in [b for b in range(len(hinge.kinds)) if b != hinge.root]:
