@@ -18,7 +18,10 @@ few axis starts. Each part's joint kind is then chosen by the data terms: the hi
 a slide from five 3D direction starts (the hinge's 3D displacement, the image motion lifted, that tilted
 45 degrees towards and away from the camera, the view ray), each with its travel matched to the hinge's
 image motion; the two best are fitted, relabelled and refined the same way, and the slide wins unless the
-hinge explains the images 5 % better. A slide's path (its outline extruded along its direction: a
+hinge explains the images 5 % better. When it wins, the hinge it beat had other labels and less refinement,
+so a hinge searched from the slide's reading the same way (hinge lines, the best of them the slide reading's
+free motion fitted as a hinge, each with its angles matched to the slide's image motion; the two best fitted,
+relabelled and refined) is put against it by the same rule. A slide's path (its outline extruded along its direction: a
 drawer's box) also covers mask pixels. The winner is refined, relabelled and refined again.
 
 Then the joint stage: every hinge is set beside its depth reversal (its surface, axis and pivot reflected
@@ -43,7 +46,7 @@ from scipy.spatial import cKDTree
 
 from sync4d.forked import run_forked, usable_workers
 from sync4d.recon.video.gravity import aligned_axis
-from sync4d.recon.video.screw import ScrewFit, fit_screw
+from sync4d.recon.video.screw import Project, ScrewFit, fit_hinge, fit_screw
 from sync4d.recon.video.stages import PartInit, Tracks
 from sync4d.types import Camera
 
@@ -686,22 +689,30 @@ def free_motions(model: Articulation, config: FitConfig, steps: int) -> np.ndarr
     return out
 
 
-def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list[ScrewFit | None]:
-    """Every moving part's joint fitted to its freely recovered motion relative to the root over the whole
-    clip (:func:`~sync4d.recon.video.screw.fit_screw`: kind by evidence, robust over frames), the model
-    set to those joints and refined; returns the screw fits (root: None)."""
+def root_frame_motions(model: Articulation, config: FitConfig) -> tuple[np.ndarray, np.ndarray, Project]:
+    """Every part's free motion (:func:`free_motions`, ``config.steps // 8`` steps) relative to the root, (T, B,
+    4, 4); the rest points (N, 3); and the projection of root-frame points (T, N, 3) to each frame's pixels."""
     sc = model.scene
     motions = free_motions(model, config, config.steps // 8)
     root_motion = sc.root_motion.numpy()
-    inv_root = np.linalg.inv(root_motion)
     with torch.no_grad():
         rest = model.rest().numpy()
-    labels = model.labels.numpy()
 
     def project_np(x: np.ndarray) -> np.ndarray:
         world = np.einsum("tij,tnj->tni", root_motion[:, :3, :3], x) + root_motion[:, None, :3, 3]
         return project(sc, torch.as_tensor(world)).numpy()
 
+    inv_root = np.linalg.inv(root_motion)
+    return np.stack([inv_root @ motions[:, b] for b in range(motions.shape[1])], 1), rest, project_np
+
+
+def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list[ScrewFit | None]:
+    """Every moving part's joint fitted to its freely recovered motion relative to the root over the whole
+    clip (:func:`~sync4d.recon.video.screw.fit_screw`: kind by evidence, robust over frames), the model
+    set to those joints and refined; returns the screw fits (root: None)."""
+    sc = model.scene
+    motions, rest, project_np = root_frame_motions(model, config)
+    labels = model.labels.numpy()
     kinds, axes = list(model.kinds), model.axes.detach().numpy().copy()
     pivots = model.pivots().detach().numpy().copy()
     values = np.concatenate([np.zeros((1, len(kinds))), model.values.detach().numpy()], 0)
@@ -711,7 +722,7 @@ def refit_joints(model: Articulation, tracks: Tracks, config: FitConfig) -> list
         if b == model.root or own.sum() < 3:
             fits.append(None)
             continue
-        screw = fit_screw(inv_root @ motions[:, b], rest[own], project_np, sc.stride)
+        screw = fit_screw(motions[:, b], rest[own], project_np, sc.stride)
         log.info("recon=video: part %d's joint from its whole motion: %s (costs %s; was a %s)", b, screw.kind,
                  {k: round(float(v), 1) for k, v in screw.costs.items()}, kinds[b])
         kinds[b], axes[b] = screw.kind, screw.axis if screw.kind != "fixed" else axes[b]
@@ -772,7 +783,8 @@ def choose_kinds(hinge: Articulation, tracks: Tracks, config: FitConfig, history
     """Each moving part as a hinge or a slide. Both readings are relabelled and refined the same way before
     their data terms are compared (labels a hinge absorbed should not decide against the slide); a hinge
     with a far pivot imitates a slide, so the slide, with fewer degrees of freedom, wins unless the hinge
-    explains the images clearly better."""
+    explains the images clearly better; a slide that wins then meets a hinge searched from its own reading
+    (:func:`hinge_from`), by the same rule."""
     relabel_and_refine(hinge, tracks, config, config.steps // 4)
     best, best_kind = hinge, kind_loss(hinge, config)
     for b in [b for b in range(len(hinge.kinds)) if b != hinge.root]:
@@ -781,8 +793,122 @@ def choose_kinds(hinge: Articulation, tracks: Tracks, config: FitConfig, history
         trial_kind = kind_loss(trial, config)
         log.info("recon=video: part %d as a slide: kind loss %.4f (as a %s %.4f)", b, trial_kind, best.kinds[b], best_kind)
         if trial_kind < best_kind * (1.0 + SLIDE_PREFERENCE):
-            best, best_kind = trial, trial_kind
+            # the hinge it beat was fitted on other labels and refined less: a hinge from the slide's reading,
+            # searched and refined as the slide was, is the like-for-like rival
+            rival = hinge_from(trial, best, b, tracks, config)
+            history.append(relabel_and_refine(rival, tracks, config, config.steps // 4))
+            rival_kind = kind_loss(rival, config)
+            log.info("recon=video: part %d as a hinge from the slide's reading: kind loss %.4f (as a slide %.4f)",
+                     b, rival_kind, trial_kind)
+            best, best_kind = (trial, trial_kind) if trial_kind < rival_kind * (1.0 + SLIDE_PREFERENCE) else \
+                (rival, rival_kind)
     return best
+
+
+def hinge_from(slide: Articulation, hinge: Articulation, b: int, tracks: Tracks, config: FitConfig) -> Articulation:
+    """Part ``b`` of the slide reading ``slide`` back on a hinge, on the slide's labels and surfaces, searched
+    as :func:`slide_from` searches a slide: hinge lines (the hinge reading ``hinge``'s, the part's border with
+    the root, the line in the part's plane across the slide's direction, the world's axes through the border,
+    the hinge of the slide reading's free motion), each start's angles per frame matching the slide's image
+    motion (Gauss-Newton), and the hinge reading's own joint as it was; the two best by :func:`kind_loss`
+    fitted, the better kept."""
+    kinds = list(slide.kinds)
+    kinds[b] = "hinge"
+    base = np.concatenate([np.zeros((1, len(kinds))), slide.values.detach().numpy()], 0)
+    with torch.no_grad():
+        own = (slide.labels == b).numpy()
+        x0 = slide.rest().numpy()[own]
+        target = project(slide.scene, slide.posed()[:, torch.as_tensor(own)]).numpy()
+    lines = hinge_lines(slide, hinge, b)
+    screw = screw_hinge(slide, b, config)
+    if screw is not None:
+        lines.append((screw[0], screw[1]))
+    joints = [(axis, pivot, gauss_newton_angles(x0, axis, pivot, target, slide.scene)) for axis, pivot in lines]
+    joints.append((hinge.axes.detach().numpy()[b], hinge.pivots().detach().numpy()[b],
+                   np.concatenate([[0.0], hinge.values.detach().numpy()[:, b]])))
+    trials = []
+    for axis, pivot, angles in joints:
+        axes, values = slide.axes.detach().numpy().copy(), base.copy()  # copy_with's tensors share the arrays
+        axes[b], values[:, b] = axis, angles
+        trials.append(with_pivot(copy_with(slide, kinds, axes, values), b, pivot))
+    starts = sorted(((kind_loss(t, config), i, t) for i, t in enumerate(trials)), key=lambda x: x[:2])
+    log.info("recon=video: part %d's hinge starts from the slide's reading: kind losses %s (start %s best)", b,
+             [round(k, 4) for k, _, _ in sorted(starts, key=lambda x: x[1])], starts[0][1])
+    pairs = neighbour_pairs(tracks.uv0, slide.labels.numpy(), tracks.stride)
+    picked = [trial for _, _, trial in starts[:2]]
+    fitted = run_forked([partial(fit_copy, trial, pairs, config) for trial in picked], usable_workers(config.workers))
+    loss, i = min((loss, i) for i, (loss, _) in enumerate(fitted))
+    picked[i].load_state_dict(fitted[i][1])
+    return picked[i]
+
+
+def hinge_lines(slide: Articulation, hinge: Articulation, b: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(unit axis, pivot [m]) hinge-line starts for part ``b`` of the slide reading: the hinge reading's line,
+    the part's border with the root (its frame-0 points nearest the root's in the image: their mean and
+    principal direction), the line in the part's plane across the slide's direction and the world's x, y, z,
+    these through the border's mean."""
+    labels = slide.labels.numpy()
+    with torch.no_grad():
+        rest = slide.rest().numpy()
+        uv0 = project(slide.scene, slide.rest(), 0).numpy()
+    own, root = np.flatnonzero(labels == b), labels == slide.root
+    dist = cKDTree(uv0[root]).query(uv0[own])[0]
+    near = rest[own[dist <= np.quantile(dist, 0.1)]]
+    pivot = near.mean(0)
+    border = np.linalg.svd(near - pivot, full_matrices=False)[2][0] if len(near) >= 3 else np.array([1.0, 0, 0])
+    normal = np.linalg.svd(rest[own] - rest[own].mean(0), full_matrices=False)[2][-1]
+    direction = slide.axes.detach().numpy()[b]
+    across = np.cross(direction, normal)
+    old = hinge.axes.detach().numpy()[b]
+    axes = [old, border, across, *np.eye(3)]
+    return [(a / max(float(np.linalg.norm(a)), 1e-12), p) for a, p in
+            zip(axes, [hinge.pivots().detach().numpy()[b]] + [pivot] * (len(axes) - 1))]
+
+
+def gauss_newton_angles(x0: np.ndarray, axis: np.ndarray, pivot: np.ndarray, target: np.ndarray, scene: Scene,
+                        iters: int = 6) -> np.ndarray:
+    """(T,) angle [rad] about the line (``pivot``, unit ``axis``) per frame whose projected rest points x0
+    (N, 3) best match target pixels (T, N, 2) (Gauss-Newton, numerical derivative; the root's motion applied),
+    0 at frame 0."""
+    g = scene.root_motion.numpy()
+
+    def pixels(theta: np.ndarray) -> np.ndarray:
+        x = np.einsum("tij,nj->tni", rodrigues_np(axis, theta), x0 - pivot) + pivot
+        x = np.einsum("tij,tnj->tni", g[:, :3, :3], x) + g[:, None, :3, 3]
+        return project(scene, torch.as_tensor(x)).numpy()
+
+    theta = np.zeros(len(target))
+    for _ in range(iters):
+        uv = pixels(theta)
+        jac = (pixels(theta + 1e-4) - uv) / 1e-4
+        step = ((target - uv) * jac).sum((1, 2)) / np.maximum((jac**2).sum((1, 2)), 1e-12)
+        theta = theta + np.clip(step, -0.5, 0.5)
+    return theta - theta[0]
+
+
+def with_pivot(model: Articulation, b: int, pivot: np.ndarray) -> Articulation:
+    """``model`` with part ``b``'s pivot at ``pivot`` (3,) [m]."""
+    with torch.no_grad():
+        model.pivot0 = model.pivots().clone()
+        model.pivot0[b] = torch.as_tensor(pivot)
+        model.pivot_delta.zero_()
+    return model
+
+
+def screw_hinge(model: Articulation, b: int, config: FitConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(axis, pivot [m], angles (T,) [rad]) of the hinge fitted to part ``b``'s free motion relative to the
+    root on a copy of ``model`` (:func:`root_frame_motions`); None when no frame turns by
+    :data:`~sync4d.recon.video.screw.MIN_ANGLE`."""
+    values = np.concatenate([np.zeros((1, len(model.kinds))), model.values.detach().numpy()], 0)
+    copy = copy_with(model, list(model.kinds), model.axes.detach().numpy().copy(), values)
+    motions, rest, project_np = root_frame_motions(copy, config)
+    own = model.labels.numpy() == b
+    x0 = rest[own]
+    target = project_np(np.einsum("tij,nj->tni", motions[:, b, :3, :3], x0) + motions[:, b, None, :3, 3])
+    axis, pivot, angles, res = fit_hinge(motions[:, b], x0, target, project_np, model.scene.stride)
+    if not np.isfinite(res).all():
+        return None
+    return axis, pivot, angles - angles[0]
 
 
 def copy_with(model: Articulation, kinds: list[str], axes: np.ndarray, values: np.ndarray) -> Articulation:
