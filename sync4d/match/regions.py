@@ -117,6 +117,7 @@ def label_regions(
     thickness: np.ndarray | None,
     reach: float,
     trunk_thickness: float | None = None,
+    up: int | None = None,
 ) -> np.ndarray:
     """(M,) reference part of every target point.
 
@@ -134,6 +135,10 @@ def label_regions(
         out[members] = parts
     if thickness is not None and graph is not None and limbs:
         out = grow_limbs(graph, out, [m for m, _ in limbs], thickness, reach=reach, trunk=trunk_thickness)
+        if up is not None:
+            out, back = legs_to_underside(points, graph, out, [m for m, _ in limbs], root_points, thickness, up,
+                                          cap=float(thickness.max()) if trunk_thickness is None else trunk_thickness)
+            root_points = np.union1d(root_points, back)
     tree = cKDTree(trunk_points)
     trunk = root_points[out[root_points] < 0]
     if len(trunk):
@@ -201,3 +206,54 @@ def trunk_column(points: np.ndarray, geodesic: np.ndarray, level_width: float, t
     if len(taken) == 0 or len(rest) < 10 or np.percentile(thickness[rest], 90) < bulb * t0:
         return none
     return taken
+
+
+def underside(points: np.ndarray, labels: np.ndarray, legs: list[np.ndarray], trunk: np.ndarray, thickness: np.ndarray,
+              up: int, *, clear: float = 2.0, low: float = 2.0) -> tuple[float, float]:
+    """The height of the body's underside and the thickest leg's thickness: the ``low``-th percentile of the
+    heights of the free ``trunk`` points lying farther from every leg point, seen from above, than ``clear`` x
+    that thickness (the belly between the legs, not the legs' tops); nan without such points."""
+    flat = np.delete(points, up, axis=1)
+    radius = max(limb_thickness(thickness, m) for m in legs)
+    body = trunk[labels[trunk] < 0]
+    if len(body) == 0:
+        return float("nan"), radius
+    away = body[cKDTree(flat[np.concatenate(legs)]).query(flat[body])[0] > clear * radius]
+    return (float(np.percentile(points[away, up], low)) if len(away) else float("nan")), radius
+
+
+def legs_to_underside(points: np.ndarray, graph: csr_matrix, labels: np.ndarray, limbs: list[np.ndarray],
+                      trunk: np.ndarray, thickness: np.ndarray, up: int, *, ground: float = 0.05,
+                      column: float = 1.0, cap: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) ``labels`` with the legs ending at the body's underside (:func:`underside`), and the indices of
+    the points they gave back to the trunk.
+
+    Where the levels part, not where the cross-section widens, decides a leg's branch: legs that part low
+    leave their tops to the trunk, legs whose levels part high carry the belly's sides. Below the underside
+    there is nothing but legs; above it, nothing of them. The legs are the limbs with points in the lowest
+    ``ground`` of the height; each takes the free points below the underside within ``column`` x the
+    thickest leg's thickness of its own points seen from above, that it reaches through such points (the
+    part of the leg point each is reached from), and gives back its points above the underside.
+    """
+    h = points[:, up]
+    legs = [m for m in limbs if len(m) and (h[m] <= h.min() + ground * float(np.ptp(h))).any()]
+    none = np.zeros(0, dtype=np.int64)
+    if len(legs) < 2:
+        return labels, none
+    level, radius = underside(points, labels, legs, trunk, thickness, up)
+    if not np.isfinite(level):
+        return labels, none
+    out, free, leg_pts = labels.copy(), labels < 0, np.concatenate(legs)
+    flat = np.delete(points, up, axis=1)
+    below = np.flatnonzero(free & (h < level) & (thickness <= np.sqrt(radius * cap)))
+    below = below[cKDTree(flat[leg_pts]).query(flat[below])[0] <= column * radius] if len(below) else below
+    if len(below):
+        nodes = np.union1d(leg_pts, below)
+        dist, _, source = dijkstra(graph[nodes][:, nodes], directed=False, indices=np.searchsorted(nodes, leg_pts),
+                                   return_predecessors=True, min_only=True)
+        grown = np.flatnonzero(np.isfinite(dist) & free[nodes])
+        out[nodes[grown]] = labels[nodes[source[grown]]]
+    leg_parts = np.unique(labels[leg_pts])
+    above = np.flatnonzero(np.isin(out, leg_parts) & (h > level))
+    out[above] = -1
+    return out, above
