@@ -245,7 +245,8 @@ def legs_to_underside(points: np.ndarray, graph: csr_matrix, labels: np.ndarray,
         return labels, none
     out, free, leg_pts = labels.copy(), labels < 0, np.concatenate(legs)
     flat = np.delete(points, up, axis=1)
-    below = np.flatnonzero(free & (h < level) & (thickness <= np.sqrt(radius * cap)))
+    thin = thickness <= np.sqrt(radius * cap)
+    below = np.flatnonzero(free & (h < level) & thin)
     below = below[cKDTree(flat[leg_pts]).query(flat[below])[0] <= column * radius] if len(below) else below
     if len(below):
         nodes = np.union1d(leg_pts, below)
@@ -254,6 +255,6 @@ def legs_to_underside(points: np.ndarray, graph: csr_matrix, labels: np.ndarray,
         grown = np.flatnonzero(np.isfinite(dist) & free[nodes])
         out[nodes[grown]] = labels[nodes[source[grown]]]
     leg_parts = np.unique(labels[leg_pts])
-    above = np.flatnonzero(np.isin(out, leg_parts) & (h > level))
+    above = np.flatnonzero(np.isin(out, leg_parts) & (h > level) & ~thin)
     out[above] = -1
     return out, above
