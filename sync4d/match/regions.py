@@ -208,45 +208,59 @@ def trunk_column(points: np.ndarray, geodesic: np.ndarray, level_width: float, t
     return taken
 
 
-def underside(points: np.ndarray, labels: np.ndarray, legs: list[np.ndarray], trunk: np.ndarray, thickness: np.ndarray,
-              up: int, *, clear: float = 2.0, low: float = 2.0) -> tuple[float, float]:
-    """The height of the body's underside and the thickest leg's thickness: the ``low``-th percentile of the
-    heights of the free ``trunk`` points lying farther from every leg point, seen from above, than ``clear`` x
-    that thickness (the belly between the legs, not the legs' tops); nan without such points."""
-    flat = np.delete(points, up, axis=1)
+
+def undersides(points: np.ndarray, labels: np.ndarray, legs: list[np.ndarray], trunk: np.ndarray,
+               thickness: np.ndarray, up: int, *, clear: float = 2.0, low: float = 2.0, least: float = 0.01
+               ) -> tuple[np.ndarray, float]:
+    """(M,) the height of the body's underside over each point's nearest leg (seen from above; nan where
+    unknown) and the thickest leg's thickness.
+
+    The belly around a leg: the free ``trunk`` points lying farther from every leg point, seen from above,
+    than ``clear`` x that thickness (not the legs' tops), each given to its nearest leg; the leg's underside is
+    the ``low``-th percentile of their heights, when they are at least ``least`` of the free trunk points (a
+    few stray points are not a belly). Per leg, as a body may slope (a cat stretching, its chest on the floor).
+    """
+    flat, h = np.delete(points, up, axis=1), points[:, up]
     radius = max(limb_thickness(thickness, m) for m in legs)
+    leg_pts = np.concatenate(legs)
+    owner = np.concatenate([np.full(len(m), i) for i, m in enumerate(legs)])
+    tree = cKDTree(flat[leg_pts])
     body = trunk[labels[trunk] < 0]
-    if len(body) == 0:
-        return float("nan"), radius
-    away = body[cKDTree(flat[np.concatenate(legs)]).query(flat[body])[0] > clear * radius]
-    return (float(np.percentile(points[away, up], low)) if len(away) else float("nan")), radius
+    level = np.full(len(legs), np.nan)
+    if len(body):
+        dist, near = tree.query(flat[body])
+        far = dist > clear * radius
+        for i in range(len(legs)):
+            mine = body[far & (owner[near] == i)]
+            if len(mine) >= max(least * len(body), 1):
+                level[i] = np.percentile(h[mine], low)
+    return level[owner[tree.query(flat)[1]]], radius
 
 
 def legs_to_underside(points: np.ndarray, graph: csr_matrix, labels: np.ndarray, limbs: list[np.ndarray],
                       trunk: np.ndarray, thickness: np.ndarray, up: int, *, ground: float = 0.05,
                       column: float = 1.0, cap: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
-    """(M,) ``labels`` with the legs ending at the body's underside (:func:`underside`), and the indices of
+    """(M,) ``labels`` with the legs ending at the body's underside (:func:`undersides`), and the indices of
     the points they gave back to the trunk.
 
     Where the levels part, not where the cross-section widens, decides a leg's branch: legs that part low
-    leave their tops to the trunk, legs whose levels part high carry the belly's sides. Below the underside
-    there is nothing but legs; above it, nothing of them. The legs are the limbs with points in the lowest
-    ``ground`` of the height; each takes the free points below the underside within ``column`` x the
-    thickest leg's thickness of its own points seen from above, that it reaches through such points (the
-    part of the leg point each is reached from), and gives back its points above the underside.
+    leave their tops to the trunk, legs whose levels part high carry the belly's sides. The legs are the
+    limbs with points in the lowest ``ground`` of the height. Each takes the free points below the underside,
+    within ``column`` x the thickest leg's thickness of its own points seen from above and within the legs'
+    thickness limit (the geometric mean of that thickness and the trunk's, ``cap``), that it reaches through
+    such points (the part of the leg point each is reached from); and gives back its points above the
+    underside that are thicker than that limit (the belly's sides, not a leg rising along the body).
     """
     h = points[:, up]
     legs = [m for m in limbs if len(m) and (h[m] <= h.min() + ground * float(np.ptp(h))).any()]
     none = np.zeros(0, dtype=np.int64)
     if len(legs) < 2:
         return labels, none
-    level, radius = underside(points, labels, legs, trunk, thickness, up)
-    if not np.isfinite(level):
-        return labels, none
+    level, radius = undersides(points, labels, legs, trunk, thickness, up)
+    known = np.isfinite(level)
     out, free, leg_pts = labels.copy(), labels < 0, np.concatenate(legs)
-    flat = np.delete(points, up, axis=1)
-    thin = thickness <= np.sqrt(radius * cap)
-    below = np.flatnonzero(free & (h < level) & thin)
+    flat, thin = np.delete(points, up, axis=1), thickness <= np.sqrt(radius * cap)
+    below = np.flatnonzero(free & known & (h < np.where(known, level, -np.inf)) & thin)
     below = below[cKDTree(flat[leg_pts]).query(flat[below])[0] <= column * radius] if len(below) else below
     if len(below):
         nodes = np.union1d(leg_pts, below)
@@ -254,7 +268,6 @@ def legs_to_underside(points: np.ndarray, graph: csr_matrix, labels: np.ndarray,
                                    return_predecessors=True, min_only=True)
         grown = np.flatnonzero(np.isfinite(dist) & free[nodes])
         out[nodes[grown]] = labels[nodes[source[grown]]]
-    leg_parts = np.unique(labels[leg_pts])
-    above = np.flatnonzero(np.isin(out, leg_parts) & (h > level) & ~thin)
+    above = np.flatnonzero(np.isin(out, np.unique(labels[leg_pts])) & known & (h > np.where(known, level, np.inf)) & ~thin)
     out[above] = -1
     return out, above
