@@ -218,7 +218,8 @@ def undersides(points: np.ndarray, labels: np.ndarray, legs: list[np.ndarray], t
     The belly around a leg: the free ``trunk`` points lying farther from every leg point, seen from above,
     than ``clear`` x that thickness (not the legs' tops), each given to its nearest leg; the leg's underside is
     the ``low``-th percentile of their heights, when they are at least ``least`` of the free trunk points (a
-    few stray points are not a belly). Per leg, as a body may slope (a cat stretching, its chest on the floor).
+    few stray points are not a belly), and when above the median height of the leg's points. Per leg, as a
+    body may slope.
     """
     flat, h = np.delete(points, up, axis=1), points[:, up]
     radius = max(limb_thickness(thickness, m) for m in legs)
@@ -234,6 +235,9 @@ def undersides(points: np.ndarray, labels: np.ndarray, legs: list[np.ndarray], t
             mine = body[far & (owner[near] == i)]
             if len(mine) >= max(least * len(body), 1):
                 level[i] = np.percentile(h[mine], low)
+    # a leg hangs below the belly: at least half of it lies under the underside (not a cat stretching,
+    # its chest on the floor between its front paws, its hind legs fused with its body)
+    level[level <= np.array([np.median(h[m]) for m in legs])] = np.nan
     return level[owner[tree.query(flat)[1]]], radius
 
 
