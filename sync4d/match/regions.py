@@ -129,6 +129,7 @@ def label_regions(
         trunk_points: (K, 3) the reference's trunk points, same frame; trunk_labels: (K,) their parts.
         thickness: (M,) local thickness, or None (limbs are then not grown).
         reach, trunk_thickness: see :func:`grow_limbs` (``reach``, ``trunk``).
+        up: the up axis; with it, the legs end at the body's underside (:func:`legs_to_underside`).
     """
     out = np.full(len(points), -1, dtype=np.int64)
     for members, parts in limbs:
@@ -248,12 +249,15 @@ def legs_to_underside(points: np.ndarray, graph: csr_matrix, labels: np.ndarray,
     the points they gave back to the trunk.
 
     Where the levels part, not where the cross-section widens, decides a leg's branch: legs that part low
-    leave their tops to the trunk, legs whose levels part high carry the belly's sides. The legs are the
-    limbs with points in the lowest ``ground`` of the height. Each takes the free points below the underside,
-    within ``column`` x the thickest leg's thickness of its own points seen from above and within the legs'
-    thickness limit (the geometric mean of that thickness and the trunk's, ``cap``), that it reaches through
-    such points (the part of the leg point each is reached from); and gives back its points above the
-    underside that are thicker than that limit (the belly's sides, not a leg rising along the body).
+    leave their merged tops to the trunk (a cat's front legs meet each other below its chest), legs whose
+    levels part high carry the belly's sides (a koala). Below the underside there are only legs, above it
+    the body. The legs are the limbs with points in the lowest ``ground`` of the height; their thickness
+    limit is the geometric mean of the thickest leg's thickness and the trunk's (``cap``), as in
+    :func:`grow_limbs`. Each leg takes the free points below the underside within ``column`` x the thickest
+    leg's thickness of its own points seen from above that it reaches through such points (the part of the
+    leg point each is reached from), where the solid is thinner than the geometric mean of that limit and the
+    trunk's (the limit lifted half-way again: merging legs widen before the belly); and gives back its points
+    above the underside thicker than the limit (the belly's sides, not a thin leg rising along the body).
     """
     h = points[:, up]
     legs = [m for m in limbs if len(m) and (h[m] <= h.min() + ground * float(np.ptp(h))).any()]
@@ -263,8 +267,9 @@ def legs_to_underside(points: np.ndarray, graph: csr_matrix, labels: np.ndarray,
     level, radius = undersides(points, labels, legs, trunk, thickness, up)
     known = np.isfinite(level)
     out, free, leg_pts = labels.copy(), labels < 0, np.concatenate(legs)
-    flat, thin = np.delete(points, up, axis=1), thickness <= np.sqrt(radius * cap)
-    below = np.flatnonzero(free & known & (h < np.where(known, level, -np.inf)) & thin)
+    limit = np.sqrt(radius * cap)
+    flat, thin = np.delete(points, up, axis=1), thickness <= limit
+    below = np.flatnonzero(free & known & (h < np.where(known, level, -np.inf)) & (thickness <= np.sqrt(limit * cap)))
     below = below[cKDTree(flat[leg_pts]).query(flat[below])[0] <= column * radius] if len(below) else below
     if len(below):
         nodes = np.union1d(leg_pts, below)
