@@ -7,7 +7,8 @@ thickness, :func:`local_thickness`) and within a few limb thicknesses (:func:`gr
 the cross-section widens into the trunk. The trunk (the root branch's points no limb took) takes the
 reference's trunk parts by relative position (:func:`fit_spread`); the remaining points (target branches no reference limb matched)
 take the part of the region they hang from (:func:`label_regions`); a matched branch's levels that continue a column-shaped trunk
-into a thicker part (a lamp's pole under its shade) are trunk (:func:`trunk_column`).
+into a thicker part (a lamp's pole under its shade) are trunk (:func:`trunk_column`). The legs end at the body's underside
+(:func:`legs_to_underside`): below it they take their merged tops, above it they give the belly's sides back.
 """
 
 from __future__ import annotations

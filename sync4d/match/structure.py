@@ -29,7 +29,8 @@ The branches between the root and a matched limb's branch are trunk (:func:`trun
 unmatched then take the outermost free branches at least cost, whatever the miss cost (:func:`pair_leftovers`),
 when that labelling keeps at least as much of the reference's structure (:meth:`TargetLabelling.kept`).
 A matched branch's levels that continue a column-shaped root into a thicker part (a lamp's pole under its
-shade) are trunk (:func:`sync4d.match.regions.trunk_column`). Unmatched reference limbs are reported
+shade) are trunk (:func:`sync4d.match.regions.trunk_column`); the legs end at the body's underside
+(:func:`sync4d.match.regions.legs_to_underside`). Unmatched reference limbs are reported
 (``StructureMatch.leftover``).
 """
 
