@@ -210,7 +210,6 @@ def trunk_column(points: np.ndarray, geodesic: np.ndarray, level_width: float, t
     return taken
 
 
-
 def undersides(points: np.ndarray, labels: np.ndarray, legs: list[np.ndarray], trunk: np.ndarray,
                thickness: np.ndarray, up: int, *, clear: float = 2.0, low: float = 2.0, least: float = 0.01
                ) -> tuple[np.ndarray, float]:
