@@ -678,3 +678,55 @@ def test_a_poles_column_stays_trunk_under_its_shade_but_not_without_one() -> Non
         upper_pole = branch[(np.abs(pts[branch, 0]) < 0.2) & (pts[branch, 1] < 3.4)]
         assert np.isin(upper_pole, column).mean() > 0.9                    # the pole up to below the arm
         assert not np.isin(column, np.flatnonzero(pts[:, 0] > 0.5)).any()  # neither the arm nor the shade
+
+
+def test_legs_end_at_the_bodys_underside() -> None:
+    """A box body (underside at height 1) on four thin legs. The legs' branches stop half-way up (legs that
+    part low): below the underside they grow up to it; one leg's branch also holds the body's thick points
+    above it (levels that part high): it gives them back to the trunk, and keeps its own thin points."""
+    from scipy.ndimage import distance_transform_edt
+
+    from sync4d.match.regions import legs_to_underside, local_thickness
+    from sync4d.match.skeleton import neighbour_graph
+
+    pitch = 0.1
+    axes = [np.arange(lo, hi, pitch) + pitch / 2 for lo, hi in ((-1.6, 1.6), (0.0, 2.0), (-0.7, 0.7))]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    body = (np.abs(g[:, 0]) < 1.5) & (g[:, 1] > 1.0) & (np.abs(g[:, 2]) < 0.6)
+    feet = [(x, z) for x in (-1.1, 1.1) for z in (-0.35, 0.35)]
+    leg = [(np.abs(g[:, 0] - x) < 0.15) & (np.abs(g[:, 2] - z) < 0.15) & (g[:, 1] <= 1.0) for x, z in feet]
+    inside = body | np.any(leg, axis=0)
+    depth = distance_transform_edt(np.pad(inside.reshape([len(a) for a in axes]), 1))[1:-1, 1:-1, 1:-1]
+    pts, depth = g[inside], depth.reshape(-1)[inside] * pitch
+    thick = local_thickness(pts, depth)
+    on_leg = [m[inside] for m in leg]
+    limbs = [np.flatnonzero(m & (pts[:, 1] < 0.6)) for m in on_leg]
+    over_first = np.flatnonzero((np.linalg.norm(pts[:, [0, 2]] - feet[0], axis=1) < 0.2) & (pts[:, 1] > 1.0)
+                                & (pts[:, 1] < 1.2))
+    limbs[0] = np.union1d(limbs[0], over_first)
+    labels = np.full(len(pts), -1)
+    for i, m in enumerate(limbs):
+        labels[m] = i
+    trunk = np.setdiff1d(np.arange(len(pts)), np.concatenate(limbs))
+    out, back = legs_to_underside(pts, neighbour_graph(pts, 10, 4.0), labels, limbs, trunk, thick, 1,
+                                  cap=float(thick.max()))
+    for i, m in enumerate(on_leg):
+        assert (out[np.flatnonzero(m & (pts[:, 1] < 0.9))] == i).all()  # each leg up to the underside
+    assert (out[np.flatnonzero(pts[:, 1] > 1.1)] == -1).all()            # nothing of the body
+    high = over_first[pts[over_first, 1] > 1.1]                           # above the underside's layer
+    assert len(high) and np.isin(high, back).all()                       # the body's thick points given back
+
+
+def test_a_belly_below_half_the_leg_is_no_underside() -> None:
+    """The belly points beside two legs: at height 2 they are the legs' underside; on the floor (a cat
+    stretching, its chest down) they are none: a leg hangs below the belly, not beside it."""
+    from sync4d.match.regions import undersides
+
+    column = np.stack([np.zeros(11), np.linspace(0.0, 1.0, 11), np.zeros(11)], axis=1)
+    legs = [column + [x, 0.0, 0.0] for x in (-1.0, 1.0)]
+    for height, expect in ((2.0, 2.0), (0.1, np.nan)):
+        belly = np.stack([np.linspace(-3.0, 3.0, 61), np.full(61, height), np.full(61, 2.0)], axis=1)
+        pts = np.concatenate(legs + [belly])
+        labels = np.r_[np.zeros(11), np.ones(11), np.full(61, -1)].astype(np.int64)
+        level, _ = undersides(pts, labels, [np.arange(11), np.arange(11, 22)], np.arange(22, 83), np.full(83, 0.1), 1)
+        np.testing.assert_allclose(level[:22], expect)

@@ -7,7 +7,8 @@ thickness, :func:`local_thickness`) and within a few limb thicknesses (:func:`gr
 the cross-section widens into the trunk. The trunk (the root branch's points no limb took) takes the
 reference's trunk parts by relative position (:func:`fit_spread`); the remaining points (target branches no reference limb matched)
 take the part of the region they hang from (:func:`label_regions`); a matched branch's levels that continue a column-shaped trunk
-into a thicker part (a lamp's pole under its shade) are trunk (:func:`trunk_column`).
+into a thicker part (a lamp's pole under its shade) are trunk (:func:`trunk_column`). The legs end at the body's underside
+(:func:`legs_to_underside`): below it they take their merged tops, above it they give the belly's sides back.
 """
 
 from __future__ import annotations
@@ -117,6 +118,7 @@ def label_regions(
     thickness: np.ndarray | None,
     reach: float,
     trunk_thickness: float | None = None,
+    up: int | None = None,
 ) -> np.ndarray:
     """(M,) reference part of every target point.
 
@@ -128,12 +130,17 @@ def label_regions(
         trunk_points: (K, 3) the reference's trunk points, same frame; trunk_labels: (K,) their parts.
         thickness: (M,) local thickness, or None (limbs are then not grown).
         reach, trunk_thickness: see :func:`grow_limbs` (``reach``, ``trunk``).
+        up: the up axis; with it, the legs end at the body's underside (:func:`legs_to_underside`).
     """
     out = np.full(len(points), -1, dtype=np.int64)
     for members, parts in limbs:
         out[members] = parts
     if thickness is not None and graph is not None and limbs:
         out = grow_limbs(graph, out, [m for m, _ in limbs], thickness, reach=reach, trunk=trunk_thickness)
+        if up is not None:
+            out, back = legs_to_underside(points, graph, out, [m for m, _ in limbs], root_points, thickness, up,
+                                          cap=float(thickness.max()) if trunk_thickness is None else trunk_thickness)
+            root_points = np.union1d(root_points, back)
     tree = cKDTree(trunk_points)
     trunk = root_points[out[root_points] < 0]
     if len(trunk):
@@ -201,3 +208,75 @@ def trunk_column(points: np.ndarray, geodesic: np.ndarray, level_width: float, t
     if len(taken) == 0 or len(rest) < 10 or np.percentile(thickness[rest], 90) < bulb * t0:
         return none
     return taken
+
+
+def undersides(points: np.ndarray, labels: np.ndarray, legs: list[np.ndarray], trunk: np.ndarray,
+               thickness: np.ndarray, up: int, *, clear: float = 2.0, low: float = 2.0, least: float = 0.01
+               ) -> tuple[np.ndarray, float]:
+    """(M,) the height of the body's underside over each point's nearest leg (seen from above; nan where
+    unknown) and the thickest leg's thickness.
+
+    The belly around a leg: the free ``trunk`` points lying farther from every leg point, seen from above,
+    than ``clear`` x that thickness (not the legs' tops), each given to its nearest leg; the leg's underside is
+    the ``low``-th percentile of their heights, when they are at least ``least`` of the free trunk points (a
+    few stray points are not a belly), and when above the median height of the leg's points. Per leg, as a
+    body may slope.
+    """
+    flat, h = np.delete(points, up, axis=1), points[:, up]
+    radius = max(limb_thickness(thickness, m) for m in legs)
+    leg_pts = np.concatenate(legs)
+    owner = np.concatenate([np.full(len(m), i) for i, m in enumerate(legs)])
+    tree = cKDTree(flat[leg_pts])
+    body = trunk[labels[trunk] < 0]
+    level = np.full(len(legs), np.nan)
+    if len(body):
+        dist, near = tree.query(flat[body])
+        far = dist > clear * radius
+        for i in range(len(legs)):
+            mine = body[far & (owner[near] == i)]
+            if len(mine) >= max(least * len(body), 1):
+                level[i] = np.percentile(h[mine], low)
+    # a leg hangs below the belly: at least half of it lies under the underside (not a cat stretching,
+    # its chest on the floor between its front paws, its hind legs fused with its body)
+    level[level <= np.array([np.median(h[m]) for m in legs])] = np.nan
+    return level[owner[tree.query(flat)[1]]], radius
+
+
+def legs_to_underside(points: np.ndarray, graph: csr_matrix, labels: np.ndarray, limbs: list[np.ndarray],
+                      trunk: np.ndarray, thickness: np.ndarray, up: int, *, ground: float = 0.05,
+                      column: float = 1.0, cap: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) ``labels`` with the legs ending at the body's underside (:func:`undersides`), and the indices of
+    the points they gave back to the trunk.
+
+    Where the levels part, not where the cross-section widens, decides a leg's branch: legs that part low
+    leave their merged tops to the trunk (a cat's front legs meet each other below its chest), legs whose
+    levels part high carry the belly's sides (a koala). Below the underside there are only legs, above it
+    the body. The legs are the limbs with points in the lowest ``ground`` of the height; their thickness
+    limit is the geometric mean of the thickest leg's thickness and the trunk's (``cap``), as in
+    :func:`grow_limbs`. Each leg takes the free points below the underside within ``column`` x the thickest
+    leg's thickness of its own points seen from above that it reaches through such points (the part of the
+    leg point each is reached from), where the solid is thinner than the geometric mean of that limit and the
+    trunk's (the limit lifted half-way again: merging legs widen before the belly); and gives back its points
+    above the underside thicker than the limit (the belly's sides, not a thin leg rising along the body).
+    """
+    h = points[:, up]
+    legs = [m for m in limbs if len(m) and (h[m] <= h.min() + ground * float(np.ptp(h))).any()]
+    none = np.zeros(0, dtype=np.int64)
+    if len(legs) < 2:
+        return labels, none
+    level, radius = undersides(points, labels, legs, trunk, thickness, up)
+    known = np.isfinite(level)
+    out, free, leg_pts = labels.copy(), labels < 0, np.concatenate(legs)
+    limit = np.sqrt(radius * cap)
+    flat, thin = np.delete(points, up, axis=1), thickness <= limit
+    below = np.flatnonzero(free & known & (h < np.where(known, level, -np.inf)) & (thickness <= np.sqrt(limit * cap)))
+    below = below[cKDTree(flat[leg_pts]).query(flat[below])[0] <= column * radius] if len(below) else below
+    if len(below):
+        nodes = np.union1d(leg_pts, below)
+        dist, _, source = dijkstra(graph[nodes][:, nodes], directed=False, indices=np.searchsorted(nodes, leg_pts),
+                                   return_predecessors=True, min_only=True)
+        grown = np.flatnonzero(np.isfinite(dist) & free[nodes])
+        out[nodes[grown]] = labels[nodes[source[grown]]]
+    above = np.flatnonzero(np.isin(out, np.unique(labels[leg_pts])) & known & (h > np.where(known, level, np.inf)) & ~thin)
+    out[above] = -1
+    return out, above

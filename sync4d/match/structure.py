@@ -29,7 +29,8 @@ The branches between the root and a matched limb's branch are trunk (:func:`trun
 unmatched then take the outermost free branches at least cost, whatever the miss cost (:func:`pair_leftovers`),
 when that labelling keeps at least as much of the reference's structure (:meth:`TargetLabelling.kept`).
 A matched branch's levels that continue a column-shaped root into a thicker part (a lamp's pole under its
-shade) are trunk (:func:`sync4d.match.regions.trunk_column`). Unmatched reference limbs are reported
+shade) are trunk (:func:`sync4d.match.regions.trunk_column`); the legs end at the body's underside
+(:func:`sync4d.match.regions.legs_to_underside`). Unmatched reference limbs are reported
 (``StructureMatch.leftover``).
 """
 
@@ -844,6 +845,7 @@ class TargetLabelling:
     tgt_thick: np.ndarray | None
     num_parts: int
     config: StructureConfig
+    up: int = 1
 
     def transfer(self, r: int, t: int) -> np.ndarray:
         """The reference limb r's parts carried along the target candidate t (:func:`transfer_along`)."""
@@ -872,7 +874,8 @@ class TargetLabelling:
             root = np.union1d(root, column)
         return pairs, label_regions(sk.points @ rot.T, sk.graph, root, limbs, self.ref_sk.points[in_trunk],
                                     self.ref_labels[in_trunk], thickness=thick, reach=self.config.limb_reach,
-                                    trunk_thickness=None if thick is None else float(thick[sk.core].max()))
+                                    trunk_thickness=None if thick is None else float(thick[sk.core].max()),
+                                    up=self.up)
 
     def kept(self, point_part: np.ndarray) -> float:
         """connected x contacts of a labelling of the target's points against the reference's
@@ -942,7 +945,7 @@ def match_structure(
     pairs, cost = repair_pairs(pairs, ref_limbs, tgt_limbs, tgt_sk, cand, rot, symmetry, attach, config, up,
                                ref_scale, tgt_scale)
     context = TargetLabelling(ref_sk, ref_limbs, ref_labels, trunk, tgt_sk, tgt_limbs, rot, symmetry, ref_scale,
-                              tgt_scale, tgt_thick, num_parts, config)
+                              tgt_scale, tgt_thick, num_parts, config, up)
     more = pair_leftovers(pairs, cost, tgt_sk, cand)
     found = len(more) > len(pairs)
     pairs, point_part = context.label(pairs)
