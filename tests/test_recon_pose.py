@@ -321,34 +321,6 @@ def test_skinned_template_moves_with_its_bones(shared_data: Path) -> None:
     assert np.ptp(fat[:, 2]) > 1.1 * np.ptp(tmpl.vertices[:, 2])
 
 
-def test_turn_term_costs_a_turn_not_a_step(shared_data: Path) -> None:
-    """The tracking's turn term: zero without a tracked frame before, zero for a leg's swing (the torso holds),
-    positive for the whole body turned about up from the last tracked frame (the drift it stops)."""
-    import torch
-
-    from sync4d.recon.pose import quadruped_fit as qf
-    from sync4d.recon.pose.templates import body_template
-
-    tmpl = body_template("fox")
-    tt = qf.TemplateTensors(tmpl)
-    assert [tmpl.names[j] for j in qf.torso_joints(tmpl)] == ["spine0", "spine1", "neck", "tail_base"]
-    prob = type("P", (), {"tt": tt, "torso": torch.tensor(qf.torso_joints(tmpl)), "rate": 1.0})()
-    up = np.array([0.0, -1.0, 0.0])
-    before = qf.start_params(prob, qf.heading_rotation(up, 0.0), np.zeros(3), 0.8)
-    history = qf.history_of(prob, [before])
-    assert history is not None and history.shape == (1, len(tmpl.names) + 1, 3)
-
-    def cost(p: qf.Params, hist: torch.Tensor | None) -> float:
-        return float(qf.turning(prob, qf.pose_body(tt, p)[0], p["log_scale"].exp(), hist))
-
-    step = qf.start_params(prob, qf.heading_rotation(up, 0.0), np.zeros(3), 0.8)
-    with torch.no_grad():
-        step["local"][:, tmpl.leg("fl_")[0], 2] = 0.5
-    turned = qf.start_params(prob, qf.heading_rotation(up, math.radians(14.0)), np.zeros(3), 0.8)
-    assert cost(turned, None) == 0.0 and cost(before, history) < 1e-12 and cost(step, history) < 1e-12
-    assert cost(turned, history) > 1e-3
-
-
 @pytest.mark.parametrize("moving", [False, True])
 def test_quadruped_fit_started_at_the_truth_stays_there(shared_data: Path, moving: bool) -> None:
     """The objective's minimum is at the truth: silhouettes of the template posed by known rotations (static
