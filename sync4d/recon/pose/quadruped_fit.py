@@ -64,8 +64,8 @@ class QuadrupedFitConfig:
         smooth_weight: squared accelerations of the root-relative joints and the root (template units) at 30
             frames a second; other frame rates scale second differences by (fps / 30)^2.
         turn_weight: squared velocities of the torso's root-relative joints (the spine from the root to the
-            head's parent, and the tail base; template units, first camera frame) at 30 frames a second, from
-            one tracked frame to the next (not in the clip fits): the body turns slowly. The acceleration term leaves a steady turn free, and a one-frame fit while tracking
+            head's parent, and the tail base; template units, first camera frame) at 30 frames a second: the body
+            turns slowly. The acceleration term leaves a steady turn free, and a one-frame fit while tracking
             turned a walk in place 14 deg a frame (fox walk side, from the true first frame: 0 -> 74 deg over
             8 frames, the body growing 1.66x and thinning to 0.37x to keep the silhouette).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
@@ -376,12 +376,13 @@ def torso_joints(tmpl: BodyTemplate) -> np.ndarray:
 
 def turning(prob: QuadrupedProblem, joints: torch.Tensor, scale: torch.Tensor, history: torch.Tensor | None
             ) -> torch.Tensor:
-    """Mean squared velocity of the torso's root-relative joints (template units, at 30 frames a second) from the
-    last tracked frame (``history``) to a one-frame fit's; 0 without history."""
-    if history is None:  # the clip fits: all frames at once do not drift frame by frame
-        return joints.new_zeros(())
+    """Mean squared velocity of the torso's root-relative joints (template units, at 30 frames a second)."""
     torso = prob.torso
-    rel = torch.cat([history[-1:, torso], (joints[:, torso] - joints[:, :1]) / scale])
+    rel = (joints[:, torso] - joints[:, :1]) / scale
+    if history is not None:
+        rel = torch.cat([history[-1:, torso], rel])
+    if len(rel) < 2:
+        return joints.new_zeros(())
     return ((rel[1:] - rel[:-1]) * prob.rate).pow(2).sum(-1).mean()
 
 
@@ -528,9 +529,8 @@ def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndar
 
 
 def history_of(prob: QuadrupedProblem, frames: list[Params]) -> torch.Tensor | None:
-    """(2, J + 1, 3) root-relative joints and root of the last two tracked frames (one after the first frame;
-    template units)."""
-    if not frames:
+    """(2, J + 1, 3) root-relative joints and root of the last two tracked frames (template units)."""
+    if len(frames) < 2:
         return None
     with torch.no_grad():
         past = []
