@@ -63,11 +63,6 @@ class QuadrupedFitConfig:
             penalty [deg].
         smooth_weight: squared accelerations of the root-relative joints and the root (template units) at 30
             frames a second; other frame rates scale second differences by (fps / 30)^2.
-        turn_weight: squared velocities of the torso's root-relative joints (the spine from the root to the
-            head's parent, and the tail base; template units, first camera frame) at 30 frames a second: the body
-            turns slowly. The acceleration term leaves a steady turn free, and a one-frame fit while tracking
-            turned a walk in place 14 deg a frame (fox walk side, from the true first frame: 0 -> 74 deg over
-            8 frames, the body growing 1.66x and thinning to 0.37x to keep the silhouette).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -89,7 +84,6 @@ class QuadrupedFitConfig:
     joint_limit_deg: float = 50.0
     leg_off_plane_deg: float = 15.0
     smooth_weight: float = 5.0
-    turn_weight: float = 5.0
     background_threshold: float = 30.0
 
 
@@ -302,7 +296,6 @@ class QuadrupedProblem:
         self.K = torch.tensor(camera.K, dtype=DTYPE)
         self.tau = max(self.box[2] - self.box[0], self.box[3] - self.box[1]) / config.grid * 0.5
         self.tt = TemplateTensors(body_template(config.template))
-        self.torso = torch.tensor(torso_joints(self.tt.template))
         self.camera = camera
         rel = relative_cameras(extrinsics)
         self.cams = None if rel is None else torch.tensor(rel, dtype=DTYPE)
@@ -365,27 +358,6 @@ def smoothness(prob: QuadrupedProblem, joints: torch.Tensor, scale: torch.Tensor
     return second.pow(2).sum(-1).mean()
 
 
-def torso_joints(tmpl: BodyTemplate) -> np.ndarray:
-    """Indices of the torso's joints other than the root: the head's ancestors and the tail base."""
-    path, j = [], int(tmpl.parents[tmpl.head])
-    while j > 0:
-        path.append(j)
-        j = int(tmpl.parents[j])
-    return np.array(sorted(path + [tmpl.tail]), dtype=np.int64)
-
-
-def turning(prob: QuadrupedProblem, joints: torch.Tensor, scale: torch.Tensor, history: torch.Tensor | None
-            ) -> torch.Tensor:
-    """Mean squared velocity of the torso's root-relative joints (template units, at 30 frames a second)."""
-    torso = prob.torso
-    rel = (joints[:, torso] - joints[:, :1]) / scale
-    if history is not None:
-        rel = torch.cat([history[-1:, torso], rel])
-    if len(rel) < 2:
-        return joints.new_zeros(())
-    return ((rel[1:] - rel[:-1]) * prob.rate).pow(2).sum(-1).mean()
-
-
 def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config: QuadrupedFitConfig,
               history: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Total loss, joints (T, J, 3) and soft silhouettes (T, P) of ``params`` on ``frames``.
@@ -398,8 +370,7 @@ def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config
     lengths, limit = shape_priors(prob, params, config)
     total = (config.silhouette_weight * bce + config.inside_weight * inside + config.length_weight * lengths
              + config.limit_weight * limit
-             + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history)
-             + config.turn_weight * turning(prob, joints, params["log_scale"].exp(), history))
+             + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
     return total, joints, occ
 
 
