@@ -4,6 +4,7 @@
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --load hyps.pt \\
         --set inside_weight=0.2 --steps 60 --pick 0,4                                                # re-judged
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --headings [--pick 0]    # every heading
+    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --gap                    # B -> rest split
 
 The first form runs the fit's search (first-frame starts, ``tracks`` tracks refined on the clip, each with its
 legs swapped: the hypotheses) with the defaults, saves them and scores each (loss, optical-flow error, mpjpe
@@ -12,7 +13,10 @@ under the fit's priors, then the silhouette clip fit from there, as ``body_suite
 ``--load``, refine every saved hypothesis the same ``--steps`` under the configuration given by ``--set``: the
 truth is the objective's minimum on this clip when B's loss is below every hypothesis'. ``--headings`` instead
 tracks every start heading (or those ``--pick`` names) as the fit tracks its best ``tracks``, and scores each
-with its gait cue (:func:`gait_cue`), loss, flow error and mpjpe (the truth's heading printed first). Prints JSON rows.
+with its gait cue (:func:`gait_cue`), loss, flow error and mpjpe (the truth's heading printed first). ``--gap``
+splits the gap between B and the rest pose at the true root (:func:`gap`): the truth's first frame tracked as the
+fit tracks, with and without the first-frame schedule, the legs' or the torso's true rotations only, the first
+frame alone wrong, one tracking step from the truth; each row with its per-frame error. Prints JSON rows.
 """
 
 from __future__ import annotations
