@@ -4,6 +4,7 @@
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --load hyps.pt \\
         --set inside_weight=0.2 --steps 60 --pick 0,4                                                # re-judged
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --headings [--pick 0]    # every heading
+    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --gap                    # B -> rest split
 
 The first form runs the fit's search (first-frame starts, ``tracks`` tracks refined on the clip, each with its
 legs swapped: the hypotheses) with the defaults, saves them and scores each (loss, optical-flow error, mpjpe
@@ -12,7 +13,10 @@ under the fit's priors, then the silhouette clip fit from there, as ``body_suite
 ``--load``, refine every saved hypothesis the same ``--steps`` under the configuration given by ``--set``: the
 truth is the objective's minimum on this clip when B's loss is below every hypothesis'. ``--headings`` instead
 tracks every start heading (or those ``--pick`` names) as the fit tracks its best ``tracks``, and scores each
-with its gait cue (:func:`gait_cue`), loss, flow error and mpjpe (the truth's heading printed first). Prints JSON rows.
+with its gait cue (:func:`gait_cue`), loss, flow error and mpjpe (the truth's heading printed first). ``--gap``
+splits the gap between B and the rest pose at the true root (:func:`gap`): the truth's first frame tracked as the
+fit tracks, with and without the first-frame schedule, the legs' or the torso's true rotations only, the first
+frame alone wrong, one tracking step from the truth; each row with its per-frame error. Prints JSON rows.
 """
 
 from __future__ import annotations
@@ -162,6 +166,94 @@ def every_heading(c: Clip, cfg: qf.QuadrupedFitConfig, save: str | None, pick: l
     return rows
 
 
+def a2_params(c: Clip, cfg: qf.QuadrupedFitConfig) -> qf.Params:
+    """A2: the template fitted to the truth joints of every frame under the fit's priors, then its girth (60 clip
+    steps with only the girths free), as :func:`truth_started` starts B."""
+    truth_cam = np.einsum("ij,tkj->tki", c.w2c[0][:3, :3], c.truth) + c.w2c[0][:3, 3]
+    params = bs.truth_start(c.prob, truth_cam, c.names, c.w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0]))
+    bs.fit_to_truth(c.prob, params, torch.tensor(truth_cam, dtype=qf.DTYPE), c.ids, cfg, True)
+    qf.run_steps(c.prob, c.frames, params, cfg, 60, free=("log_thick", "log_girth"))
+    return params
+
+
+def first_frame_fit(c: Clip, params: qf.Params, cfg: qf.QuadrupedFitConfig) -> qf.Params:
+    """The fit's first-frame schedule (:func:`qf.first_frame_starts`) on a one-frame start: rigid, then all free."""
+    qf.run_steps(c.prob, np.arange(1), params, cfg, cfg.start_iterations // 2, free=qf.RIGID)
+    qf.run_steps(c.prob, np.arange(1), params, cfg, cfg.start_iterations - cfg.start_iterations // 2)
+    return params
+
+
+def per_frame(c: Clip, params: qf.Params) -> list[float]:
+    """mpjpe % of the height per frame, after the one similarity for the clip (the score's alignment)."""
+    from sync4d_tools.evaluate.recon_joints import joint_errors
+
+    with torch.no_grad():
+        joints = qf.pose_body(c.prob.tt, params)[0].numpy().astype(np.float64)
+    height = float((c.truth[..., 1].max(1) - c.truth[..., 1].min(1)).max())
+    err = joint_errors(bs.first_camera_to_world(joints[:, c.ids], c.w2c[0]), c.truth)
+    return [round(100 * float(e) / height, 1) for e in err.mean(1)]
+
+
+def gap_row(c: Clip, cfg: qf.QuadrupedFitConfig, what: str, params: qf.Params, *, tracked: bool = True) -> dict:
+    """Score a clip's parameters (after the fit's clip steps when ``tracked``), with its per-frame error."""
+    loss = qf.run_steps(c.prob, c.frames, params, cfg, cfg.iterations if tracked else 0)[0]
+    row = {"what": what, "loss": round(loss, 4), **c.terms(params), **c.score(params), "per_frame": per_frame(c, params)}
+    print(json.dumps(row), flush=True)
+    return row
+
+
+def rest_at(params: qf.Params, keep: np.ndarray | None = None) -> qf.Params:
+    """Leaf copies of one-frame ``params`` with every joint's rotation at rest but those in ``keep``."""
+    out = {k: v.detach().clone() for k, v in params.items()}
+    local = torch.zeros_like(out["local"])
+    if keep is not None:
+        local[:, keep] = out["local"][:, keep]
+    out["local"] = local
+    return {k: v.requires_grad_(True) for k, v in out.items()}
+
+
+def oracle_steps(c: Clip, a2: qf.Params, cfg: qf.QuadrupedFitConfig) -> qf.Params:
+    """Each frame t > 0 warm-started from the truth's frame t - 1 (A2) and run as the fit's tracking runs it."""
+    frames = [qf.frame_params(a2, 0)]
+    for t in range(1, len(c.frames)):
+        cur = qf.frame_params(a2, t - 1)
+        hist = qf.history_of(c.prob, [qf.frame_params(a2, s) for s in range(max(0, t - 2), t)])
+        qf.run_steps(c.prob, np.array([t]), cur, cfg, cfg.frame_iterations, history=hist)
+        frames.append(cur)
+    return {k: (torch.cat([p[k].detach() for p in frames]) if k not in qf.CLIP else a2[k].detach().clone()
+                ).requires_grad_(True) for k in a2}
+
+
+def gap(c: Clip, cfg: qf.QuadrupedFitConfig) -> list[dict]:
+    """The gap between B (started at the truth) and the rest pose at the true heading, split by what is given."""
+    n, tmpl = len(c.frames), c.prob.tt.template
+    a2 = a2_params(c, cfg)
+    rows = [gap_row(c, cfg, "A2 (truth under the priors), no silhouette steps", a2, tracked=False)]
+    first = qf.frame_params(a2, 0)
+    rows.append(gap_row(c, cfg, "truth's frame 0 as is, the fit's tracking", qf.track(c.prob, first, cfg, n)))
+    f0 = first_frame_fit(c, qf.frame_params(a2, 0), cfg)
+    rows.append(gap_row(c, cfg, "truth's frame 0 + the first-frame schedule, the fit's tracking",
+                        qf.track(c.prob, f0, cfg, n)))
+    legs = first_frame_fit(c, rest_at(qf.frame_params(a2, 0), tmpl.leg_joints), cfg)
+    rows.append(gap_row(c, cfg, "true root, legs' true phase, rest elsewhere; schedule, tracking",
+                        qf.track(c.prob, legs, cfg, n)))
+    other = np.setdiff1d(np.arange(len(tmpl.parents)), tmpl.leg_joints)
+    body = first_frame_fit(c, rest_at(qf.frame_params(a2, 0), other), cfg)
+    rows.append(gap_row(c, cfg, "true root, spine/head/tail true, legs at rest; schedule, tracking",
+                        qf.track(c.prob, body, cfg, n)))
+    rest = first_frame_fit(c, rest_at(qf.frame_params(a2, 0)), cfg)
+    grown = qf.track(c.prob, rest, cfg, n)
+    rows.append(gap_row(c, cfg, "true root, rest pose; schedule, tracking", grown))
+    spliced = {k: v.detach().clone() for k, v in a2.items()}
+    for k in ("root_rot", "root_pos", "local"):
+        spliced[k][0] = rest[k].detach()[0]
+    rows.append(gap_row(c, cfg, "rest-grown frame 0, the truth's later frames (no steps)",
+                        {k: v.requires_grad_(True) for k, v in spliced.items()}, tracked=False))
+    rows.append(gap_row(c, cfg, "each frame one tracking step from the truth's previous frame (no clip steps)",
+                        oracle_steps(c, a2, cfg), tracked=False))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clip", required=True, help="a rendered quadruped clip (body_suite's folder)")
@@ -170,12 +262,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--set", nargs="*", default=[], help="QuadrupedFitConfig fields, name=value")
     parser.add_argument("--steps", type=int, default=140, help="clip steps for B and each loaded hypothesis")
     parser.add_argument("--headings", action="store_true", help="track every start heading (no B); --save keeps them")
+    parser.add_argument("--gap", action="store_true", help="split the gap between B and the rest pose at the true root")
     parser.add_argument("--pick", default="", help="comma-separated indices of the loaded hypotheses (with --headings: of the start headings)")
     args = parser.parse_args(argv)
     base = qf.QuadrupedFitConfig()
     over: dict[str, Any] = {k: type(getattr(base, k))(v) for k, v in (s.split("=", 1) for s in args.set)}
     cfg = qf.QuadrupedFitConfig(**over)
     c = Clip(Path(args.clip), cfg)
+    if args.gap:
+        return gap(c, cfg)
     if args.headings:
         return every_heading(c, cfg, args.save, [int(i) for i in args.pick.split(",")] if args.pick else None)
     rows = [truth_started(c, cfg, args.steps)]

@@ -630,6 +630,29 @@ def test_gait_cue_tells_the_way_the_paws_push(shared_data: Path) -> None:
     assert gait_cue(prob, feet, facing_left) < 0 < gait_cue(prob, feet, facing_right)
 
 
+def test_quadruped_climb_gap_rests_all_but_the_joints_kept(shared_data: Path) -> None:
+    """``quadruped_climb --gap``: a start keeps the root, shape and the named joints' rotations, the rest at rest,
+    as fresh leaves (the source is not moved by the steps that follow)."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d.recon.pose.templates import body_template
+    from sync4d_tools.quadruped_climb import rest_at
+
+    tmpl = body_template("fox")
+    prob = type("P", (), {"tt": qf.TemplateTensors(tmpl)})()
+    src = qf.start_params(prob, np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.0, 2.0]), 0.8)
+    with torch.no_grad():
+        src["local"] += 0.3
+    legs = tmpl.leg_joints
+    out = rest_at(src, legs)
+    assert torch.equal(out["local"][:, legs], src["local"][:, legs].detach())
+    others = np.setdiff1d(np.arange(len(tmpl.names)), legs)
+    assert float(out["local"][:, others].abs().max()) == 0.0 and float(rest_at(src)["local"].abs().max()) == 0.0
+    assert torch.equal(out["root_rot"], src["root_rot"].detach()) and out["local"].is_leaf and out["local"].requires_grad
+    assert out["local"].data_ptr() != src["local"].data_ptr()
+
+
 def test_quadruped_climb_needs_a_clip() -> None:
     """sync4d_tools.quadruped_climb: --clip is required (argparse exits 2 before any work)."""
     import pytest
