@@ -258,6 +258,7 @@ def test_recon_suite_filmed_laptop_then_merge(tmp_path: Path, capsys: pytest.Cap
     fails(capsys, "recon_suite", "--only", "nope", "--out", str(tmp_path / "c"), match="--only nope")
     fails(capsys, "recon_suite", "--merge", str(tmp_path / "none.json"), "--out", str(tmp_path / "c"), match="--merge")
     fails(capsys, "recon_suite", "--set", "seed=3", "--out", str(tmp_path / "c"), match="--set bones/seed")
+    fails(capsys, "recon_suite", "--camera", "handheld", "--out", str(tmp_path / "c"), match="--camera handheld")
 
 
 def test_recon_suite_without_mujoco_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -283,17 +284,21 @@ def test_recon_suite_mujoco_cases(case: str, tmp_path: Path, shared_data: Path,
 
 
 @pytest.mark.slow
-def test_recon_suite_world_up_scores_in_the_clip_world(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("camera", ["static", "handheld"])
+def test_recon_suite_world_up_scores_in_the_clip_world(camera: str, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
     """With the clip's up given the fit lives in a turned world; the ceiling (the exact truth through the fit's
-    camera) and the first-frame split are scored back in the clip's world, so they match the run without it."""
+    camera, every frame's when it moves) and the first-frame split are scored back in the clip's world, so they
+    match the run without it."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     pytest.importorskip("mujoco")
     pytest.importorskip("metaworld")
     rows = []
     for name, extra in (("plain", []), ("up", ["--world-up", "0", "0", "1"])):
         run(capsys, "recon_suite", "--only", "appliance_door-left", "--frames", "4", "--set", *SMALL_VIDEO_FIT,
-            *extra, "--out", str(tmp_path / name), "--cache", str(tmp_path / "cache"))
+            "--camera", camera, "--no-laptops", *extra, "--out", str(tmp_path / name), "--cache", str(tmp_path / "cache"))
         rows.append(json.loads((tmp_path / name / "results.json").read_text())[0])
+    assert rows[0]["camera"] == ("moving" if camera == "handheld" else "static")
     for key in ("first", "revealed"):
         assert rows[1]["ceiling"][key] == pytest.approx(rows[0]["ceiling"][key], abs=0.01)
     assert rows[1]["seen_share"] == pytest.approx(rows[0]["seen_share"], abs=0.01)

@@ -45,11 +45,13 @@ def test_part_mapping_scores_and_can_fail() -> None:
     assert part_mapping(broken, gt, 2, 2)[2] < 0.9
 
 
-def plate_truth(kind: str, values: np.ndarray | None = None) -> tuple[CaseTruth, Camera]:
+def plate_truth(kind: str, values: np.ndarray | None = None, poses: np.ndarray | None = None) -> tuple[CaseTruth, Camera]:
     """A camera at the origin; a static base plate 2.5 m away on the left, a moving plate (front face at 2 m,
     back face 0.06 m behind) on the right that turns about a vertical hinge at its left edge (60 deg by
-    default) or slides 0.3 m to the right. Labels and depths z-buffered from dense points on the faces."""
-    camera = Camera(K=K, world_to_cam=np.eye(4), width=W, height=H)
+    default) or slides 0.3 m to the right. Labels and depths z-buffered from dense points on the faces, seen
+    in frame t through ``poses[t]`` (T, 4, 4) world-to-camera when given (a moving camera; frame 0's the
+    returned camera)."""
+    camera = Camera(K=K, world_to_cam=np.eye(4) if poses is None else poses[0], width=W, height=H)
     if values is None:
         values = np.radians([0.0, 20.0, 40.0, 60.0]) if kind == "hinge" else np.array([0.0, 0.1, 0.2, 0.3])
     truth = CaseTruth(part_labels=np.zeros((len(values), H, W), np.uint8), depth=np.zeros((len(values), H, W), np.float32),
@@ -62,6 +64,8 @@ def plate_truth(kind: str, values: np.ndarray | None = None) -> tuple[CaseTruth,
     for t, motion in enumerate(truth.motions()):
         posed = moving @ motion[1, :3, :3].T + motion[1, :3, 3]
         pts, part = np.concatenate([base, posed]), np.repeat([1, 2], [len(base), len(posed)])
+        if poses is not None:
+            pts = pts @ poses[t, :3, :3].T + poses[t, :3, 3]
         u, v = (pts[:, 0] / pts[:, 2] * K[0, 0] + K[0, 2]).astype(int), (pts[:, 1] / pts[:, 2] * K[1, 1] + K[1, 2]).astype(int)
         order = np.argsort(-pts[:, 2])  # far first; near points overwrite
         ok = order[(u[order] >= 0) & (u[order] < W) & (v[order] >= 0) & (v[order] < H)]
@@ -137,6 +141,67 @@ def test_first_frame_surface_is_split_from_the_revealed() -> None:
     assert constant_labels(labels, seen)["all"] == pytest.approx(share.max() / share.sum(), abs=1e-4)
 
 
+def orbit_poses(frames: int, degrees: float) -> np.ndarray:
+    """(T, 4, 4) world-to-camera of a camera turning by up to ``degrees`` about a vertical line through the
+    plates (x = 0, z = 2.25 m), as a hand-held arc does: frame 0 the identity."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.tile(np.eye(4), (frames, 1, 1))
+    centre = np.array([0.0, 0.0, 2.25])
+    for t, angle in enumerate(np.radians(np.linspace(0.0, degrees, frames))):
+        rot = Rotation.from_rotvec([0.0, angle, 0.0]).as_matrix()  # camera-to-world turn about the centre
+        c2w = np.eye(4)
+        c2w[:3, :3], c2w[:3, 3] = rot, centre - rot @ centre
+        out[t] = np.linalg.inv(c2w)
+    return out
+
+
+def test_a_moving_camera_is_scored_frame_by_frame() -> None:
+    """Filmed by a camera that turns 12 deg: with each frame's camera the slide uncovers nothing (every object
+    pixel shows surface frame 0 saw) and the exact joints score 0; read through frame 0's camera alone, the
+    same pixels land elsewhere and most are called revealed."""
+    from sync4d_tools.articulated.ceiling import frame_cameras
+
+    poses = orbit_poses(4, 12.0)
+    slide, camera = plate_truth("slide", poses=poses)
+    cameras = frame_cameras(camera, poses)
+    assert isinstance(cameras, list) and len(cameras) == 4 and np.array_equal(cameras[2].world_to_cam, poses[2])
+    assert frame_cameras(camera, None) is camera
+    seen = slide.seen_first(cameras)
+    assert seen[slide.part_labels > 0].mean() > 0.97
+    assert slide.seen_first(camera)[3][slide.part_labels[3] > 0].mean() < 0.5  # one camera for every frame: wrong
+    assert np.allclose(slide.points(cameras, 1, frame=3).mean(0), slide.points(cameras, 1).mean(0), atol=0.02)
+    exact = slide.motions()[:, 1]
+    assert joint_row(exact, "slide", 0, slide, camera, slide.points(camera, 2))["pass"]
+    hinge, camera = plate_truth("hinge", poses=poses)
+    row = joint_row(hinge.motions()[:, 1], "hinge", 0, hinge, camera, hinge.points(camera, 2))
+    assert row["axis_deg"] < 1e-6 and row["pivot_pct"] < 1e-6 and row["pass"]
+
+
+def test_the_handheld_arc_starts_at_the_view_and_sweeps_like_the_default_scene() -> None:
+    """The suite's hand-held poses: frame 0 is the static view exactly; ~30 deg of azimuth about z over the
+    clip, elevation within a few degrees, distance within 5 %, unit orthogonal forward and up; seeded."""
+    from sync4d_tools.articulated.render import free_camera_eye, handheld_poses
+
+    lookat = np.array([0.1, -0.2, 0.3])
+    eye = free_camera_eye(lookat, 1.5, 55.0, -28.0)
+    fwd0 = (lookat - eye) / 1.5
+    assert np.degrees(np.arcsin(fwd0[2])) == pytest.approx(-28.0) and np.linalg.norm(lookat - eye) == pytest.approx(1.5)
+    poses = handheld_poses(lookat, eye, 0.4, 24, np.random.default_rng([1, 7]))
+    assert poses.shape == (24, 3, 3)
+    assert np.allclose(poses[0, 0], eye) and np.allclose(poses[0, 1], fwd0)
+    fwd, up = poses[:, 1], poses[:, 2]
+    assert np.allclose(np.linalg.norm(fwd, axis=1), 1) and np.allclose(np.linalg.norm(up, axis=1), 1)
+    assert np.abs(np.einsum("ti,ti->t", fwd, up)).max() < 1e-9
+    azimuth = np.degrees(np.unwrap(np.arctan2(-fwd[:, 1], -fwd[:, 0])))
+    assert 25.0 < abs(azimuth[-1] - azimuth[0]) < 35.0
+    assert np.ptp(np.degrees(np.arcsin(fwd[:, 2]))) < 10.0
+    distance = np.linalg.norm(poses[:, 0] - lookat, axis=1) / 1.5
+    assert distance.min() > 0.94 and distance.max() < 1.06
+    assert np.array_equal(poses, handheld_poses(lookat, eye, 0.4, 24, np.random.default_rng([1, 7])))
+    assert not np.array_equal(poses, handheld_poses(lookat, eye, 0.4, 24, np.random.default_rng([2, 7])))
+
+
 def test_rows_of_one_clip_count_once() -> None:
     """Three rows of one fixed clip weigh as one sample against a passing row of another clip."""
     good = {"joint": "hinge", "found": "hinge", "axis_deg": 1.0, "pivot_pct": 1.0, "motion": 1.0, "pass": True}
@@ -182,3 +247,56 @@ def test_a_tiny_mujoco_clip_has_its_truth(tmp_path: Path) -> None:
     for j in range(2):
         row = joint_row(truth.motions()[:, j + 1], truth.kinds[j], j, truth, source.camera, truth.points(source.camera, j + 2))
         assert row["pass"] and row["axis_deg"] < 0.5 and row["motion"] < 0.5, row
+
+
+@pytest.mark.slow
+def test_a_tiny_handheld_mujoco_clip_has_per_frame_cameras(tmp_path: Path) -> None:
+    """A hand-held desk clip at 64x48, 4 frames: one pose per frame, frame 0 the static clip's exactly; every
+    frame's base pixels, cast through that frame's camera, land on the base's frame-0 surface (the depth,
+    labels and cameras agree); the truth's first-frame split sees the base in every frame. Needs
+    requirements-suite.txt (skipped without mujoco)."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    pytest.importorskip("mujoco")
+    pytest.importorskip("metaworld")
+    from sync4d.sources.references import VideoSource
+    from sync4d_tools.articulated.ceiling import frame_cameras
+    from sync4d_tools.articulated.render import VIEWS, clip_name, render_clip
+    from sync4d_tools.articulated.truth import clip_truth
+
+    obj = next(o for o in suite_objects() if o.name == "desk_lid_drawer")
+    assert clip_name("desk_lid_drawer", "left", 1, "handheld") == "desk_lid_drawer-left-s1-hh"
+    for camera in ("static", "handheld"):
+        render_clip(obj, VIEWS[0], tmp_path / camera, frames=4, width=64, height=48, cache=tmp_path, camera=camera)
+    still, moving = (dict(np.load(tmp_path / c / "gt.npz")) for c in ("static", "handheld"))
+    assert moving["cam_pos"].shape == moving["cam_forward"].shape == moving["cam_up"].shape == (4, 3)
+    assert np.abs(moving["cam_pos"][0] - still["cam_pos"]).max() < 1e-6
+    assert np.array_equal(moving["part_labels"][0], still["part_labels"][0])
+    assert np.linalg.norm(moving["cam_pos"][3] - moving["cam_pos"][0]) > 0.05  # it moved
+    source = VideoSource(VideoSource.Config(video=str(tmp_path / "handheld" / "rgb.mp4"),
+                                            masks=str(tmp_path / "handheld" / "masks"),
+                                            camera=str(tmp_path / "handheld" / "gt.npz"))).load()
+    assert source.video is not None and source.video.extrinsics is not None
+    cameras = frame_cameras(source.camera, source.video.extrinsics)
+    truth = clip_truth(moving)
+    for t in (1, 3):
+        right, wrong = (reprojection(truth, cams, t) for cams in (cameras, cameras[0]))
+        assert right[0] > 0.4 and right[1] < 0.01, (t, right)  # frame 0 hides part of the base behind the lid
+        assert wrong[1] > 3 * right[1] or wrong[0] < 0.5 * right[0], (t, right, wrong)
+    seen = truth.seen_first(cameras)
+    base = truth.part_labels == 1
+    assert seen[0][truth.part_labels[0] > 0].mean() > 0.95 and seen[3][base[3]].mean() > 0.8
+
+
+def reprojection(truth: CaseTruth, cameras: list[Camera] | Camera, t: int) -> tuple[float, float]:
+    """(share of frame t's base pixels that land on frame 0's base, their median relative depth error) when
+    cast through ``cameras`` (per frame, or one for all) and seen through frame 0's."""
+    from sync4d_tools.articulated.truth import camera_at
+
+    first = camera_at(cameras, 0)
+    pc = truth.points(cameras, 1, frame=t) @ first.world_to_cam[:3, :3].T + first.world_to_cam[:3, 3]
+    uv = np.floor((pc @ first.K.T)[:, :2] / pc[:, 2:3]).astype(int)
+    h, w = truth.part_labels.shape[1:]
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    on = truth.part_labels[0][uv[ok, 1], uv[ok, 0]] == 1
+    err = np.abs(truth.depth[0][uv[ok, 1], uv[ok, 0]][on] - pc[ok, 2][on]) / pc[ok, 2][on]
+    return float(on.mean()), float(np.median(err)) if on.any() else float("inf")

@@ -72,10 +72,7 @@ class FilmSettings:
 
 def camera_path(points: np.ndarray, settings: FilmSettings, frames: int) -> list[Camera]:
     """Per-frame cameras framing ``points`` (..., 3) [m]: the static camera of ``settings.direction`` in every
-    frame, or a hand-held arc starting there (azimuth swept smoothly by ``arc_deg`` about ``up``, elevation
-    +-3 deg, distance +-5 %, the aim jittered by 2 % of the object's radius, roll ~1 deg; seeded)."""
-    from scipy.spatial.transform import Rotation
-
+    frame, or a hand-held arc starting there (:func:`handheld_path`, seeded by ``settings.seed``)."""
     from sync4d.render.camera import bounding_sphere, frame_object, look_at
 
     first = frame_object(points.reshape(-1, 3), direction=settings.direction, up=settings.up, fov_deg=settings.fov_deg,
@@ -84,12 +81,25 @@ def camera_path(points: np.ndarray, settings: FilmSettings, frames: int) -> list
         return [first] * frames
     centre, radius = bounding_sphere(points)
     eye = np.linalg.inv(first.world_to_cam)[:3, 3]
-    up = np.asarray(settings.up, np.float64) / np.linalg.norm(settings.up)
     rng = np.random.default_rng([settings.seed, 0x5EED])
+    path = handheld_path(eye, centre, radius, settings.up, settings.arc_deg, frames, rng)
+    return [look_at(pos, aim, tilt, settings.fov_deg, settings.width, settings.height) for pos, aim, tilt in path]
+
+
+def handheld_path(eye: np.ndarray, centre: np.ndarray, radius: float, up: tuple[float, float, float] | np.ndarray,
+                  arc_deg: float, frames: int, rng: np.random.Generator
+                  ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per frame (eye (3,), aim (3,), the camera's up (3,)) of a phone user's arc about an object at ``centre``
+    of ``radius`` [m], starting at ``eye`` (frame 0 exactly there, aimed at the centre): azimuth swept
+    smoothly by ``arc_deg`` about ``up``, elevation +-3 deg, distance +-5 %, the aim jittered by 2 % of the
+    radius, roll ~1 deg (drawn from ``rng``)."""
+    from scipy.spatial.transform import Rotation
+
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
     s = np.linspace(0.0, 1.0, frames)
-    cams = []
+    out = []
     for t in range(frames):
-        offset = Rotation.from_rotvec(np.radians(settings.arc_deg * (3 * s[t] ** 2 - 2 * s[t] ** 3)) * up).apply(eye - centre)
+        offset = Rotation.from_rotvec(np.radians(arc_deg * (3 * s[t] ** 2 - 2 * s[t] ** 3)) * up).apply(eye - centre)
         side = np.cross(up, offset)
         offset = Rotation.from_rotvec(np.radians(3.0 * np.sin(2 * np.pi * s[t])) * side / np.linalg.norm(side)).apply(offset)
         offset = offset * (1.0 + 0.05 * np.sin(3.0 * s[t]))
@@ -97,8 +107,8 @@ def camera_path(points: np.ndarray, settings: FilmSettings, frames: int) -> list
         roll = np.radians(rng.normal(0.0, 1.0)) if t else 0.0
         fwd = (aim - centre - offset) / np.linalg.norm(aim - centre - offset)
         tilt = Rotation.from_rotvec(roll * fwd).apply(up)
-        cams.append(look_at(centre + offset, aim, tilt, settings.fov_deg, settings.width, settings.height))
-    return cams
+        out.append((centre + offset, aim, tilt))
+    return out
 
 
 def room_texture(uv: np.ndarray, salt: int, tile: float) -> np.ndarray:

@@ -9,7 +9,7 @@ is the representation's, not the fit's.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -21,7 +21,7 @@ from sync4d.recon.video.reconstructor import build_reference
 from sync4d.recon.video.reveal import reveal
 from sync4d.recon.video.stages import Tracks
 from sync4d.types import Camera, Reference, VideoClip
-from sync4d_tools.articulated.truth import CaseTruth
+from sync4d_tools.articulated.truth import CaseTruth, camera_at
 from sync4d_tools.evaluate.recon_hinge import render_bone_labels
 
 
@@ -32,7 +32,9 @@ class Splats:
     Attributes:
         reference: the articulated reference (its part labels and bone motion).
         means: (N, 3) rest Gaussian centres [m]; sigma: (N,) sizes [m]; opacity: (N,).
-        camera: the static camera; object_width: the object's width [m] (the soft z-buffer's scale).
+        camera: the static camera (frame 0's when it moves); object_width: the object's width [m] (the soft
+            z-buffer's scale).
+        extrinsics: (T, 4, 4) world-to-camera of every frame when the camera moves, else None.
     """
 
     reference: Reference
@@ -41,14 +43,24 @@ class Splats:
     opacity: np.ndarray
     camera: Camera
     object_width: float
+    extrinsics: np.ndarray | None = None
+
+
+def frame_cameras(camera: Camera, extrinsics: np.ndarray | None) -> Camera | list[Camera]:
+    """``camera`` when static (``extrinsics`` None), else each frame's: its intrinsics with the (T, 4, 4) poses."""
+    if extrinsics is None:
+        return camera
+    return [replace(camera, world_to_cam=np.asarray(w, np.float64)) for w in extrinsics]
 
 
 def rendered_labels(fit: Splats | VideoFit, gt_labels: np.ndarray) -> list[np.ndarray]:
-    """Per frame, the bone rendered at each gt object pixel (in the order of ``np.nonzero``)."""
+    """Per frame, the bone rendered at each gt object pixel (in the order of ``np.nonzero``), seen through
+    that frame's camera when it moves."""
+    cameras = frame_cameras(fit.camera, fit.extrinsics)
     out = []
     for t in range(fit.reference.num_frames):
         pix = np.argwhere(gt_labels[t] > 0)[:, ::-1].astype(np.float64)
-        out.append(render_bone_labels(fit.reference, fit.means, fit.sigma, fit.opacity, fit.camera, t, pix,
+        out.append(render_bone_labels(fit.reference, fit.means, fit.sigma, fit.opacity, camera_at(cameras, t), t, pix,
                                       tau=0.02 * fit.object_width))
     return out
 
@@ -70,14 +82,16 @@ def exact_joint_fit(tracks: Tracks, truth: CaseTruth) -> JointFit:
 
 
 def exact_splats(tracks: Tracks, masks: np.ndarray, truth: CaseTruth, clip: VideoClip, camera: Camera,
-                 object_width: float) -> Splats:
-    """The exact truth in the method's representation (frame-0 points, revealed surfaces, Gaussian sizes)."""
+                 object_width: float, extrinsics: np.ndarray | None = None) -> Splats:
+    """The exact truth in the method's representation (frame-0 points, revealed surfaces, Gaussian sizes);
+    ``camera`` frame 0's, ``extrinsics`` (T, 4, 4) every frame's in the truth's world when the camera moves."""
     joints = exact_joint_fit(tracks, truth)
     means = backproject(tracks.uv0, joints.depth, camera)
-    extra, extra_labels = reveal(means, joints.labels, joints.transforms(), masks, tracks, camera)
+    cameras = frame_cameras(camera, extrinsics)
+    extra, extra_labels = reveal(means, joints.labels, joints.transforms(), masks, tracks, cameras)
     means, labels = np.concatenate([means, extra]), np.concatenate([joints.labels, extra_labels])
     ref = build_reference(joints, means, labels, clip, camera, "exact truth")
     depth = means @ camera.world_to_cam[2, :3] + camera.world_to_cam[2, 3]
     sigma = 0.5 * tracks.stride * depth / camera.K[0, 0]
     return Splats(reference=ref, means=means, sigma=sigma, opacity=np.full(len(means), 0.9), camera=camera,
-                  object_width=object_width)
+                  object_width=object_width, extrinsics=extrinsics)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -28,6 +29,13 @@ from sync4d.recon.video.images import backproject
 from sync4d.scenes.reference_video import FilmSettings
 from sync4d.types import Camera, Reference, ReferenceInput
 from sync4d_tools import camera_of
+
+Cameras = Camera | Sequence[Camera]  # one static camera, or each frame's (a moving camera)
+
+
+def camera_at(camera: Cameras, t: int) -> Camera:
+    """Frame ``t``'s camera of a static ``camera`` or of a per-frame list."""
+    return camera if isinstance(camera, Camera) else camera[t]
 
 
 @dataclass(frozen=True)
@@ -62,28 +70,31 @@ class CaseTruth:
                 out[:, j + 1, :3, 3] = self.values[:, j, None] * self.axes[j]
         return out
 
-    def points(self, camera: Camera, part: int | None = None, frame: int = 0) -> np.ndarray:
-        """(M, 3) world points of the object's (or one part label's) pixels in ``frame`` [m]."""
+    def points(self, camera: Cameras, part: int | None = None, frame: int = 0) -> np.ndarray:
+        """(M, 3) world points of the object's (or one part label's) pixels in ``frame`` [m] (``camera``: static or
+        per frame)."""
         lab, depth = self.part_labels[frame], self.depth[frame]
         sel = (lab > 0 if part is None else lab == part) & (depth > 0)
         vv, uu = np.nonzero(sel)
-        return backproject(np.stack([uu, vv], 1) + 0.5, depth[sel].astype(np.float64), camera)
+        return backproject(np.stack([uu, vv], 1) + 0.5, depth[sel].astype(np.float64), camera_at(camera, frame))
 
-    def size(self, camera: Camera) -> float:
+    def size(self, camera: Cameras) -> float:
         """The object's size [m]: the diagonal of the bounding box of its frame-0 visible surface."""
         pts = self.points(camera)
         return float(np.linalg.norm(np.ptp(pts, axis=0)))
 
-    def part_depth(self, camera: Camera, part: int) -> float:
+    def part_depth(self, camera: Cameras, part: int) -> float:
         """Mean camera depth [m] of a part label's frame-0 pixels (the scale a single view cannot see)."""
         sel = (self.part_labels[0] == part) & (self.depth[0] > 0)
         return float(self.depth[0][sel].mean()) if sel.any() else float("nan")
 
-    def seen_first(self, camera: Camera, *, tol: float = 0.01) -> np.ndarray:
+    def seen_first(self, camera: Cameras, *, tol: float = 0.01) -> np.ndarray:
         """(T, H, W) bool: object pixels whose surface point frame 0 sees (carried back by its part's motion
         it lands on a frame-0 pixel of the same part, at that pixel's depth within ``tol`` of it, in a 3 x 3
-        neighbourhood); the rest of the object's pixels show surface revealed later."""
+        neighbourhood); the rest of the object's pixels show surface revealed later. ``camera``: static, or
+        each frame's (a pixel of frame t is cast with frame t's camera, its point seen through frame 0's)."""
         motions = self.motions()
+        first = camera_at(camera, 0)
         lab0, dep0 = self.part_labels[0], self.depth[0].astype(np.float64)
         h, w = lab0.shape
         out = np.zeros(self.part_labels.shape, bool)
@@ -91,11 +102,11 @@ class CaseTruth:
             sel = (self.part_labels[t] > 0) & (self.depth[t] > 0)
             vv, uu = np.nonzero(sel)
             part = self.part_labels[t][sel].astype(int)
-            x_t = backproject(np.stack([uu, vv], 1) + 0.5, self.depth[t][sel].astype(np.float64), camera)
+            x_t = backproject(np.stack([uu, vv], 1) + 0.5, self.depth[t][sel].astype(np.float64), camera_at(camera, t))
             inv = np.linalg.inv(motions[t, part - 1])
             x_0 = np.einsum("nij,nj->ni", inv[:, :3, :3], x_t) + inv[:, :3, 3]
-            pc = x_0 @ camera.world_to_cam[:3, :3].T + camera.world_to_cam[:3, 3]
-            uv = (pc @ camera.K.T)[:, :2] / np.maximum(pc[:, 2:3], 1e-9)
+            pc = x_0 @ first.world_to_cam[:3, :3].T + first.world_to_cam[:3, 3]
+            uv = (pc @ first.K.T)[:, :2] / np.maximum(pc[:, 2:3], 1e-9)
             hit = np.zeros(len(part), bool)
             for du in (-1, 0, 1):
                 for dv in (-1, 0, 1):

@@ -2,6 +2,7 @@
 
     python -m sync4d.evaluate recon_suite [--seeds 0 1 2] [--only mw_drawer chest_lid] [--no-laptops] [--out DIR]
         [--frames N] [--set KEY=VALUE ...]     # the first N frames of every clip; recon=video overrides
+        [--camera static|handheld]             # the MuJoCo clips filmed from static views or hand-held
 
 Cases: the suite's eight objects x two views (MuJoCo clips, :mod:`sync4d_tools.articulated.render`; a seed other
 than 0 samples another clip of each: camera placement, start state, colours and texture, floor, light), the
@@ -9,6 +10,9 @@ Meta-World laptop-hinge renders (shared data: one fixed clip, so its seeds chang
 choices) and the default scene's filmed laptop (a seed other than 0 moves the camera and scales the texture).
 The configuration is ``conf/recon/video.yaml``; per clip only the number of parts (``recon.bones``, as the
 paper gives B per category) and the seed change. The masks and the camera are the exact ones.
+``--camera handheld`` runs the same MuJoCo clips filmed hand-held (the render's ``--camera handheld``: the
+default scene's arc from each static view, ``-hh`` folders); the fit gets the exact per-frame camera and the
+scores see each frame through its own camera (the laptop cases have no hand-held clip: ``--no-laptops``).
 
 Scores per case (:mod:`sync4d_tools.articulated.score`): per joint the kind, the axis direction error [deg],
 the pivot error [% of the object's size] and the motion error [deg, or % of travel]; a joint passes with the
@@ -42,7 +46,7 @@ from sync4d.recon.video.reconstructor import upright_frame
 from sync4d.sources.references import VideoSource, resolve_path
 from sync4d.types import Camera, ReferenceInput
 from sync4d_tools import camera_of, video_of
-from sync4d_tools.articulated.ceiling import exact_splats, rendered_labels
+from sync4d_tools.articulated.ceiling import exact_splats, frame_cameras, rendered_labels
 from sync4d_tools.articulated.score import constant_labels, joint_row, label_scores, missing_row
 from sync4d_tools.articulated.truth import CaseTruth, clip_truth, filmed_laptop, first_frames, laptop_renders_truth
 from sync4d_tools.evaluate import component_options, dotlist
@@ -111,6 +115,14 @@ def clip_camera(camera: Camera, upright: np.ndarray | None) -> Camera:
     return camera if upright is None else replace(camera, world_to_cam=camera.world_to_cam @ upright)
 
 
+def clip_extrinsics(fit: VideoFit, upright: np.ndarray | None) -> np.ndarray | None:
+    """(T, 4, 4) the fit's per-frame world-to-camera in the clip's world (as :func:`clip_camera`); None when
+    the camera is static."""
+    if fit.extrinsics is None:
+        return None
+    return fit.extrinsics if upright is None else fit.extrinsics @ upright
+
+
 def label_block(rendered: list[np.ndarray], mapping: np.ndarray, truth: CaseTruth, seen: np.ndarray) -> dict[str, float]:
     lab = truth.part_labels
     return label_scores([mapping[r] == lab[t][lab[t] > 0] for t, r in enumerate(rendered)], seen, lab)
@@ -129,16 +141,18 @@ def run_case(name: str, seed: int, load: Loader, overrides: dict[str, Any] | Non
     fit = build_recon(n_parts, seed, overrides).reconstruct_detailed(source)
     upright = None if source.world_up is None else upright_frame(source.world_up)
     camera = clip_camera(fit.camera, upright)  # the truth lives in the clip's world
-    seen = truth.seen_first(camera)
+    extrinsics = clip_extrinsics(fit, upright)
+    seen = truth.seen_first(frame_cameras(camera, extrinsics))
     rendered = rendered_labels(fit, truth.part_labels)
     mapping, votes, _ = part_mapping(rendered, truth.part_labels, fit.reference.num_bones, n_parts)
     joints = joint_rows(fit, truth, mapping, votes, upright)
-    exact = exact_splats(fit.tracks, fit.masks, truth, clip, camera, fit.object_width)
+    exact = exact_splats(fit.tracks, fit.masks, truth, clip, camera, fit.object_width, extrinsics)
     ex_rendered = rendered_labels(exact, truth.part_labels)
     ex_mapping = part_mapping(ex_rendered, truth.part_labels, exact.reference.num_bones, n_parts)[0]
     labels, ceiling = label_block(rendered, mapping, truth, seen), label_block(ex_rendered, ex_mapping, truth, seen)
     ratio = labels["first"] / ceiling["first"] if ceiling["first"] > 0 else float("nan")
-    return {"case": name, "seed": seed, "clip_id": clip_id, "variant": variant, "joints": joints,
+    return {"case": name, "seed": seed, "clip_id": clip_id, "variant": variant,
+            "camera": "static" if extrinsics is None else "moving", "joints": joints,
             "labels": labels, "ceiling": ceiling, "first_ratio": round(ratio, 4),
             "floor": {"labels": constant_labels(truth.part_labels, seen), "joints": [missing_row(j, truth) for j in range(len(truth.kinds))]},
             "seen_share": round(float(seen[truth.part_labels > 0].mean()), 4),
@@ -172,10 +186,10 @@ def filmed_loader(seed: int, frames: int) -> Loader:
     return load
 
 
-def suite_cases(cache: Path, only: list[str], laptops: bool, seeds: list[int], frames: int = 0
-                ) -> list[tuple[str, int, Loader]]:
-    """(name, seed, loader) of every case, the first ``frames`` frames of each (0: all); clips missing from the
-    cache are rendered first."""
+def suite_cases(cache: Path, only: list[str], laptops: bool, seeds: list[int], frames: int = 0,
+                camera: str = "static") -> list[tuple[str, int, Loader]]:
+    """(name, seed, loader) of every case, the first ``frames`` frames of each (0: all), the MuJoCo clips
+    filmed by ``camera`` (``static`` or ``handheld``); clips missing from the cache are rendered first."""
     from sync4d_tools.articulated.objects import suite_objects
     from sync4d_tools.articulated.render import VIEWS, clip_name
 
@@ -195,11 +209,11 @@ def suite_cases(cache: Path, only: list[str], laptops: bool, seeds: list[int], f
                 cases.append((name, seed, renders_loader(cache, frames)))
             else:
                 obj, view = name.rsplit("-", 1)
-                folder = cache / "clips" / clip_name(obj, view, seed)
+                folder = cache / "clips" / clip_name(obj, view, seed, camera)
                 if not (folder / "gt.npz").exists() or "depth_t" not in np.load(folder / "gt.npz").files:
                     from sync4d_tools.articulated.render import main as render
 
-                    render(["--out", str(cache), "--seeds", str(seed), "--only", obj])
+                    render(["--out", str(cache), "--seeds", str(seed), "--only", obj, "--camera", camera])
                 cases.append((name, seed, clip_loader(folder, frames)))
     return cases
 
@@ -309,6 +323,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--world-up", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                         help="give the reconstruction the clips' world up (the suite's MuJoCo clips: 0 0 1), as the "
                              "video front end gives it for a phone's video")
+    parser.add_argument("--camera", choices=("static", "handheld"), default="static",
+                        help="the MuJoCo clips from static views (default) or filmed hand-held along the default "
+                             "scene's arc (needs --no-laptops)")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="recon=video overrides (dotted keys, YAML values) beside the suite's bones and seed")
     args = parser.parse_args(argv)
@@ -317,6 +334,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         raise InputError("--set bones/seed: the suite sets them per case (bones: its parts; seed: --seeds)")
     if args.frames < 0 or args.frames == 1:
         raise InputError(f"--frames {args.frames}: 0 (every frame) or at least 2")
+    if args.camera == "handheld" and not args.no_laptops and not args.merge:
+        raise InputError("--camera handheld: the laptop cases have no hand-held clip in the suite; add --no-laptops")
     missing = [f for f in args.merge if not Path(f).is_file()]
     if missing:
         raise InputError(f"--merge {missing[0]}: not found")
@@ -325,7 +344,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     rows = [r for f in args.merge for r in json.loads(Path(f).read_text())]
     rows.sort(key=lambda r: (r["case"], r["seed"]))
-    cases = [] if args.merge else suite_cases(Path(args.cache), args.only, not args.no_laptops, args.seeds, args.frames)
+    cases = [] if args.merge else suite_cases(Path(args.cache), args.only, not args.no_laptops, args.seeds, args.frames,
+                                              args.camera)
     for name, seed, load in cases:
         rows.append(run_case(name, seed, load, overrides, args.world_up))
         print(json.dumps(rows[-1]), flush=True)
