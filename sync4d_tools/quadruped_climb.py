@@ -197,7 +197,9 @@ def per_frame(c: Clip, params: qf.Params) -> list[float]:
 def gap_row(c: Clip, cfg: qf.QuadrupedFitConfig, what: str, params: qf.Params, *, tracked: bool = True) -> dict:
     """Score a clip's parameters (after the fit's clip steps when ``tracked``), with its per-frame error."""
     loss = qf.run_steps(c.prob, c.frames, params, cfg, cfg.iterations if tracked else 0)[0]
-    row = {"what": what, "loss": round(loss, 4), **c.terms(params), **c.score(params), "per_frame": per_frame(c, params)}
+    shape = {k: round(float(params[p].detach().exp()), 3) for k, p in (("scale", "log_scale"), ("girth", "log_thick"))}
+    row = {"what": what, "loss": round(loss, 4), **c.terms(params), **c.score(params), **shape,
+           "per_frame": per_frame(c, params)}
     print(json.dumps(row), flush=True)
     return row
 

@@ -65,6 +65,9 @@ class QuadrupedFitConfig:
             frames a second; other frame rates scale second differences by (fps / 30)^2.
         flow_weight: the body's predicted image motion against the video's optical flow (:func:`flow_term`),
             between consecutive frames of a fit (and from the last tracked frame in the tracking); 0 = off.
+        shape_hold_weight: squared log change of the clip's shape (scale, girth, bone lengths and girths) in a
+            one-frame tracking fit from the tracked start's: a real animal does not change its build frame by
+            frame; 0 = the shape free while tracking.
         flow_robust_cells: the flow residual's Cauchy scale [grid cells]: larger residuals count little
             (a wrong flow, a leg that moved more than the flow's patch could see).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
@@ -90,6 +93,7 @@ class QuadrupedFitConfig:
     smooth_weight: float = 5.0
     flow_weight: float = 1.0
     flow_robust_cells: float = 1.0
+    shape_hold_weight: float = 10.0
     background_threshold: float = 30.0
 
 
@@ -381,13 +385,13 @@ def smoothness(prob: QuadrupedProblem, joints: torch.Tensor, scale: torch.Tensor
 
 
 def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config: QuadrupedFitConfig,
-              history: torch.Tensor | None = None, prev: torch.Tensor | None = None
+              history: torch.Tensor | None = None, prev: torch.Tensor | None = None, anchor: Params | None = None
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Total loss, joints (T, J, 3) and soft silhouettes (T, P) of ``params`` on ``frames``.
 
     ``history``: (2, J + 1, 3) root-relative joints and root of the two frames before a one-frame fit
     (template units), for the smoothness term; ``prev``: (1, V, 3) the vertices of the frame before it, for the
-    flow term.
+    flow term; ``anchor``: the clip's shape a one-frame fit is held near (``shape_hold_weight``).
     """
     joints, verts = pose_body(prob.tt, params)
     scale = params["log_scale"].exp()
@@ -397,23 +401,25 @@ def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config
              + config.limit_weight * limit + config.smooth_weight * smoothness(prob, joints, scale, history))
     if config.flow_weight > 0:
         total = total + config.flow_weight * flow_term(prob, frames, verts, scale, prev, config.flow_robust_cells)
+    if anchor is not None and config.shape_hold_weight > 0:
+        total = total + config.shape_hold_weight * sum((params[k] - anchor[k]).pow(2).mean() for k in CLIP)
     return total, joints, occ
 
 
 def run_steps(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config: QuadrupedFitConfig, steps: int, *,
               free: tuple[str, ...] | None = None, history: torch.Tensor | None = None,
-              prev: torch.Tensor | None = None) -> tuple[float, np.ndarray, np.ndarray]:
+              prev: torch.Tensor | None = None, anchor: Params | None = None) -> tuple[float, np.ndarray, np.ndarray]:
     """``steps`` Adam steps on ``params`` (only the names in ``free``, default all); returns (loss, joints
-    (T, J, 3), IoU (T,) on the grid). ``history``, ``prev``: :func:`clip_loss`'s, for a one-frame fit."""
+    (T, J, 3), IoU (T,) on the grid). ``history``, ``prev``, ``anchor``: :func:`clip_loss`'s, for a one-frame fit."""
     opt = torch.optim.Adam([v for k, v in params.items() if free is None or k in free], lr=config.lr)
     with deterministic_torch():  # a run is reproducible whatever torch's thread count
         for _ in range(steps):
             opt.zero_grad()
-            loss, _, _ = clip_loss(prob, frames, params, config, history, prev)
+            loss, _, _ = clip_loss(prob, frames, params, config, history, prev, anchor)
             loss.backward()
             opt.step()
     with torch.no_grad():
-        loss, joints, occ = clip_loss(prob, frames, params, config, history, prev)
+        loss, joints, occ = clip_loss(prob, frames, params, config, history, prev, anchor)
     pred, tgt = occ > 0.5, prob.target[frames] > 0.5
     iou = ((pred & tgt).sum(1) / (pred | tgt).sum(1).clamp_min(1)).numpy()
     return float(loss), joints.numpy().astype(np.float64), iou
@@ -585,6 +591,7 @@ def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: 
     """Clip parameters from a first-frame fit: every later frame warm-started from the previous one (root
     extrapolated at constant velocity), smoothed against the two frames before it."""
     frames = [start]
+    anchor = {k: start[k].detach().clone() for k in CLIP}
     for t in range(1, n):
         cur = frame_params(frames[-1], 0)
         if t >= 2:
@@ -593,7 +600,7 @@ def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: 
         with torch.no_grad():
             prev = pose_body(prob.tt, frames[-1])[1]
         run_steps(prob, np.array([t]), cur, config, config.frame_iterations, history=history_of(prob, frames),
-                  prev=prev)
+                  prev=prev, anchor=anchor)
         frames.append(cur)
     return {k: (torch.cat([p[k].detach() for p in frames]) if k not in CLIP else frames[-1][k].detach().clone()
                 ).requires_grad_(True) for k in frames[0]}
