@@ -664,6 +664,25 @@ def test_quadruped_flow_term_is_zero_at_the_motion_the_video_shows(shared_data: 
     assert term(turned) == 0.0
 
 
+def test_quadruped_tracking_holds_the_shape_near_the_start(shared_data: Path) -> None:
+    """A one-frame tracking fit pays ``shape_hold_weight`` times the squared log change of the clip's shape from the
+    start's (a changed scale costs exactly that); the clip fit, without an anchor, does not."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    truth, _, camera, masks, _ = _template_clip()
+    cfg = qf.QuadrupedFitConfig(flow_weight=0.0)
+    prob = qf.QuadrupedProblem(masks, camera, cfg)
+    one = qf.frame_params(truth, 1)
+    anchor = {k: one[k].detach().clone() for k in qf.CLIP}
+    grown = {**one, "log_scale": one["log_scale"].detach() + 0.1}
+    with torch.no_grad():
+        base = float(qf.clip_loss(prob, np.array([1]), grown, cfg)[0])
+        held = float(qf.clip_loss(prob, np.array([1]), grown, cfg, anchor=anchor)[0])
+    assert abs(held - base - cfg.shape_hold_weight * 0.01) < 1e-5
+
+
 def test_quadruped_climb_gap_rests_all_but_the_joints_kept(shared_data: Path) -> None:
     """``quadruped_climb --gap``: a start keeps the root, shape and the named joints' rotations, the rest at rest,
     as fresh leaves (the source is not moved by the steps that follow)."""

@@ -10,7 +10,9 @@ union over triangles) on a coarse grid; the loss is the binary cross-entropy aga
 points along the skeleton's segments inside the mask (distance transform); priors: bone lengths and
 girths (per-bone changes near zero, left/right equal), joint limits (``joint_limit_deg`` from the
 template; leg joints turn mostly about the body's lateral axis), smooth root-relative joints and root
-(accelerations). Search: root headings on the first frame, the best few tracked frame by frame, then
+(accelerations); with video frames, the body's predicted image motion against the video's optical flow
+between consecutive frames (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera
+fill the same silhouettes but move the body's texture differently). Search: root headings on the first frame, the best few tracked frame by frame, then
 left/right leg swaps as hypotheses ranked by the video's optical flow (near vertices hide far ones).
 """
 
@@ -589,7 +591,9 @@ def history_of(prob: QuadrupedProblem, frames: list[Params]) -> torch.Tensor | N
 
 def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: int) -> Params:
     """Clip parameters from a first-frame fit: every later frame warm-started from the previous one (root
-    extrapolated at constant velocity), smoothed against the two frames before it."""
+    extrapolated at constant velocity), smoothed against the two frames before it, its image motion from the
+    frame before against the flow, its shape held near the start's (without the hold the tracked body grows
+    and thins frame by frame: docs/results/people_animals.md)."""
     frames = [start]
     anchor = {k: start[k].detach().clone() for k in CLIP}
     for t in range(1, n):
@@ -646,7 +650,8 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     1. first frame: ``starts`` root headings about the up axis, each fitted rigidly (root, scale, girth) and
        then with its joints;
     2. the ``tracks`` lowest-loss starts tracked frame by frame (warm start, root at constant velocity,
-       smoothed against the two frames before), then refined on the whole clip;
+       smoothed against the two frames before, the flow from the frame before, the shape held near the
+       start's), then refined on the whole clip;
     3. each track with the fore and/or hind legs swapped left for right (mirrored): the hypothesis whose
        predicted image motion best matches the optical flow of ``frames`` wins and is refined.
 
