@@ -70,6 +70,8 @@ class QuadrupedFitConfig:
         shape_hold_weight: squared log change of the clip's shape (scale, girth, bone lengths and girths) in a
             one-frame tracking fit from the tracked start's: a real animal does not change its build frame by
             frame; 0 = the shape free while tracking.
+        rank_by_loss: the tracks' leg swaps ranked by the clip loss (with the flow term) instead of the raw
+            flow error.
         flow_robust_cells: the flow residual's Cauchy scale [grid cells]: larger residuals count little
             (a wrong flow, a leg that moved more than the flow's patch could see).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
@@ -96,6 +98,7 @@ class QuadrupedFitConfig:
     flow_weight: float = 1.0
     flow_robust_cells: float = 1.0
     shape_hold_weight: float = 10.0
+    rank_by_loss: bool = True
     background_threshold: float = 30.0
 
 
@@ -621,7 +624,12 @@ def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Param
         loss, _, _ = run_steps(prob, np.arange(n), full, config, config.iterations)
         for pairs in swaps:
             trial = {**full, "local": swap_legs(prob.tt, full["local"].detach(), pairs)}
-            score = flow_error(prob, trial) if prob.flow is not None else loss
+            if prob.flow is None:
+                score = loss
+            elif config.rank_by_loss:  # the clip loss holds the flow (robust, trusted cells) with the silhouette
+                score = run_steps(prob, np.arange(n), trial, config, 0)[0]
+            else:
+                score = flow_error(prob, trial)
             log.info("quadruped hypothesis heading %.0f deg, legs swapped: %s: %s %.4f", 360 * k / config.starts,
                      "+".join(pairs) or "none", "flow error" if prob.flow is not None else "loss", score)
             if best is None or score < best[0]:
