@@ -4,7 +4,7 @@
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --load hyps.pt \\
         --set inside_weight=0.2 --steps 60 --pick 0,4                                                # re-judged
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --headings [--pick 0]    # every heading
-    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --gap                    # B -> rest split
+    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --gap [--quick]          # B -> rest split
 
 The first form runs the fit's search (first-frame starts, ``tracks`` tracks refined on the clip, each with its
 legs swapped: the hypotheses) with the defaults, saves them and scores each (loss, optical-flow error, mpjpe
@@ -16,7 +16,9 @@ tracks every start heading (or those ``--pick`` names) as the fit tracks its bes
 with its gait cue (:func:`gait_cue`), loss, flow error and mpjpe (the truth's heading printed first). ``--gap``
 splits the gap between B and the rest pose at the true root (:func:`gap`): the truth's first frame tracked as the
 fit tracks, with and without the first-frame schedule, the legs' or the torso's true rotations only, the first
-frame alone wrong, one tracking step from the truth; each row with its per-frame error. Prints JSON rows.
+frame alone wrong, one tracking step from the truth; each row with its per-frame error and the clip's scale and
+girth (``--quick``: A2, the truth's first frame tracked and one step only, the rows an objective is judged by
+first). Prints JSON rows.
 """
 
 from __future__ import annotations
@@ -197,7 +199,9 @@ def per_frame(c: Clip, params: qf.Params) -> list[float]:
 def gap_row(c: Clip, cfg: qf.QuadrupedFitConfig, what: str, params: qf.Params, *, tracked: bool = True) -> dict:
     """Score a clip's parameters (after the fit's clip steps when ``tracked``), with its per-frame error."""
     loss = qf.run_steps(c.prob, c.frames, params, cfg, cfg.iterations if tracked else 0)[0]
-    row = {"what": what, "loss": round(loss, 4), **c.terms(params), **c.score(params), "per_frame": per_frame(c, params)}
+    shape = {k: round(float(params[p].detach().exp()), 3) for k, p in (("scale", "log_scale"), ("girth", "log_thick"))}
+    row = {"what": what, "loss": round(loss, 4), **c.terms(params), **c.score(params), **shape,
+           "per_frame": per_frame(c, params)}
     print(json.dumps(row), flush=True)
     return row
 
@@ -224,13 +228,19 @@ def oracle_steps(c: Clip, a2: qf.Params, cfg: qf.QuadrupedFitConfig) -> qf.Param
                 ).requires_grad_(True) for k in a2}
 
 
-def gap(c: Clip, cfg: qf.QuadrupedFitConfig) -> list[dict]:
-    """The gap between B (started at the truth) and the rest pose at the true heading, split by what is given."""
+def gap(c: Clip, cfg: qf.QuadrupedFitConfig, quick: bool = False) -> list[dict]:
+    """The gap between B (started at the truth) and the rest pose at the true heading, split by what is given;
+    ``quick``: only A2, the truth's frame 0 tracked and one tracking step from the truth (the rows an objective
+    is judged by first)."""
     n, tmpl = len(c.frames), c.prob.tt.template
     a2 = a2_params(c, cfg)
     rows = [gap_row(c, cfg, "A2 (truth under the priors), no silhouette steps", a2, tracked=False)]
     first = qf.frame_params(a2, 0)
     rows.append(gap_row(c, cfg, "truth's frame 0 as is, the fit's tracking", qf.track(c.prob, first, cfg, n)))
+    if quick:
+        rows.append(gap_row(c, cfg, "each frame one tracking step from the truth's previous frame (no clip steps)",
+                            oracle_steps(c, a2, cfg), tracked=False))
+        return rows
     f0 = first_frame_fit(c, qf.frame_params(a2, 0), cfg)
     rows.append(gap_row(c, cfg, "truth's frame 0 + the first-frame schedule, the fit's tracking",
                         qf.track(c.prob, f0, cfg, n)))
@@ -263,6 +273,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--steps", type=int, default=140, help="clip steps for B and each loaded hypothesis")
     parser.add_argument("--headings", action="store_true", help="track every start heading (no B); --save keeps them")
     parser.add_argument("--gap", action="store_true", help="split the gap between B and the rest pose at the true root")
+    parser.add_argument("--quick", action="store_true", help="with --gap: only A2, the truth's frame 0 tracked, one step")
     parser.add_argument("--pick", default="", help="comma-separated indices of the loaded hypotheses (with --headings: of the start headings)")
     args = parser.parse_args(argv)
     base = qf.QuadrupedFitConfig()
@@ -270,7 +281,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     cfg = qf.QuadrupedFitConfig(**over)
     c = Clip(Path(args.clip), cfg)
     if args.gap:
-        return gap(c, cfg)
+        return gap(c, cfg, args.quick)
     if args.headings:
         return every_heading(c, cfg, args.save, [int(i) for i in args.pick.split(",")] if args.pick else None)
     rows = [truth_started(c, cfg, args.steps)]
