@@ -276,6 +276,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--quick", action="store_true", help="with --gap: only A2, the truth's frame 0 tracked, one step")
     parser.add_argument("--pick", default="", help="comma-separated indices of the loaded hypotheses (with --headings: of the start headings)")
     args = parser.parse_args(argv)
+    if args.quick and not args.gap:
+        parser.error("--quick shortens --gap only; add --gap")
     base = qf.QuadrupedFitConfig()
     over: dict[str, Any] = {k: type(getattr(base, k))(v) for k, v in (s.split("=", 1) for s in args.set)}
     cfg = qf.QuadrupedFitConfig(**over)

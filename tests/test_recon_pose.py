@@ -662,3 +662,12 @@ def test_quadruped_climb_needs_a_clip() -> None:
     with pytest.raises(SystemExit) as err:
         quadruped_climb.main([])
     assert err.value.code == 2
+
+
+def test_quadruped_climb_refuses_quick_without_gap() -> None:
+    """``--quick`` only shortens ``--gap``: alone it is refused (exit 2) before any clip is read."""
+    from sync4d_tools.quadruped_climb import main
+
+    with pytest.raises(SystemExit) as err:
+        main(["--clip", "/nonexistent", "--quick"])
+    assert err.value.code == 2
