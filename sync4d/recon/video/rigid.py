@@ -163,8 +163,8 @@ def rigid_labels(uv0: np.ndarray, uv: np.ndarray, ok: np.ndarray, K: np.ndarray,
         [m]; still pixels (T, N, 2) where that still point projects [px]), as :func:`static_depths`.
     """
     depth, still_res, still_uv = static_depths(uv0, uv, ok, K, extrinsics)
-    seen: np.ndarray = np.asarray(ok[1:].any(0), bool)
-    still: np.ndarray = (still_res < STILL_PX) & seen
+    seen = ok[1:].any(0)
+    still = (still_res < STILL_PX) & seen
     if still.sum() < MIN_PNP:
         still = seen if seen.sum() >= MIN_PNP else np.ones(len(uv0), bool)
     surface = surface_depth(uv0, depth, still)
