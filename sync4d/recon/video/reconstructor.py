@@ -31,11 +31,10 @@ from scipy.spatial import cKDTree
 from sync4d.errors import ConfigError, InputError
 from sync4d.forked import cpu_seconds
 from sync4d.recon.video.images import (
-    camera_moves, default_camera, pnp_transforms, sample_image,
+    camera_moves, default_camera, pnp_transforms, sample_image, static_depths,
 )
 from sync4d.recon.video.joints import FitConfig, JointFit, fit_joints, make_scene
 from sync4d.recon.video.reveal import reveal
-from sync4d.recon.video.rigid import rigid_labels
 from sync4d.recon.video.softsplat import project_points
 from sync4d.recon.video.stages import (
     InitConfig, MaskConfig, PartInit, TrackConfig, Tracks, init_parts, reference_depth, track_grid, video_masks,
@@ -194,25 +193,25 @@ class VideoReconstructor:
 
     def _moving_camera_init(self, tracks: Tracks, camera: Camera, extrinsics: np.ndarray
                             ) -> tuple[PartInit, float, np.ndarray]:
-        """Parts, the scale depth and starting depths under a moving camera: tracks grouped by the rigid motion
-        that explains them in the known cameras (:func:`~sync4d.recon.video.rigid.rigid_labels`: the root is the
-        set still in the world, each further part a rigid motion fitted by PnP; docs/results/articulated.md);
-        the root stands still (its tracks' triangulated depths start the fit; the other parts start at the
-        depth of the root point next to them)."""
+        """Parts, the scale depth and starting depths under a moving camera: every track is first read as a
+        point standing still in the world (its depth by triangulation along its frame-0 ray); the parts are
+        clustered on what that leaves unexplained (a still camera leaves the whole track, so this is the
+        static camera's clustering), the root is the part that moves least, and it stands still (its tracks'
+        triangulated depths start the fit; the other parts start at the root's median depth)."""
         config = self.config
-        labels, depth, still = rigid_labels(tracks.uv0, tracks.uv, tracks.trusted, camera.K, extrinsics,
-                                            config.bones, np.random.default_rng(config.seed))
-        beyond = np.where(tracks.trusted, np.linalg.norm(tracks.uv - still, axis=-1), np.nan)
-        motion = np.array([np.nanmedian(beyond[1:, labels == b]) if np.isfinite(beyond[1:, labels == b]).any()
-                           else 0.0 for b in range(config.bones)])
-        init = PartInit(labels=labels, root=0, root_static=True, motion_px=motion)
+        depth, _, still = static_depths(tracks.uv0, tracks.uv, tracks.trusted, camera.K, extrinsics)
+        own_motion = replace(tracks, uv=tracks.uv - still + tracks.uv0[None])
+        init = init_parts(own_motion, config.bones, config.init, static_px=config.fit.static_root_px)
         root = init.labels == init.root
         z_ref = float(np.median(depth[root]))
+        if not init.root_static:
+            log.warning("recon=video: the root part moves %.2f px beyond the camera's motion; it is taken as still "
+                        "in the world (the camera explains the rest)", float(init.motion_px[init.root]))
         depth0 = np.clip(depth, z_ref / 3.0, z_ref * 3.0)
         # the moving parts start at the depth of the root point next to them in the image (a lid at its hinge)
         near = cKDTree(tracks.uv0[root]).query(tracks.uv0[~root])[1]
         depth0[~root] = depth0[root][near]
-        return init, z_ref, depth0
+        return replace(init, root_static=True), z_ref, depth0
 
     @staticmethod
     def _root_motion(tracks: Tracks, init: PartInit, camera: Camera, z_ref: float) -> np.ndarray:
