@@ -630,6 +630,59 @@ def test_gait_cue_tells_the_way_the_paws_push(shared_data: Path) -> None:
     assert gait_cue(prob, feet, facing_left) < 0 < gait_cue(prob, feet, facing_right)
 
 
+def test_quadruped_flow_term_is_zero_at_the_motion_the_video_shows(shared_data: Path) -> None:
+    """The flow term: the video's flow equal to the truth's predicted image motion costs nothing at the truth and
+    more with the legs swapped or the body turned; a one-frame fit from the held previous frame sees the same
+    pair as the clip fit; untrusted cells count nothing."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    truth, _, camera, masks, _ = _template_clip()
+    prob = qf.QuadrupedProblem(masks, camera, qf.QuadrupedFitConfig())
+    with torch.no_grad():
+        _, verts = qf.pose_body(prob.tt, truth)
+        prob.flow = qf.predicted_flow(prob, verts, truth["log_scale"].exp())[0]
+    prob.flow_ok = torch.ones(prob.flow.shape[:2], dtype=torch.bool)
+    scale, frames = truth["log_scale"].exp(), np.arange(len(masks))
+
+    def term(params: qf.Params) -> float:
+        with torch.no_grad():
+            return float(qf.flow_term(prob, frames, qf.pose_body(prob.tt, params)[1], scale, None, 1.0))
+
+    assert term(truth) < 1e-6
+    swapped = {**truth, "local": qf.swap_legs(prob.tt, truth["local"].detach(), ("f", "h"))}
+    turned = {k: v.detach().clone() for k, v in truth.items()}
+    turned["root_rot"][1:, 1] += 0.3 * torch.arange(1, len(masks), dtype=qf.DTYPE)
+    assert term(swapped) > 0.01 and term(turned) > 0.01
+    with torch.no_grad():
+        _, moved = qf.pose_body(prob.tt, turned)
+        pair = float(qf.flow_term(prob, frames[1:3], moved[1:3], scale, None, 1.0))
+        held = float(qf.flow_term(prob, frames[2:3], moved[2:3], scale, moved[1:2], 1.0))
+    assert pair > 0.01 and abs(pair - held) < 1e-6
+    prob.flow_ok[:] = False
+    assert term(turned) == 0.0
+
+
+def test_quadruped_tracking_holds_the_shape_near_the_start(shared_data: Path) -> None:
+    """A one-frame tracking fit pays ``shape_hold_weight`` times the squared log change of the clip's shape from the
+    start's (a changed scale costs exactly that); the clip fit, without an anchor, does not."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    truth, _, camera, masks, _ = _template_clip()
+    cfg = qf.QuadrupedFitConfig(flow_weight=0.0)
+    prob = qf.QuadrupedProblem(masks, camera, cfg)
+    one = qf.frame_params(truth, 1)
+    anchor = {k: one[k].detach().clone() for k in qf.CLIP}
+    grown = {**one, "log_scale": one["log_scale"].detach() + 0.1}
+    with torch.no_grad():
+        base = float(qf.clip_loss(prob, np.array([1]), grown, cfg)[0])
+        held = float(qf.clip_loss(prob, np.array([1]), grown, cfg, anchor=anchor)[0])
+    assert abs(held - base - cfg.shape_hold_weight * 0.01) < 1e-5
+
+
 def test_quadruped_climb_gap_rests_all_but_the_joints_kept(shared_data: Path) -> None:
     """``quadruped_climb --gap``: a start keeps the root, shape and the named joints' rotations, the rest at rest,
     as fresh leaves (the source is not moved by the steps that follow)."""
