@@ -683,6 +683,29 @@ def test_quadruped_tracking_holds_the_shape_near_the_start(shared_data: Path) ->
     assert abs(held - base - cfg.shape_hold_weight * 0.01) < 1e-5
 
 
+def test_quadruped_flow_check_tells_the_given_cameras_from_wrong_ones(shared_data: Path) -> None:
+    """sync4d_tools.quadruped_flow: the video's flow equal to the truth's image motion under a moving camera leaves
+    no residual through the given cameras and some with the camera taken as static or inverted; the quartiles of a
+    feature that orders the residuals rise."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d_tools.quadruped_flow import by_quartile, camera_check
+
+    truth, _, camera, masks, extrinsics = _template_clip(moving=True)
+    prob = qf.QuadrupedProblem(masks, camera, qf.QuadrupedFitConfig(), extrinsics=extrinsics)
+    with torch.no_grad():
+        _, verts = qf.pose_body(prob.tt, truth)
+        prob.flow = qf.predicted_flow(prob, verts, truth["log_scale"].exp())[0]
+    prob.flow_ok = torch.ones(prob.flow.shape[:2], dtype=torch.bool)
+    check = camera_check(prob, truth)
+    assert check["given"]["median"] < 1e-3 and check["given"]["cells"] > 0
+    assert check["static"]["median"] > 0.1 and check["inverse"]["median"] > 0.1
+    res = np.linspace(0.0, 1.0, 40)
+    quart = by_quartile(res * 3, res)
+    assert all(q is not None for q in quart) and quart == sorted(quart)
+
+
 def test_quadruped_climb_gap_rests_all_but_the_joints_kept(shared_data: Path) -> None:
     """``quadruped_climb --gap``: a start keeps the root, shape and the named joints' rotations, the rest at rest,
     as fresh leaves (the source is not moved by the steps that follow)."""
