@@ -706,6 +706,30 @@ def test_quadruped_flow_check_tells_the_given_cameras_from_wrong_ones(shared_dat
     assert all(q is not None for q in quart) and quart == sorted(quart)
 
 
+def test_quadruped_flow_gate_needs_the_flow_to_explain_the_masks_change(shared_data: Path) -> None:
+    """A backward flow that carries a square's mask 3 px right explains all of its change, no flow none of it; the fit
+    drops the flow term, the shape hold and the loss ranking below ``flow_min_explained`` and keeps them above."""
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    mask = np.zeros((40, 60), bool)
+    mask[10:30, 10:30] = True
+    moved = np.roll(mask, 3, axis=1)
+    back = np.zeros((40, 60, 2), np.float32)
+    back[..., 0] = -3.0  # a pixel of the following frame came from 3 px to its left
+    carried, still = qf.mask_change_missed(mask, moved, back)
+    assert carried == 0 and still == 2 * 3 * 20
+    assert np.array_equal(qf.mask_change_missed(mask, moved, np.zeros_like(back)), [still, still])
+    _, _, camera, masks, _ = _template_clip()
+    cfg = qf.QuadrupedFitConfig()
+    prob = qf.QuadrupedProblem(masks, camera, cfg)
+    assert qf.flow_gate(prob, cfg, "clip") is cfg  # no frames, no flow: nothing to gate
+    prob.flow_explained = cfg.flow_min_explained - 0.01
+    off = qf.flow_gate(prob, cfg, "clip")
+    assert (off.flow_weight, off.shape_hold_weight, off.rank_by_loss) == (0.0, 0.0, False)
+    prob.flow_explained = cfg.flow_min_explained
+    assert qf.flow_gate(prob, cfg, "clip") is cfg
+
+
 def test_quadruped_climb_gap_rests_all_but_the_joints_kept(shared_data: Path) -> None:
     """``quadruped_climb --gap``: a start keeps the root, shape and the named joints' rotations, the rest at rest,
     as fresh leaves (the source is not moved by the steps that follow)."""

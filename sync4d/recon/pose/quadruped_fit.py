@@ -75,6 +75,9 @@ class QuadrupedFitConfig:
         flow_in_clip: the flow term also in the clip steps (every frame pair of the clip); False = only in the
             one-frame tracking fits and the ranking (with it, the orbit's last clip steps drift: fox walk orbit
             25.6 -> 28.9 % in 40 steps).
+        flow_min_explained: the flow term, the shape hold and the loss ranking are used only when the video's flow
+            explains at least this share of the masks' change between frames (:func:`mask_change_missed`); below
+            it (the head-on clips) the fit runs without them, the leg swaps ranked by the flow error.
         flow_robust_cells: the flow residual's Cauchy scale [grid cells]: larger residuals count little
             (a wrong flow, a leg that moved more than the flow's patch could see).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
@@ -103,6 +106,7 @@ class QuadrupedFitConfig:
     shape_hold_weight: float = 10.0
     rank_by_loss: bool = True
     flow_in_clip: bool = False
+    flow_min_explained: float = 0.8
     background_threshold: float = 30.0
 
 
@@ -243,10 +247,11 @@ def rasterise(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int
 
 
 def video_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, fb_tol_px: float = 1.0
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """(T-1, P, 2) DIS optical flow (OpenCV, medium preset) from frame t to t+1 at pixels ``uv`` (P, 2) [px], and
-    (T-1, P) where it is trusted: on the mask at t, landing on the mask at t+1 (off it the flow is the
-    background's) and back within ``fb_tol_px`` by the backward flow (not occluded, not smeared)."""
+               ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(T-1, P, 2) DIS optical flow (OpenCV, medium preset) from frame t to t+1 at pixels ``uv`` (P, 2) [px],
+    (T-1, P) where it is trusted (on the mask at t, landing on the mask at t+1: off it the flow is the
+    background's; back within ``fb_tol_px`` by the backward flow: not occluded, not smeared), and the share of
+    the masks' change the flow explains (:func:`mask_change_explained`)."""
     import cv2
 
     # OpenCV's stubs omit the DIS optical flow factory that the module has.
@@ -257,14 +262,31 @@ def video_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, fb_tol_px:
     def pixel(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.clip(p[:, 1].astype(int), 0, h - 1), np.clip(p[:, 0].astype(int), 0, w - 1)
 
-    flows, ok = [], []
+    flows, ok, missed = [], [], np.zeros(2)
     for t in range(len(grey) - 1):
         fwd = dis.calc(grey[t], grey[t + 1], None)[pixel(uv)]
         end = pixel(uv + fwd)
-        back = dis.calc(grey[t + 1], grey[t], None)[end]
+        back_full = dis.calc(grey[t + 1], grey[t], None)
+        back = back_full[end]
         ok.append(masks[t][pixel(uv)] & masks[t + 1][end] & (np.linalg.norm(fwd + back, axis=1) < fb_tol_px))
         flows.append(fwd)
-    return np.stack(flows), np.stack(ok)
+        missed += mask_change_missed(masks[t], masks[t + 1], back_full)
+    return np.stack(flows), np.stack(ok), float(1.0 - missed[0] / max(missed[1], 1.0))
+
+
+def mask_change_missed(mask: np.ndarray, following: np.ndarray, back: np.ndarray) -> np.ndarray:
+    """(2,) pixels where ``following`` differs from ``mask`` carried along by the backward flow ``back`` (H, W, 2)
+    [px] from the following frame, and from ``mask`` as it is.
+
+    Summed over a clip, 1 - their ratio is the share of the masks' change the flow explains: near 1 when the flow
+    moves the body's outline as the masks move, low when the motion is mostly toward the camera or too small and
+    flat for the flow to follow (the head-on clips: docs/results/people_animals.md)."""
+    import cv2
+
+    h, w = mask.shape
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    carried = cv2.remap(mask.astype(np.float32), gx + back[..., 0], gy + back[..., 1], cv2.INTER_LINEAR) > 0.5
+    return np.array([float((carried ^ following).sum()), float((mask ^ following).sum())])
 
 
 def mask_box(masks: np.ndarray, margin: float = 0.15) -> tuple[int, int, int, int]:
@@ -333,8 +355,9 @@ class QuadrupedProblem:
         self.rate = fps / SMOOTH_FPS
         self.flow: torch.Tensor | None = None
         self.flow_ok: torch.Tensor | None = None  # (T-1, P) where the flow is trusted (:func:`video_flow`)
+        self.flow_explained: float | None = None  # the share of the masks' change the flow explains
         if frames is not None and len(frames) >= 2:
-            flow, ok = video_flow(frames, uv, masks)
+            flow, ok, self.flow_explained = video_flow(frames, uv, masks)
             self.flow, self.flow_ok = torch.tensor(flow, dtype=DTYPE), torch.tensor(ok)
 
     def cams_of(self, frames: np.ndarray) -> torch.Tensor | None:
@@ -403,13 +426,15 @@ def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config
     flow term; ``anchor``: the clip's shape a one-frame fit is held near (``shape_hold_weight``).
     """
     joints, verts = pose_body(prob.tt, params)
-    scale = params["log_scale"].exp()
-    bce, inside, occ = silhouette_terms(prob, frames, joints, verts, scale)
+    # the scale's exp taken once per term, as before the flow term: without the flow the sums are main's to the bit
+    bce, inside, occ = silhouette_terms(prob, frames, joints, verts, params["log_scale"].exp())
     lengths, limit = shape_priors(prob, params, config)
     total = (config.silhouette_weight * bce + config.inside_weight * inside + config.length_weight * lengths
-             + config.limit_weight * limit + config.smooth_weight * smoothness(prob, joints, scale, history))
+             + config.limit_weight * limit
+             + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
     if config.flow_weight > 0 and (prev is not None or config.flow_in_clip):
-        total = total + config.flow_weight * flow_term(prob, frames, verts, scale, prev, config.flow_robust_cells)
+        total = total + config.flow_weight * flow_term(prob, frames, verts, params["log_scale"].exp(), prev,
+                                                       config.flow_robust_cells)
     if anchor is not None and config.shape_hold_weight > 0:
         total = total + config.shape_hold_weight * sum((params[k] - anchor[k]).pow(2).mean() for k in CLIP)
     return total, joints, occ
@@ -642,6 +667,17 @@ def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Param
     return {k: v.detach().clone().requires_grad_(True) for k, v in best[1].items()}
 
 
+def flow_gate(prob: QuadrupedProblem, config: QuadrupedFitConfig, source: str) -> QuadrupedFitConfig:
+    """``config`` without the flow term, the shape hold and the loss ranking when the video's flow explains less
+    than ``flow_min_explained`` of the masks' change (``config`` itself otherwise, or without frames)."""
+    if prob.flow_explained is None:
+        return config
+    trusted = prob.flow_explained >= config.flow_min_explained
+    log.info("quadruped fit of %s: the flow explains %.3f of the masks' change: %s", source, prob.flow_explained,
+             "flow term, shape hold and loss ranking on" if trusted else "the fit without them")
+    return config if trusted else replace(config, flow_weight=0.0, shape_hold_weight=0.0, rank_by_loss=False)
+
+
 def check_masks(masks: np.ndarray, source: str, extrinsics: np.ndarray | None) -> None:
     """InputError naming the video when a frame's mask is empty or the extrinsics do not match the frames."""
     empty = np.flatnonzero(~masks.any((1, 2)))
@@ -686,6 +722,7 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     check_masks(masks, source, extrinsics)
     n = len(masks)
     prob = QuadrupedProblem(masks, camera, config, frames=frames, extrinsics=extrinsics, fps=fps)
+    config = flow_gate(prob, config, source)
     w2c0 = camera.world_to_cam if extrinsics is None else np.asarray(extrinsics[0], dtype=np.float64)
     up_cam = np.array([0.0, -1.0, 0.0]) if world_up is None else w2c0[:3, :3] @ np.asarray(world_up, dtype=np.float64)
     starts = first_frame_starts(prob, masks[0], up_cam, config)
