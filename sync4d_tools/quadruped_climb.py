@@ -264,6 +264,19 @@ def gap(c: Clip, cfg: qf.QuadrupedFitConfig, quick: bool = False) -> list[dict]:
     return rows
 
 
+def config_from(sets: list[str]) -> qf.QuadrupedFitConfig:
+    """The defaults with ``name=value`` fields set, each read as its default's type (``True``/``False`` for a flag:
+    ``bool("False")`` would be true)."""
+    base = qf.QuadrupedFitConfig()
+    over: dict[str, Any] = {}
+    for name, value in (s.split("=", 1) for s in sets):
+        kind = type(getattr(base, name))
+        if kind is bool and value not in ("True", "False"):
+            raise ValueError(f"quadruped_climb: {name} is a flag: True or False, got {value!r}")
+        over[name] = value == "True" if kind is bool else kind(value)
+    return qf.QuadrupedFitConfig(**over)
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clip", required=True, help="a rendered quadruped clip (body_suite's folder)")
@@ -278,9 +291,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     args = parser.parse_args(argv)
     if args.quick and not args.gap:
         parser.error("--quick shortens --gap only; add --gap")
-    base = qf.QuadrupedFitConfig()
-    over: dict[str, Any] = {k: type(getattr(base, k))(v) for k, v in (s.split("=", 1) for s in args.set)}
-    cfg = qf.QuadrupedFitConfig(**over)
+    cfg = config_from(args.set)
     c = Clip(Path(args.clip), cfg)
     if args.gap:
         return gap(c, cfg, args.quick)

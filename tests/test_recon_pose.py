@@ -753,6 +753,16 @@ def test_quadruped_climb_gap_rests_all_but_the_joints_kept(shared_data: Path) ->
     assert out["local"].data_ptr() != src["local"].data_ptr()
 
 
+def test_quadruped_climb_reads_set_fields_by_their_types() -> None:
+    """quadruped_climb --set: numbers as their defaults' types, flags as True/False (not bool("False"))."""
+    from sync4d_tools.quadruped_climb import config_from
+
+    cfg = config_from(["rank_by_loss=False", "flow_weight=0", "tracks=3"])
+    assert cfg.rank_by_loss is False and cfg.flow_weight == 0.0 and cfg.tracks == 3
+    with pytest.raises(ValueError, match="flag"):
+        config_from(["rank_by_loss=0"])
+
+
 def test_quadruped_climb_needs_a_clip() -> None:
     """sync4d_tools.quadruped_climb: --clip is required (argparse exits 2 before any work)."""
     import pytest

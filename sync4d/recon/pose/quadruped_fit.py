@@ -10,10 +10,12 @@ union over triangles) on a coarse grid; the loss is the binary cross-entropy aga
 points along the skeleton's segments inside the mask (distance transform); priors: bone lengths and
 girths (per-bone changes near zero, left/right equal), joint limits (``joint_limit_deg`` from the
 template; leg joints turn mostly about the body's lateral axis), smooth root-relative joints and root
-(accelerations); with video frames, the body's predicted image motion against the video's optical flow
-between consecutive frames (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera
-fill the same silhouettes but move the body's texture differently). Search: root headings on the first frame, the best few tracked frame by frame, then
-left/right leg swaps as hypotheses ranked by the video's optical flow (near vertices hide far ones).
+(accelerations); with video frames whose flow explains the masks' change (:func:`flow_gate`), each one-frame
+tracking fit also pays the body's predicted image motion from the frame before against the video's optical
+flow (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera fill the same silhouettes
+but move the body's texture differently) and holds the clip's shape near the start's. Search: root headings on
+the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses ranked by the clip
+loss with the flow term (by the raw flow error when the flow is not used; near vertices hide far ones).
 """
 
 from __future__ import annotations
@@ -699,9 +701,12 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
        then with its joints;
     2. the ``tracks`` lowest-loss starts tracked frame by frame (warm start, root at constant velocity,
        smoothed against the two frames before, the flow from the frame before, the shape held near the
-       start's), then refined on the whole clip;
-    3. each track with the fore and/or hind legs swapped left for right (mirrored): the hypothesis whose
-       predicted image motion best matches the optical flow of ``frames`` wins and is refined.
+       start's), then refined on the whole clip (silhouette and priors);
+    3. each track with the fore and/or hind legs swapped left for right (mirrored): the hypothesis with the
+       lowest clip loss with the flow term wins and is refined.
+
+    When the flow explains less than ``flow_min_explained`` of the masks' change (:func:`flow_gate`), step 2
+    runs without the flow and the hold and step 3 ranks by the raw flow error (the fit before the flow term).
 
     Args:
         masks: (T, H, W) bool subject masks.
