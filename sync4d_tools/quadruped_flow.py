@@ -86,7 +86,7 @@ def trust_features(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray) -> dic
         fwd = dis.calc(grey[t], grey[t + 1], None)[pixel(uv)]
         back = dis.calc(grey[t + 1], grey[t], None)[pixel(uv + fwd)]
         fb.append(np.linalg.norm(fwd + back, axis=1))
-        tex.append(cv2.cornerMinEigenVal(grey[t].astype(np.float32), 9, 3)[pixel(uv)])
+        tex.append(cv2.cornerMinEigenVal(grey[t].astype(np.float32), 9, ksize=3)[pixel(uv)])
         inside.append(cv2.distanceTransform(masks[t].astype(np.uint8), cv2.DIST_L2, 3)[pixel(uv)])
     return {"fb": np.stack(fb), "texture": np.stack(tex), "inside": np.stack(inside)}
 
