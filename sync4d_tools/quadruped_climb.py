@@ -4,7 +4,7 @@
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --load hyps.pt \\
         --set inside_weight=0.2 --steps 60 --pick 0,4                                                # re-judged
     python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --headings [--pick 0]    # every heading
-    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --gap [--quick]          # B -> rest split
+    python -m sync4d_tools.quadruped_climb --clip outputs/q36/fox_walk_side --gap                    # B -> rest split
 
 The first form runs the fit's search (first-frame starts, ``tracks`` tracks refined on the clip, each with its
 legs swapped: the hypotheses) with the defaults, saves them and scores each (loss, optical-flow error, mpjpe
@@ -16,9 +16,7 @@ tracks every start heading (or those ``--pick`` names) as the fit tracks its bes
 with its gait cue (:func:`gait_cue`), loss, flow error and mpjpe (the truth's heading printed first). ``--gap``
 splits the gap between B and the rest pose at the true root (:func:`gap`): the truth's first frame tracked as the
 fit tracks, with and without the first-frame schedule, the legs' or the torso's true rotations only, the first
-frame alone wrong, one tracking step from the truth; each row with its per-frame error and the clip's scale and
-girth (``--quick``: A2, the truth's first frame tracked and one step only, the rows an objective is judged by
-first). Prints JSON rows.
+frame alone wrong, one tracking step from the truth; each row with its per-frame error. Prints JSON rows.
 """
 
 from __future__ import annotations
@@ -222,7 +220,9 @@ def oracle_steps(c: Clip, a2: qf.Params, cfg: qf.QuadrupedFitConfig) -> qf.Param
     for t in range(1, len(c.frames)):
         cur = qf.frame_params(a2, t - 1)
         hist = qf.history_of(c.prob, [qf.frame_params(a2, s) for s in range(max(0, t - 2), t)])
-        qf.run_steps(c.prob, np.array([t]), cur, cfg, cfg.frame_iterations, history=hist)
+        with torch.no_grad():
+            prev = qf.pose_body(c.prob.tt, qf.frame_params(a2, t - 1))[1]
+        qf.run_steps(c.prob, np.array([t]), cur, cfg, cfg.frame_iterations, history=hist, prev=prev)
         frames.append(cur)
     return {k: (torch.cat([p[k].detach() for p in frames]) if k not in qf.CLIP else a2[k].detach().clone()
                 ).requires_grad_(True) for k in a2}
@@ -264,6 +264,19 @@ def gap(c: Clip, cfg: qf.QuadrupedFitConfig, quick: bool = False) -> list[dict]:
     return rows
 
 
+def config_from(sets: list[str]) -> qf.QuadrupedFitConfig:
+    """The defaults with ``name=value`` fields set, each read as its default's type (``True``/``False`` for a flag:
+    ``bool("False")`` would be true)."""
+    base = qf.QuadrupedFitConfig()
+    over: dict[str, Any] = {}
+    for name, value in (s.split("=", 1) for s in sets):
+        kind = type(getattr(base, name))
+        if kind is bool and value not in ("True", "False"):
+            raise ValueError(f"quadruped_climb: {name} is a flag: True or False, got {value!r}")
+        over[name] = value == "True" if kind is bool else kind(value)
+    return qf.QuadrupedFitConfig(**over)
+
+
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clip", required=True, help="a rendered quadruped clip (body_suite's folder)")
@@ -278,9 +291,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     args = parser.parse_args(argv)
     if args.quick and not args.gap:
         parser.error("--quick shortens --gap only; add --gap")
-    base = qf.QuadrupedFitConfig()
-    over: dict[str, Any] = {k: type(getattr(base, k))(v) for k, v in (s.split("=", 1) for s in args.set)}
-    cfg = qf.QuadrupedFitConfig(**over)
+    cfg = config_from(args.set)
     c = Clip(Path(args.clip), cfg)
     if args.gap:
         return gap(c, cfg, args.quick)

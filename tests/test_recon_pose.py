@@ -630,6 +630,106 @@ def test_gait_cue_tells_the_way_the_paws_push(shared_data: Path) -> None:
     assert gait_cue(prob, feet, facing_left) < 0 < gait_cue(prob, feet, facing_right)
 
 
+def test_quadruped_flow_term_is_zero_at_the_motion_the_video_shows(shared_data: Path) -> None:
+    """The flow term: the video's flow equal to the truth's predicted image motion costs nothing at the truth and
+    more with the legs swapped or the body turned; a one-frame fit from the held previous frame sees the same
+    pair as the clip fit; untrusted cells count nothing."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    truth, _, camera, masks, _ = _template_clip()
+    prob = qf.QuadrupedProblem(masks, camera, qf.QuadrupedFitConfig())
+    with torch.no_grad():
+        _, verts = qf.pose_body(prob.tt, truth)
+        prob.flow = qf.predicted_flow(prob, verts, truth["log_scale"].exp())[0]
+    prob.flow_ok = torch.ones(prob.flow.shape[:2], dtype=torch.bool)
+    scale, frames = truth["log_scale"].exp(), np.arange(len(masks))
+
+    def term(params: qf.Params) -> float:
+        with torch.no_grad():
+            return float(qf.flow_term(prob, frames, qf.pose_body(prob.tt, params)[1], scale, None, 1.0))
+
+    assert term(truth) < 1e-6
+    swapped = {**truth, "local": qf.swap_legs(prob.tt, truth["local"].detach(), ("f", "h"))}
+    turned = {k: v.detach().clone() for k, v in truth.items()}
+    turned["root_rot"][1:, 1] += 0.3 * torch.arange(1, len(masks), dtype=qf.DTYPE)
+    assert term(swapped) > 0.01 and term(turned) > 0.01
+    with torch.no_grad():
+        _, moved = qf.pose_body(prob.tt, turned)
+        pair = float(qf.flow_term(prob, frames[1:3], moved[1:3], scale, None, 1.0))
+        held = float(qf.flow_term(prob, frames[2:3], moved[2:3], scale, moved[1:2], 1.0))
+    assert pair > 0.01 and abs(pair - held) < 1e-6
+    prob.flow_ok[:] = False
+    assert term(turned) == 0.0
+
+
+def test_quadruped_tracking_holds_the_shape_near_the_start(shared_data: Path) -> None:
+    """A one-frame tracking fit pays ``shape_hold_weight`` times the squared log change of the clip's shape from the
+    start's (a changed scale costs exactly that); the clip fit, without an anchor, does not."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    truth, _, camera, masks, _ = _template_clip()
+    cfg = qf.QuadrupedFitConfig(flow_weight=0.0)
+    prob = qf.QuadrupedProblem(masks, camera, cfg)
+    one = qf.frame_params(truth, 1)
+    anchor = {k: one[k].detach().clone() for k in qf.CLIP}
+    grown = {**one, "log_scale": one["log_scale"].detach() + 0.1}
+    with torch.no_grad():
+        base = float(qf.clip_loss(prob, np.array([1]), grown, cfg)[0])
+        held = float(qf.clip_loss(prob, np.array([1]), grown, cfg, anchor=anchor)[0])
+    assert abs(held - base - cfg.shape_hold_weight * 0.01) < 1e-5
+
+
+def test_quadruped_flow_check_tells_the_given_cameras_from_wrong_ones(shared_data: Path) -> None:
+    """sync4d_tools.quadruped_flow: the video's flow equal to the truth's image motion under a moving camera leaves
+    no residual through the given cameras and some with the camera taken as static or inverted; the quartiles of a
+    feature that orders the residuals rise."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d_tools.quadruped_flow import by_quartile, camera_check
+
+    truth, _, camera, masks, extrinsics = _template_clip(moving=True)
+    prob = qf.QuadrupedProblem(masks, camera, qf.QuadrupedFitConfig(), extrinsics=extrinsics)
+    with torch.no_grad():
+        _, verts = qf.pose_body(prob.tt, truth)
+        prob.flow = qf.predicted_flow(prob, verts, truth["log_scale"].exp())[0]
+    prob.flow_ok = torch.ones(prob.flow.shape[:2], dtype=torch.bool)
+    check = camera_check(prob, truth)
+    assert check["given"]["median"] < 1e-3 and check["given"]["cells"] > 0
+    assert check["static"]["median"] > 0.1 and check["inverse"]["median"] > 0.1
+    res = np.linspace(0.0, 1.0, 40)
+    quart = by_quartile(res * 3, res)
+    assert all(q is not None for q in quart) and quart == sorted(quart)
+
+
+def test_quadruped_flow_gate_needs_the_flow_to_explain_the_masks_change(shared_data: Path) -> None:
+    """A backward flow that carries a square's mask 3 px right explains all of its change, no flow none of it; the fit
+    drops the flow term, the shape hold and the loss ranking below ``flow_min_explained`` and keeps them above."""
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    mask = np.zeros((40, 60), bool)
+    mask[10:30, 10:30] = True
+    moved = np.roll(mask, 3, axis=1)
+    back = np.zeros((40, 60, 2), np.float32)
+    back[..., 0] = -3.0  # a pixel of the following frame came from 3 px to its left
+    carried, still = qf.mask_change_missed(mask, moved, back)
+    assert carried == 0 and still == 2 * 3 * 20
+    assert np.array_equal(qf.mask_change_missed(mask, moved, np.zeros_like(back)), [still, still])
+    _, _, camera, masks, _ = _template_clip()
+    cfg = qf.QuadrupedFitConfig()
+    prob = qf.QuadrupedProblem(masks, camera, cfg)
+    assert qf.flow_gate(prob, cfg, "clip") is cfg  # no frames, no flow: nothing to gate
+    prob.flow_explained = cfg.flow_min_explained - 0.01
+    off = qf.flow_gate(prob, cfg, "clip")
+    assert (off.flow_weight, off.shape_hold_weight, off.rank_by_loss) == (0.0, 0.0, False)
+    prob.flow_explained = cfg.flow_min_explained
+    assert qf.flow_gate(prob, cfg, "clip") is cfg
+
+
 def test_quadruped_climb_gap_rests_all_but_the_joints_kept(shared_data: Path) -> None:
     """``quadruped_climb --gap``: a start keeps the root, shape and the named joints' rotations, the rest at rest,
     as fresh leaves (the source is not moved by the steps that follow)."""
@@ -651,6 +751,16 @@ def test_quadruped_climb_gap_rests_all_but_the_joints_kept(shared_data: Path) ->
     assert float(out["local"][:, others].abs().max()) == 0.0 and float(rest_at(src)["local"].abs().max()) == 0.0
     assert torch.equal(out["root_rot"], src["root_rot"].detach()) and out["local"].is_leaf and out["local"].requires_grad
     assert out["local"].data_ptr() != src["local"].data_ptr()
+
+
+def test_quadruped_climb_reads_set_fields_by_their_types() -> None:
+    """quadruped_climb --set: numbers as their defaults' types, flags as True/False (not bool("False"))."""
+    from sync4d_tools.quadruped_climb import config_from
+
+    cfg = config_from(["rank_by_loss=False", "flow_weight=0", "tracks=3"])
+    assert cfg.rank_by_loss is False and cfg.flow_weight == 0.0 and cfg.tracks == 3
+    with pytest.raises(ValueError, match="flag"):
+        config_from(["rank_by_loss=0"])
 
 
 def test_quadruped_climb_needs_a_clip() -> None:

@@ -10,15 +10,19 @@ union over triangles) on a coarse grid; the loss is the binary cross-entropy aga
 points along the skeleton's segments inside the mask (distance transform); priors: bone lengths and
 girths (per-bone changes near zero, left/right equal), joint limits (``joint_limit_deg`` from the
 template; leg joints turn mostly about the body's lateral axis), smooth root-relative joints and root
-(accelerations). Search: root headings on the first frame, the best few tracked frame by frame, then
-left/right leg swaps as hypotheses ranked by the video's optical flow (near vertices hide far ones).
+(accelerations); with video frames whose flow explains the masks' change (:func:`flow_gate`), each one-frame
+tracking fit also pays the body's predicted image motion from the frame before against the video's optical
+flow (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera fill the same silhouettes
+but move the body's texture differently) and holds the clip's shape near the start's. Search: root headings on
+the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses ranked by the clip
+loss with the flow term (by the raw flow error when the flow is not used; near vertices hide far ones).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -63,6 +67,21 @@ class QuadrupedFitConfig:
             penalty [deg].
         smooth_weight: squared accelerations of the root-relative joints and the root (template units) at 30
             frames a second; other frame rates scale second differences by (fps / 30)^2.
+        flow_weight: the body's predicted image motion against the video's optical flow (:func:`flow_term`),
+            between consecutive frames of a fit (and from the last tracked frame in the tracking); 0 = off.
+        shape_hold_weight: squared log change of the clip's shape (scale, girth, bone lengths and girths) in a
+            one-frame tracking fit from the tracked start's: a real animal does not change its build frame by
+            frame; 0 = the shape free while tracking.
+        rank_by_loss: the tracks' leg swaps ranked by the clip loss (with the flow term) instead of the raw
+            flow error.
+        flow_in_clip: the flow term also in the clip steps (every frame pair of the clip); False = only in the
+            one-frame tracking fits and the ranking (with it, the orbit's last clip steps drift: fox walk orbit
+            25.6 -> 28.9 % in 40 steps).
+        flow_min_explained: the flow term, the shape hold and the loss ranking are used only when the video's flow
+            explains at least this share of the masks' change between frames (:func:`mask_change_missed`); below
+            it (the head-on clips) the fit runs without them, the leg swaps ranked by the flow error.
+        flow_robust_cells: the flow residual's Cauchy scale [grid cells]: larger residuals count little
+            (a wrong flow, a leg that moved more than the flow's patch could see).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -84,6 +103,12 @@ class QuadrupedFitConfig:
     joint_limit_deg: float = 50.0
     leg_off_plane_deg: float = 15.0
     smooth_weight: float = 5.0
+    flow_weight: float = 1.0
+    flow_robust_cells: float = 1.0
+    shape_hold_weight: float = 10.0
+    rank_by_loss: bool = True
+    flow_in_clip: bool = False
+    flow_min_explained: float = 0.8
     background_threshold: float = 30.0
 
 
@@ -223,17 +248,47 @@ def rasterise(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int
     return out.astype(bool)
 
 
-def video_flow(frames: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(T-1, P, 2) DIS optical flow (OpenCV, medium preset) from frame t to t+1 at pixels ``uv`` (P, 2) [px]."""
+def video_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, fb_tol_px: float = 1.0
+               ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(T-1, P, 2) DIS optical flow (OpenCV, medium preset) from frame t to t+1 at pixels ``uv`` (P, 2) [px],
+    (T-1, P) where it is trusted (on the mask at t, landing on the mask at t+1: off it the flow is the
+    background's; back within ``fb_tol_px`` by the backward flow: not occluded, not smeared), and the share of
+    the masks' change the flow explains (:func:`mask_change_explained`)."""
     import cv2
 
     # OpenCV's stubs omit the DIS optical flow factory that the module has.
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]
     grey = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
     h, w = grey[0].shape
-    iu = np.clip(uv[:, 0].astype(int), 0, w - 1)
-    iv = np.clip(uv[:, 1].astype(int), 0, h - 1)
-    return np.stack([dis.calc(grey[t], grey[t + 1], None)[iv, iu] for t in range(len(grey) - 1)])
+
+    def pixel(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return np.clip(p[:, 1].astype(int), 0, h - 1), np.clip(p[:, 0].astype(int), 0, w - 1)
+
+    flows, ok, missed = [], [], np.zeros(2)
+    for t in range(len(grey) - 1):
+        fwd = dis.calc(grey[t], grey[t + 1], None)[pixel(uv)]
+        end = pixel(uv + fwd)
+        back_full = dis.calc(grey[t + 1], grey[t], None)
+        back = back_full[end]
+        ok.append(masks[t][pixel(uv)] & masks[t + 1][end] & (np.linalg.norm(fwd + back, axis=1) < fb_tol_px))
+        flows.append(fwd)
+        missed += mask_change_missed(masks[t], masks[t + 1], back_full)
+    return np.stack(flows), np.stack(ok), float(1.0 - missed[0] / max(missed[1], 1.0))
+
+
+def mask_change_missed(mask: np.ndarray, following: np.ndarray, back: np.ndarray) -> np.ndarray:
+    """(2,) pixels where ``following`` differs from ``mask`` carried along by the backward flow ``back`` (H, W, 2)
+    [px] from the following frame, and from ``mask`` as it is.
+
+    Summed over a clip, 1 - their ratio is the share of the masks' change the flow explains: near 1 when the flow
+    moves the body's outline as the masks move, low when the motion is mostly toward the camera or too small and
+    flat for the flow to follow (the head-on clips: docs/results/people_animals.md)."""
+    import cv2
+
+    h, w = mask.shape
+    gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    carried = cv2.remap(mask.astype(np.float32), gx + back[..., 0], gy + back[..., 1], cv2.INTER_LINEAR) > 0.5
+    return np.array([float((carried ^ following).sum()), float((mask ^ following).sum())])
 
 
 def mask_box(masks: np.ndarray, margin: float = 0.15) -> tuple[int, int, int, int]:
@@ -300,7 +355,12 @@ class QuadrupedProblem:
         rel = relative_cameras(extrinsics)
         self.cams = None if rel is None else torch.tensor(rel, dtype=DTYPE)
         self.rate = fps / SMOOTH_FPS
-        self.flow = None if frames is None or len(frames) < 2 else torch.tensor(video_flow(frames, uv), dtype=DTYPE)
+        self.flow: torch.Tensor | None = None
+        self.flow_ok: torch.Tensor | None = None  # (T-1, P) where the flow is trusted (:func:`video_flow`)
+        self.flow_explained: float | None = None  # the share of the masks' change the flow explains
+        if frames is not None and len(frames) >= 2:
+            flow, ok, self.flow_explained = video_flow(frames, uv, masks)
+            self.flow, self.flow_ok = torch.tensor(flow, dtype=DTYPE), torch.tensor(ok)
 
     def cams_of(self, frames: np.ndarray) -> torch.Tensor | None:
         return None if self.cams is None else self.cams[torch.as_tensor(frames)]
@@ -359,35 +419,43 @@ def smoothness(prob: QuadrupedProblem, joints: torch.Tensor, scale: torch.Tensor
 
 
 def clip_loss(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config: QuadrupedFitConfig,
-              history: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+              history: torch.Tensor | None = None, prev: torch.Tensor | None = None, anchor: Params | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Total loss, joints (T, J, 3) and soft silhouettes (T, P) of ``params`` on ``frames``.
 
     ``history``: (2, J + 1, 3) root-relative joints and root of the two frames before a one-frame fit
-    (template units), for the smoothness term.
+    (template units), for the smoothness term; ``prev``: (1, V, 3) the vertices of the frame before it, for the
+    flow term; ``anchor``: the clip's shape a one-frame fit is held near (``shape_hold_weight``).
     """
     joints, verts = pose_body(prob.tt, params)
+    # the scale's exp taken once per term, as before the flow term: without the flow the sums are main's to the bit
     bce, inside, occ = silhouette_terms(prob, frames, joints, verts, params["log_scale"].exp())
     lengths, limit = shape_priors(prob, params, config)
     total = (config.silhouette_weight * bce + config.inside_weight * inside + config.length_weight * lengths
              + config.limit_weight * limit
              + config.smooth_weight * smoothness(prob, joints, params["log_scale"].exp(), history))
+    if config.flow_weight > 0 and (prev is not None or config.flow_in_clip):
+        total = total + config.flow_weight * flow_term(prob, frames, verts, params["log_scale"].exp(), prev,
+                                                       config.flow_robust_cells)
+    if anchor is not None and config.shape_hold_weight > 0:
+        total = total + config.shape_hold_weight * sum((params[k] - anchor[k]).pow(2).mean() for k in CLIP)
     return total, joints, occ
 
 
 def run_steps(prob: QuadrupedProblem, frames: np.ndarray, params: Params, config: QuadrupedFitConfig, steps: int, *,
-              free: tuple[str, ...] | None = None, history: torch.Tensor | None = None
-              ) -> tuple[float, np.ndarray, np.ndarray]:
+              free: tuple[str, ...] | None = None, history: torch.Tensor | None = None,
+              prev: torch.Tensor | None = None, anchor: Params | None = None) -> tuple[float, np.ndarray, np.ndarray]:
     """``steps`` Adam steps on ``params`` (only the names in ``free``, default all); returns (loss, joints
-    (T, J, 3), IoU (T,) on the grid)."""
+    (T, J, 3), IoU (T,) on the grid). ``history``, ``prev``, ``anchor``: :func:`clip_loss`'s, for a one-frame fit."""
     opt = torch.optim.Adam([v for k, v in params.items() if free is None or k in free], lr=config.lr)
     with deterministic_torch():  # a run is reproducible whatever torch's thread count
         for _ in range(steps):
             opt.zero_grad()
-            loss, _, _ = clip_loss(prob, frames, params, config, history)
+            loss, _, _ = clip_loss(prob, frames, params, config, history, prev, anchor)
             loss.backward()
             opt.step()
     with torch.no_grad():
-        loss, joints, occ = clip_loss(prob, frames, params, config, history)
+        loss, joints, occ = clip_loss(prob, frames, params, config, history, prev, anchor)
     pred, tgt = occ > 0.5, prob.target[frames] > 0.5
     iou = ((pred & tgt).sum(1) / (pred | tgt).sum(1).clamp_min(1)).numpy()
     return float(loss), joints.numpy().astype(np.float64), iou
@@ -408,6 +476,20 @@ def swap_legs(tt: TemplateTensors, local: torch.Tensor, pairs: tuple[str, ...]) 
     return out
 
 
+def flow_weights(prob: QuadrupedProblem, uv: torch.Tensor, z: torch.Tensor, cells: torch.Tensor | None = None
+                 ) -> torch.Tensor:
+    """(T, P, V) how much each vertex, projected at ``uv`` (T, V, 2) [px] with depth ``z`` (T, V), moves each
+    grid cell: near the cell (a Gaussian of one cell), the nearest in depth first (a soft z-buffer: 5 % of the
+    body's depth range costs a factor e), not normalised. No gradient: which vertices a cell sees is held
+    while the motion they carry is differentiated."""
+    with torch.no_grad():
+        grid = prob.uv if cells is None else prob.uv[cells]  # ``cells``: only these grid cells (P of them)
+        d2 = (grid[None, :, None] - uv[:, None]).pow(2).sum(-1)  # (T, P, V)
+        lo, hi = z.min(1, keepdim=True).values, z.max(1, keepdim=True).values
+        depth = (z - lo) / (0.05 * (hi - lo).clamp_min(1e-6))
+        return torch.exp(-d2 / (2 * (2 * prob.tau) ** 2) - depth[:, None])
+
+
 def predicted_flow(prob: QuadrupedProblem, verts: torch.Tensor, scale: torch.Tensor
                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """(T-1, P, 2) image motion [px] of the posed mesh from frame t to t+1 at the grid cells (each cell takes
@@ -415,13 +497,43 @@ def predicted_flow(prob: QuadrupedProblem, verts: torch.Tensor, scale: torch.Ten
     cam = to_cameras(verts, prob.cams)
     uv = project_points(cam, prob.K)
     motion = uv[1:] - uv[:-1]  # (T-1, V, 2): the body's and the camera's motion
-    d2 = (prob.uv[None, :, None] - uv[:-1, None]).pow(2).sum(-1)  # (T-1, P, V)
-    z = cam[:-1, :, 2]
-    depth = (z - z.min(1, keepdim=True).values) / (0.05 * (z.max(1, keepdim=True).values - z.min(1, keepdim=True).values
-                                                              ).clamp_min(1e-6))
-    w = torch.exp(-d2 / (2 * (2 * prob.tau) ** 2) - depth[:, None])
+    w = flow_weights(prob, uv[:-1], cam[:-1, :, 2])
     flow = (w[..., None] * motion[:, None]).sum(2) / w.sum(2).clamp_min(1e-12)[..., None]
     return flow, body_silhouette(prob, verts[:-1], None if prob.cams is None else prob.cams[:-1], scale)
+
+
+def flow_term(prob: QuadrupedProblem, frames: np.ndarray, verts: torch.Tensor, scale: torch.Tensor,
+              prev: torch.Tensor | None, robust_cells: float) -> torch.Tensor:
+    """Mean Cauchy penalty [grid cells] of the body's image motion against the video's flow between the
+    consecutive frames of a fit (``prev``: (1, V, 3) the vertices of the frame before ``frames[0]``, held, for
+    a one-frame tracking fit), over the cells where the flow is trusted and the body is (at the earlier frame).
+
+    The silhouette cannot tell a leg swinging in place from the body turning toward the camera; their texture
+    moves differently. Cauchy: a wrong flow or a leg faster than the flow's patch costs little."""
+    if prob.flow is None or prob.flow_ok is None:
+        return verts.new_zeros(())
+    idx = np.asarray(frames)
+    if prev is not None:
+        verts, idx = torch.cat([prev, verts]), np.concatenate([[idx[0] - 1], idx])
+    pairs = np.flatnonzero(np.diff(idx) == 1)
+    if len(pairs) == 0:
+        return verts.new_zeros(())
+    cams = prob.cams_of(idx)
+    cam = to_cameras(verts, cams)
+    uv = project_points(cam, prob.K)
+    with torch.no_grad():
+        body = body_silhouette(prob, verts[pairs], None if cams is None else cams[pairs], scale) > 0.5
+        keep = body & prob.flow_ok[idx[pairs]] & (prob.target[idx[pairs]] > 0.5)
+    total, count = verts.new_zeros(()), 0
+    for k, (i, t) in enumerate(zip(pairs, idx[pairs])):  # only the trusted cells: a fifth of the grid or less
+        cells = torch.nonzero(keep[k]).squeeze(1)
+        if len(cells) == 0:
+            continue
+        w = flow_weights(prob, uv[i: i + 1].detach(), cam[i: i + 1, :, 2].detach(), cells)[0]
+        motion = (w / w.sum(1, keepdim=True).clamp_min(1e-12)) @ (uv[i + 1] - uv[i])
+        r2 = (motion - prob.flow[t, cells]).pow(2).sum(-1) / (2 * prob.tau * robust_cells) ** 2
+        total, count = total + torch.log1p(r2).sum(), count + len(cells)
+    return total / max(count, 1)
 
 
 def flow_error(prob: QuadrupedProblem, params: Params) -> float:
@@ -513,14 +625,20 @@ def history_of(prob: QuadrupedProblem, frames: list[Params]) -> torch.Tensor | N
 
 def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: int) -> Params:
     """Clip parameters from a first-frame fit: every later frame warm-started from the previous one (root
-    extrapolated at constant velocity), smoothed against the two frames before it."""
+    extrapolated at constant velocity), smoothed against the two frames before it, its image motion from the
+    frame before against the flow, its shape held near the start's (without the hold the tracked body grows
+    and thins frame by frame: docs/results/people_animals.md)."""
     frames = [start]
+    anchor = {k: start[k].detach().clone() for k in CLIP}
     for t in range(1, n):
         cur = frame_params(frames[-1], 0)
         if t >= 2:
             with torch.no_grad():
                 cur["root_pos"] += frames[-1]["root_pos"].detach() - frames[-2]["root_pos"].detach()
-        run_steps(prob, np.array([t]), cur, config, config.frame_iterations, history=history_of(prob, frames))
+        with torch.no_grad():
+            prev = pose_body(prob.tt, frames[-1])[1]
+        run_steps(prob, np.array([t]), cur, config, config.frame_iterations, history=history_of(prob, frames),
+                  prev=prev, anchor=anchor)
         frames.append(cur)
     return {k: (torch.cat([p[k].detach() for p in frames]) if k not in CLIP else frames[-1][k].detach().clone()
                 ).requires_grad_(True) for k in frames[0]}
@@ -537,13 +655,29 @@ def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Param
         loss, _, _ = run_steps(prob, np.arange(n), full, config, config.iterations)
         for pairs in swaps:
             trial = {**full, "local": swap_legs(prob.tt, full["local"].detach(), pairs)}
-            score = flow_error(prob, trial) if prob.flow is not None else loss
+            if prob.flow is None:
+                score = loss
+            elif config.rank_by_loss:  # the clip loss holds the flow (robust, trusted cells) with the silhouette
+                score = run_steps(prob, np.arange(n), trial, replace(config, flow_in_clip=True), 0)[0]
+            else:
+                score = flow_error(prob, trial)
             log.info("quadruped hypothesis heading %.0f deg, legs swapped: %s: %s %.4f", 360 * k / config.starts,
                      "+".join(pairs) or "none", "flow error" if prob.flow is not None else "loss", score)
             if best is None or score < best[0]:
                 best = (score, trial)
     assert best is not None
     return {k: v.detach().clone().requires_grad_(True) for k, v in best[1].items()}
+
+
+def flow_gate(prob: QuadrupedProblem, config: QuadrupedFitConfig, source: str) -> QuadrupedFitConfig:
+    """``config`` without the flow term, the shape hold and the loss ranking when the video's flow explains less
+    than ``flow_min_explained`` of the masks' change (``config`` itself otherwise, or without frames)."""
+    if prob.flow_explained is None:
+        return config
+    trusted = prob.flow_explained >= config.flow_min_explained
+    log.info("quadruped fit of %s: the flow explains %.3f of the masks' change: %s", source, prob.flow_explained,
+             "flow term, shape hold and loss ranking on" if trusted else "the fit without them")
+    return config if trusted else replace(config, flow_weight=0.0, shape_hold_weight=0.0, rank_by_loss=False)
 
 
 def check_masks(masks: np.ndarray, source: str, extrinsics: np.ndarray | None) -> None:
@@ -566,9 +700,13 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     1. first frame: ``starts`` root headings about the up axis, each fitted rigidly (root, scale, girth) and
        then with its joints;
     2. the ``tracks`` lowest-loss starts tracked frame by frame (warm start, root at constant velocity,
-       smoothed against the two frames before), then refined on the whole clip;
-    3. each track with the fore and/or hind legs swapped left for right (mirrored): the hypothesis whose
-       predicted image motion best matches the optical flow of ``frames`` wins and is refined.
+       smoothed against the two frames before, the flow from the frame before, the shape held near the
+       start's), then refined on the whole clip (silhouette and priors);
+    3. each track with the fore and/or hind legs swapped left for right (mirrored): the hypothesis with the
+       lowest clip loss with the flow term wins and is refined.
+
+    When the flow explains less than ``flow_min_explained`` of the masks' change (:func:`flow_gate`), step 2
+    runs without the flow and the hold and step 3 ranks by the raw flow error (the fit before the flow term).
 
     Args:
         masks: (T, H, W) bool subject masks.
@@ -589,6 +727,7 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     check_masks(masks, source, extrinsics)
     n = len(masks)
     prob = QuadrupedProblem(masks, camera, config, frames=frames, extrinsics=extrinsics, fps=fps)
+    config = flow_gate(prob, config, source)
     w2c0 = camera.world_to_cam if extrinsics is None else np.asarray(extrinsics[0], dtype=np.float64)
     up_cam = np.array([0.0, -1.0, 0.0]) if world_up is None else w2c0[:3, :3] @ np.asarray(world_up, dtype=np.float64)
     starts = first_frame_starts(prob, masks[0], up_cam, config)
