@@ -658,11 +658,12 @@ def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Param
             if prob.flow is None:
                 score = loss
             elif config.rank_by_loss:  # the clip loss holds the flow (robust, trusted cells) with the silhouette
-                score = run_steps(prob, np.arange(n), trial, replace(config, flow_in_clip=True), 0)[0]
+                with torch.no_grad():
+                    score = float(clip_loss(prob, np.arange(n), trial, replace(config, flow_in_clip=True))[0])
             else:
                 score = flow_error(prob, trial)
             log.info("quadruped hypothesis heading %.0f deg, legs swapped: %s: %s %.4f", 360 * k / config.starts,
-                     "+".join(pairs) or "none", "flow error" if prob.flow is not None else "loss", score)
+                     "+".join(pairs) or "none", "loss" if prob.flow is None or config.rank_by_loss else "flow error", score)
             if best is None or score < best[0]:
                 best = (score, trial)
     assert best is not None
