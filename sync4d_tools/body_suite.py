@@ -1,6 +1,7 @@
 """The ``recon_joints`` suite: render every clip/view with truth, fit it with one configuration, tabulate.
 
     python -m sync4d_tools.body_suite --out outputs/body_suite [--only cmu,deepmimic,dog,shiba,fox_walk,fox_walk_orbit]
+    python -m sync4d_tools.body_suite --held-out --out outputs/body_suite   # quadruped rows nothing was tuned on
 
 Humans are scored twice: with the renders' camera (``--camera``) and with the camera unknown (the fit's
 assumed field of view), through ``recon_joints``. The people clips are also filmed hand-held in a textured
@@ -71,13 +72,26 @@ CLIPS = (
     ("fox_survey", "oblique", 0, 1),
 )
 QUADRUPEDS = ("dog", "shiba", "fox_walk", "fox_run", "fox_survey")
+# quadruped rows no setting was chosen on (``--held-out``): other views, the dog filmed hand-held (seed), the fox's
+# other clips; clip, view, hand-held seed or None
+QUADRUPED_HELDOUT = (
+    ("dog", "back", None),
+    ("dog", "side", 0),
+    ("dog", "oblique", 1),
+    ("fox_run", "side", None),
+    ("fox_run", "front", None),
+    ("fox_survey", "side", None),
+    ("fox_survey", "front", None),
+    ("fox_walk", "oblique", None),
+)
 # people filmed hand-held in a textured room (sync4d_tools.body_clips.handheld_cameras): clip, view, seed
 HANDHELD = tuple((clip, view, seed + 6 * rep) for rep in range(2) for seed, (clip, view) in enumerate(
     (c, v) for c in ("cmu", "deepmimic") for v in ("front", "oblique", "side")))
 
 
-def render_clip(folder: Path, clip: str, view: str, frames: int, stride: int) -> None:
-    """Render a clip into ``folder`` unless it is there already."""
+def render_clip(folder: Path, clip: str, view: str, frames: int, stride: int, handheld: int | None = None) -> None:
+    """Render a clip into ``folder`` unless it is there already (hand-held with seed ``handheld``: people and
+    the dog)."""
     if (folder / "gt.npz").is_file():
         return
     if clip == "shiba":
@@ -87,7 +101,8 @@ def render_clip(folder: Path, clip: str, view: str, frames: int, stride: int) ->
     else:
         human = clip not in QUADRUPEDS
         width, height = (320, 480) if human else (480, 320)
-        write_clip(folder, clip, view, frames=frames, stride=stride, width=width, height=height, fov_deg=50.0)
+        write_clip(folder, clip, view, frames=frames, stride=stride, width=width, height=height, fov_deg=50.0,
+                   handheld=handheld)
 
 
 def run_handheld(out: Path, clip: str, view: str, seed: int) -> dict:
@@ -186,12 +201,13 @@ def human_floor(masks: np.ndarray, K: np.ndarray, w2c: np.ndarray, names: list[s
     return np.stack(out)
 
 
-def run_clip(out: Path, clip: str, view: str, frames: int, stride: int) -> list[dict]:
+def run_clip(out: Path, clip: str, view: str, frames: int, stride: int, handheld: int | None = None) -> list[dict]:
     """Render (if absent) and score one clip; one row per camera setting (humans: known and assumed)."""
-    folder = out / f"{clip}_{view}"
-    render_clip(folder, clip, view, frames, stride)
+    folder = out / (f"{clip}_{view}" if handheld is None else f"{clip}_{view}_handheld{handheld}")
+    render_clip(folder, clip, view, frames, stride, handheld)
     if clip in QUADRUPEDS:
-        return [{"clip": clip, "view": view, "camera": "known", **score_quadruped(folder)}]
+        setting = "known" if handheld is None else f"known, hand-held {handheld}"
+        return [{"clip": clip, "view": view, "camera": setting, **score_quadruped(folder)}]
     rows = []
     for camera in [True, False]:
         args = ["--video", str(folder / "rgb.mp4"), "--masks", str(folder / "masks"), "--gt", str(folder / "gt.npz"),
@@ -371,9 +387,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--only", default="", help="comma-separated clip names (cmu, deepmimic, dog, shiba, fox_walk, "
                         "fox_run, fox_survey) or clip_view names (fox_walk_orbit)")
     parser.add_argument("--split", action="store_true", help="split the quadruped clips' error (module docstring)")
+    parser.add_argument("--held-out", action="store_true", help="the held-out quadruped rows (QUADRUPED_HELDOUT) "
+                        "instead of CLIPS; --only takes their folder names (dog_side_handheld0)")
     args = parser.parse_args(argv)
     out = Path(args.out)
     keep = set(args.only.split(",")) if args.only else None
+    if args.held_out:
+        return held_out_suite(out, keep)
     if args.split:
         rows = [split_clip(out / f"{c}_{v}") for c, v, _, _ in CLIPS
                 if c in QUADRUPEDS and (keep is None or c in keep or f"{c}_{v}" in keep)]
@@ -385,14 +405,7 @@ def main(argv: list[str] | None = None) -> dict:
         if keep is None or clip in keep or f"{clip}_{view}" in keep:
             rows += run_clip(out, clip, view, frames, stride)
             print(json.dumps(rows[-1]), flush=True)
-    print("| clip | view | camera | mpjpe % height | pck10 | floor mpjpe % (pck10) | mask IoU | frames | CPU s |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        floor = f"{r['floor_mpjpe_pct_height']:.2f} ({r['floor_pck10']:.3f})" if "floor_pck10" in r else "-"
-        print(
-            f"| {r['clip']} | {r['view']} | {r['camera']} | {r['mpjpe_pct_height']:.2f} | {r['pck10']:.3f} | {floor} | "
-            f"{r['mask_iou']:.3f} | {r['frames']} | {r['cpu_seconds']:.0f} |"
-        )
+    print(rows_table(rows))
     handheld = []
     for clip, view, seed in HANDHELD:
         if keep is None or clip in keep or f"{clip}_{view}_handheld{seed}" in keep or "handheld" in keep:
@@ -403,6 +416,32 @@ def main(argv: list[str] | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     (out / "suite.json").write_text(json.dumps(rows + handheld, indent=1))
     return {"rows": rows, "handheld": handheld}
+
+
+def held_out_suite(out: Path, keep: set[str] | None) -> dict:
+    """Fit and score the held-out quadruped rows; writes ``held_out.json`` and prints the table."""
+    rows = []
+    for clip, view, seed in QUADRUPED_HELDOUT:
+        name = f"{clip}_{view}" if seed is None else f"{clip}_{view}_handheld{seed}"
+        if keep is None or clip in keep or name in keep:
+            frames, stride = next(((f, s) for c, _, f, s in CLIPS if c == clip), (0, 1))
+            rows += run_clip(out, clip, view, frames, stride, seed)
+            print(json.dumps(rows[-1]), flush=True)
+    print(rows_table(rows))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "held_out.json").write_text(json.dumps(rows, indent=1))
+    return {"rows": rows}
+
+
+def rows_table(rows: list[dict]) -> str:
+    """Markdown: one line per fitted row, the do-nothing floor beside (quadrupeds)."""
+    lines = ["| clip | view | camera | mpjpe % height | pck10 | floor mpjpe % (pck10) | mask IoU | frames | CPU s |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        floor = f"{r['floor_mpjpe_pct_height']:.2f} ({r['floor_pck10']:.3f})" if "floor_pck10" in r else "-"
+        lines.append(f"| {r['clip']} | {r['view']} | {r['camera']} | {r['mpjpe_pct_height']:.2f} | {r['pck10']:.3f} | "
+                     f"{floor} | {r['mask_iou']:.3f} | {r['frames']} | {r['cpu_seconds']:.0f} |")
+    return "\n".join(lines)
 
 
 def handheld_table(handheld: list[dict], rows: list[dict]) -> str:

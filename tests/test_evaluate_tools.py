@@ -618,3 +618,18 @@ def test_default_scene_scores_the_default_run(tmp_path: Path) -> None:
 
     (row,) = default_scene(["--seeds", "0", "--cache-dir", str(tmp_path / "cache")])
     assert row["match_labels"] >= 0.9 and 0.5 <= row["lid_thickness_x"] <= 2.0 and row["hinge_axis_deg"] <= 3.0
+
+
+def test_body_suite_held_out_rows_are_new_and_the_dog_films_hand_held(tmp_path: Path, shared_data: Path) -> None:
+    """The held-out quadruped rows share no clip and view with the rows settings were chosen on; a hand-held
+    dog row renders a per-frame camera."""
+    from sync4d_tools.body_suite import CLIPS, QUADRUPED_HELDOUT, render_clip, rows_table
+
+    tuned = {(c, v) for c, v, _, _ in CLIPS}
+    assert all(seed is not None or (c, v) not in tuned for c, v, seed in QUADRUPED_HELDOUT)
+    render_clip(tmp_path / "dog", "dog", "side", frames=3, stride=2, handheld=0)
+    w2c = np.load(tmp_path / "dog" / "camera.npz")["world_to_cam"]
+    assert w2c.shape == (3, 4, 4) and not np.allclose(w2c[0], w2c[-1])
+    row = {"clip": "dog", "view": "side", "camera": "known, hand-held 0", "mpjpe_pct_height": 20.0, "pck10": 0.2,
+           "floor_mpjpe_pct_height": 25.0, "floor_pck10": 0.1, "mask_iou": 0.8, "frames": 3, "cpu_seconds": 1.0}
+    assert "| dog | side | known, hand-held 0 | 20.00 | 0.200 | 25.00 (0.100) |" in rows_table([row])
