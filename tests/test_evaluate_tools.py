@@ -633,3 +633,21 @@ def test_body_suite_held_out_rows_are_new_and_the_dog_films_hand_held(tmp_path: 
     row = {"clip": "dog", "view": "side", "camera": "known, hand-held 0", "mpjpe_pct_height": 20.0, "pck10": 0.2,
            "floor_mpjpe_pct_height": 25.0, "floor_pck10": 0.1, "mask_iou": 0.8, "frames": 3, "cpu_seconds": 1.0}
     assert "| dog | side | known, hand-held 0 | 20.00 | 0.200 | 25.00 (0.100) |" in rows_table([row])
+
+
+def test_run_turn_reads_a_tipping_body(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A body turning about the up keeps its tilt at 0; one rolling 30 deg about x tilts 30; a missing run is one line."""
+    from scipy.spatial.transform import Rotation
+
+    from sync4d_tools.run_turn import main
+
+    transforms = np.repeat(np.eye(4)[None], 3, 0)
+    transforms[1, :3, :3] = Rotation.from_euler("y", 40, degrees=True).as_matrix()
+    transforms[2, :3, :3] = Rotation.from_euler("x", 30, degrees=True).as_matrix()
+    (tmp_path / "run").mkdir()
+    np.savez(tmp_path / "run" / "sequence.npz", global_transforms=transforms)
+    out = main([str(tmp_path / "run")])
+    assert out["turn_deg"] == [0.0, 40.0, 30.0] and out["tilt_deg"] == [0.0, 0.0, 30.0]
+    with pytest.raises(SystemExit) as done:
+        main([str(tmp_path)])
+    assert done.value.code == 2 and "sequence.npz not found" in capsys.readouterr().err
