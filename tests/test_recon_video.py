@@ -315,3 +315,77 @@ def test_the_hand_held_laptop_is_reconstructed_with_its_moving_camera() -> None:
     assert np.allclose(fit.joints.root_motion, np.eye(4))
     axis_error = np.degrees(np.arccos(min(1.0, abs(float(fit.joints.axes[lid][0])))))
     assert axis_error < 3.0 and abs(float(fit.joints.axes[lid][1])) < 1e-9, fit.joints.axes[lid]
+
+
+def _two_part_tracks(frames: int = 4) -> tuple[object, np.ndarray]:
+    """A 10 x 10 grid of points 4 px apart: the left half still, the right half moving 3 px right a frame
+    (its frame-0 pixels left behind: the masks follow the parts); returns the tracks and the masks."""
+    from sync4d.recon.video.stages import Tracks
+
+    vv, uu = np.mgrid[0:10, 0:10]
+    uv0 = np.stack([uu.ravel() * 4 + 10.5, vv.ravel() * 4 + 10.5], 1)
+    right = uv0[:, 0] > 28
+    uv = np.stack([uv0 + np.where(right[:, None], [3.0 * t, 0.0], 0.0) for t in range(frames)])
+    masks = np.zeros((frames, H, W), bool)
+    for t in range(frames):
+        masks[t, 9:50, 9:29] = True  # the still half
+        masks[t, 9:50, 29 + 3 * t:50 + 3 * t] = True  # the moving half
+    ok = np.ones((frames, len(uv0)), bool)
+    return Tracks(uv0=uv0, uv=uv, trusted=ok, verified=ok, stride=4), masks
+
+
+def test_off_the_root_moves_root_points_whose_pixel_leaves_the_mask() -> None:
+    """Root points whose frame-0 pixel is outside a later mask go to the nearest moving point's part; root
+    points whose pixel stays inside, and every moving point, keep their labels."""
+    from sync4d.recon.video.stages import PartInit, off_the_root
+
+    tracks, masks = _two_part_tracks()
+    truth = (tracks.uv0[:, 0] > 28).astype(int)
+    wrong = truth.copy()
+    wrong[(tracks.uv0[:, 0] > 28) & (tracks.uv0[:, 0] < 36)] = 0  # the moving half's two left columns on the root
+    init = PartInit(labels=wrong, root=0, root_static=True, motion_px=np.array([0.0, 9.0]))
+    labels = off_the_root(tracks, masks, init)
+    left = ~masks[1:, tracks.uv0[:, 1].astype(int), tracks.uv0[:, 0].astype(int)].all(0)
+    assert left.any() and (wrong[left] == 0).all() and (labels[left] == 1).all()
+    assert (labels[~left] == wrong[~left]).all() and np.array_equal(labels, truth)
+
+
+def test_label_starts_are_distinct_and_start_with_the_clustering() -> None:
+    """``label_starts`` gives the clustering's labels first, then only labellings that split the points
+    otherwise (parts renamed count as the same), at most ``starts``; one start is the clustering alone."""
+    from sync4d.recon.video.stages import InitConfig, init_parts, label_starts, same_partition
+
+    tracks, masks = _two_part_tracks()
+    first = init_parts(tracks, 2, InitConfig(), static_px=1.0)
+    one = label_starts(tracks, masks, 2, InitConfig(), static_px=1.0)
+    assert len(one) == 1 and np.array_equal(one[0].labels, first.labels)
+    many = label_starts(tracks, masks, 2, InitConfig(starts=5), static_px=1.0)
+    assert 1 <= len(many) <= 5 and np.array_equal(many[0].labels, first.labels)
+    assert not any(same_partition(a.labels, b.labels) for i, a in enumerate(many) for b in many[i + 1:])
+    assert same_partition(np.array([0, 0, 1, 2]), np.array([2, 2, 0, 1]))
+    assert not same_partition(np.array([0, 0, 1, 1]), np.array([0, 1, 1, 1]))
+
+
+def test_best_labelling_keeps_the_lowest_data_loss_and_the_first_on_a_tie(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fit goes on from the labelling whose hinge start reaches the lowest data loss: the first labelling
+    from every hinge start, the others from the start that did best there (here start 1); a tie keeps the
+    earlier labelling."""
+    from sync4d.recon.video import joints as jt
+
+    class Model:
+        def __init__(self, name: str) -> None:
+            self.name, self.state = name, None
+
+        def load_state_dict(self, state: str) -> None:
+            self.state = state
+
+    losses = {0: [2.0, 1.5, 1.7], 1: [0.1, 1.6, 0.1], 2: [9.0, 1.2, 9.0], 3: [0.0, 1.2, 0.0]}
+    monkeypatch.setattr(jt, "start_maker", lambda scene, tracks, init: (lambda s: Model(f"{init}/{s}"), init))
+    monkeypatch.setattr(jt, "fit_hinge_starts", lambda make, count, pairs, config: (make(1), list(losses[0])))
+    monkeypatch.setattr(jt, "fit_start", lambda make, pairs, config, s: (losses[pairs][s], f"state {pairs}/{s}"))
+    monkeypatch.setattr(jt, "run_forked", lambda jobs, workers: [job() for job in jobs])
+    index, model, history = jt.best_labelling(None, None, [0, 1, 2, 3], jt.FitConfig())  # type: ignore[arg-type, list-item]
+    assert index == 2 and (model.name, model.state) == ("2/1", "state 2/1")
+    assert history == [2.0, 1.5, 1.7, 1.6, 1.2, 1.2]
+    single = jt.best_labelling(None, None, [0], jt.FitConfig())  # type: ignore[arg-type, list-item]
+    assert single[0] == 0 and single[1].name == "0/1" and single[2] == losses[0]
