@@ -366,26 +366,28 @@ def test_label_starts_are_distinct_and_start_with_the_clustering() -> None:
     assert not same_partition(np.array([0, 0, 1, 1]), np.array([0, 1, 1, 1]))
 
 
-def test_best_labelling_keeps_the_lowest_data_loss_and_the_first_on_a_tie(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The fit goes on from the labelling whose hinge start reaches the lowest data loss: the first labelling
-    from every hinge start, the others from the start that did best there (here start 1); a tie keeps the
-    earlier labelling."""
+def test_best_labelling_keeps_the_lowest_kind_loss_and_the_first_on_a_tie(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fit goes on from the labelling whose hinge reading has the lowest kind loss: the first labelling
+    fitted from every hinge start, the others from the start that did best there (here start 1); a tie keeps
+    the earlier labelling, and a lower data loss of the starts does not decide."""
     from sync4d.recon.video import joints as jt
 
     class Model:
         def __init__(self, name: str) -> None:
-            self.name, self.state = name, None
+            self.name, self.state = name, ""
 
         def load_state_dict(self, state: str) -> None:
             self.state = state
 
-    losses = {0: [2.0, 1.5, 1.7], 1: [0.1, 1.6, 0.1], 2: [9.0, 1.2, 9.0], 3: [0.0, 1.2, 0.0]}
+    losses = {0: [2.0, 1.5, 1.7], 1: [0.1, 0.2, 0.1], 2: [9.0, 1.6, 9.0], 3: [0.0, 1.6, 0.0]}
+    kinds = {"0/1": 1.5, "1/1": 1.6, "2/1": 1.2, "3/1": 1.2}
     monkeypatch.setattr(jt, "start_maker", lambda scene, tracks, init: (lambda s: Model(f"{init}/{s}"), init))
     monkeypatch.setattr(jt, "fit_hinge_starts", lambda make, count, pairs, config: (make(1), list(losses[0])))
     monkeypatch.setattr(jt, "fit_start", lambda make, pairs, config, s: (losses[pairs][s], f"state {pairs}/{s}"))
     monkeypatch.setattr(jt, "run_forked", lambda jobs, workers: [job() for job in jobs])
+    monkeypatch.setattr(jt, "kind_loss", lambda model, config: kinds[model.name])
     index, model, history = jt.best_labelling(None, None, [0, 1, 2, 3], jt.FitConfig())  # type: ignore[arg-type, list-item]
     assert index == 2 and (model.name, model.state) == ("2/1", "state 2/1")
-    assert history == [2.0, 1.5, 1.7, 1.6, 1.2, 1.2]
+    assert history == [2.0, 1.5, 1.7, 0.2, 1.6, 1.6]
     single = jt.best_labelling(None, None, [0], jt.FitConfig())  # type: ignore[arg-type, list-item]
     assert single[0] == 0 and single[1].name == "0/1" and single[2] == losses[0]

@@ -612,25 +612,28 @@ def start_maker(scene: Scene, tracks: Tracks, init: PartInit) -> tuple[Callable[
 
 def best_labelling(scene: Scene, tracks: Tracks, inits: Sequence[PartInit], config: FitConfig
                    ) -> tuple[int, Articulation, list[float]]:
-    """The first labelling (index into ``inits``) whose hinge start reaches the lowest data loss, its hinge
-    reading and the starts' losses (the first labelling's, then the others'). A cheap screen: the first
-    labelling is fitted from every hinge start (:func:`fit_hinge_starts`), each other one only from the
-    start that did best there (a start costs the whole fit's first stage again); an earlier labelling wins
-    a tie."""
+    """The first labelling (index into ``inits``) whose hinge reading explains the images best
+    (:func:`kind_loss`, the judge of readings), that reading and the hinge starts' data losses (the first
+    labelling's, then the others'). A cheap screen: the first labelling is fitted from every hinge start
+    (:func:`fit_hinge_starts`), each other one only from the start that did best there (a start costs the
+    whole fit's first stage again); an earlier labelling wins a tie."""
     make, pairs = start_maker(scene, tracks, inits[0])
     best, history = fit_hinge_starts(make, max(1, min(config.axis_starts, len(AXIS_STARTS) + 1)), pairs, config)
     if len(inits) == 1:
         return 0, best, history
-    s, chosen, best_loss = int(np.argmin(history)), 0, min(history)
+    s, chosen, best_kind = int(np.argmin(history)), 0, kind_loss(best, config)
     makers = [start_maker(scene, tracks, init) for init in inits[1:]]
     fitted = run_forked([partial(fit_start, m, p, config, s) for m, p in makers], usable_workers(config.workers))
-    log.info("recon=video: first labelling 0: data loss %.4f (hinge start %d)", best_loss, s)
+    log.info("recon=video: first labelling 0: kind loss %.4f, data loss %.4f (hinge start %d)", best_kind,
+             min(history), s)
     for i, ((m, _), (loss, state)) in enumerate(zip(makers, fitted), 1):
-        log.info("recon=video: first labelling %d: data loss %.4f", i, loss)
+        trial = m(s)
+        trial.load_state_dict(state)
+        trial_kind = kind_loss(trial, config)
+        log.info("recon=video: first labelling %d: kind loss %.4f, data loss %.4f", i, trial_kind, loss)
         history.append(loss)
-        if loss < best_loss:
-            chosen, best_loss, best = i, loss, m(s)
-            best.load_state_dict(state)
+        if trial_kind < best_kind:
+            chosen, best_kind, best = i, trial_kind, trial
     return chosen, best, history
 
 
