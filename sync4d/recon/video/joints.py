@@ -35,8 +35,8 @@ fixed by penalised residual, robust over frames), the part re-posed on it and re
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from functools import partial
 
 import cv2
@@ -140,8 +140,6 @@ class JointFit:
         values: (T, B) joint value per frame [rad for hinges, m for slides] (0 at frame 0).
         root_motion: (T, 4, 4) the root's rigid motion.
         data_loss: the fit's final track + inside + cover terms.
-        history: the data losses of the fit's starts and rivals; start: the first labelling the fit went on
-            from (0: ``init``, else 1 + its index in ``alternatives``; :func:`fit_joints`).
     """
 
     labels: np.ndarray
@@ -154,7 +152,6 @@ class JointFit:
     root_motion: np.ndarray
     data_loss: float
     history: list[float] = field(default_factory=list)
-    start: int = 0
 
     def transforms(self) -> np.ndarray:
         """(T, B, 4, 4) rest (frame 0) -> frame t rigid motion of every part, world frame."""
@@ -598,51 +595,17 @@ def fit_hinge_starts(make: Callable[[int], Articulation], count: int, pairs: tor
     return best, history
 
 
-def start_maker(scene: Scene, tracks: Tracks, init: PartInit) -> tuple[Callable[[int], Articulation], torch.Tensor]:
-    """For the labels of ``init``: the builder of hinge start ``s`` (:func:`start_model`, every moving part a
-    hinge) and the neighbour pairs of its priors."""
+def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) -> JointFit:
+    """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms (the camera is
+    the scene's)."""
     labels, root = init.labels.copy(), init.root
     n_parts, n_frames = int(labels.max()) + 1, tracks.uv.shape[0]
     pivots, border = _start(scene, tracks, labels, root)
+    pairs = neighbour_pairs(tracks.uv0, labels, tracks.stride)
     log_d = np.full(len(labels), np.log(scene.z_ref)) if scene.depth0 is None else np.log(scene.depth0.numpy())
     kinds = ["root" if b == root else "hinge" for b in range(n_parts)]
-    return (partial(start_model, scene, labels, root, kinds, border, pivots, n_frames, log_d),
-            neighbour_pairs(tracks.uv0, labels, tracks.stride))
-
-
-def best_labelling(scene: Scene, tracks: Tracks, inits: Sequence[PartInit], config: FitConfig
-                   ) -> tuple[int, Articulation, list[float]]:
-    """The first labelling (index into ``inits``) whose hinge reading explains the images best
-    (:func:`kind_loss`, the judge of readings), that reading and the hinge starts' data losses (the first
-    labelling's, then the others'). A cheap screen: the first labelling is fitted from every hinge start
-    (:func:`fit_hinge_starts`), each other one only from the start that did best there (a start costs the
-    whole fit's first stage again); an earlier labelling wins a tie."""
-    make, pairs = start_maker(scene, tracks, inits[0])
-    best, history = fit_hinge_starts(make, max(1, min(config.axis_starts, len(AXIS_STARTS) + 1)), pairs, config)
-    if len(inits) == 1:
-        return 0, best, history
-    s, chosen, best_kind = int(np.argmin(history)), 0, kind_loss(best, config)
-    makers = [start_maker(scene, tracks, init) for init in inits[1:]]
-    fitted = run_forked([partial(fit_start, m, p, config, s) for m, p in makers], usable_workers(config.workers))
-    log.info("recon=video: first labelling 0: kind loss %.4f, data loss %.4f (hinge start %d)", best_kind,
-             min(history), s)
-    for i, ((m, _), (loss, state)) in enumerate(zip(makers, fitted), 1):
-        trial = m(s)
-        trial.load_state_dict(state)
-        trial_kind = kind_loss(trial, config)
-        log.info("recon=video: first labelling %d: kind loss %.4f, data loss %.4f", i, trial_kind, loss)
-        history.append(loss)
-        if trial_kind < best_kind:
-            chosen, best_kind, best = i, trial_kind, trial
-    return chosen, best, history
-
-
-def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig, *,
-               alternatives: Sequence[PartInit] = ()) -> JointFit:
-    """Fit every moving part's joint (see the module docstring); kinds chosen by the data terms (the camera is
-    the scene's). ``alternatives``: other first labellings; the fit goes on from the one whose hinge starts
-    reach the lowest data loss (:func:`best_labelling`; ``JointFit.start`` says which, 0 for ``init``)."""
-    start, best, history = best_labelling(scene, tracks, [init, *alternatives], config)
+    best, history = fit_hinge_starts(partial(start_model, scene, labels, root, kinds, border, pivots, n_frames, log_d),
+                                     max(1, min(config.axis_starts, len(AXIS_STARTS) + 1)), pairs, config)
     best = choose_kinds(best, tracks, config, history)
     pairs = neighbour_pairs(tracks.uv0, best.labels.numpy(), tracks.stride)
     best_loss = optimise(best, config, config.steps // 2, pairs, windows=1)
@@ -654,7 +617,7 @@ def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig, 
     best_loss = optimise(best, config, config.steps // 4, pairs, windows=1)
     if scene.up is not None:
         best, best_loss = gravity_aligned(best, config, pairs, best_loss)
-    return replace(joint_fit_of(best, best_loss, history), start=start)
+    return joint_fit_of(best, best_loss, history)
 
 
 def gravity_aligned(model: Articulation, config: FitConfig, pairs: torch.Tensor, loss: float

@@ -37,8 +37,7 @@ from sync4d.recon.video.joints import FitConfig, JointFit, fit_joints, make_scen
 from sync4d.recon.video.reveal import reveal
 from sync4d.recon.video.softsplat import project_points
 from sync4d.recon.video.stages import (
-    InitConfig, MaskConfig, PartInit, TrackConfig, Tracks, init_parts, label_starts, reference_depth, track_grid,
-    video_masks,
+    InitConfig, MaskConfig, PartInit, TrackConfig, Tracks, init_parts, reference_depth, track_grid, video_masks,
 )
 from sync4d.registry import register
 from sync4d.types import Camera, Reference, ReferenceInput, VideoClip
@@ -152,10 +151,8 @@ class VideoReconstructor:
             extrinsics = None if extrinsics is None else extrinsics @ upright
         masks = video_masks(clip, config.masks)
         tracks = track_grid(clip.frames, masks, config.tracks)
-        alternatives: list[PartInit] = []
         if extrinsics is None:
-            init, *alternatives = label_starts(tracks, masks, config.bones, config.init,
-                                               static_px=config.fit.static_root_px)
+            init = init_parts(tracks, config.bones, config.init, static_px=config.fit.static_root_px)
             z_ref, depth0 = reference_depth(camera), None
             root_motion = self._root_motion(tracks, init, camera, z_ref)
         else:
@@ -173,10 +170,9 @@ class VideoReconstructor:
         # CPU (measured 6.7 s vs 90 s for the same short fit on this machine under load)
         torch.set_num_threads(1)
         try:
-            joints = fit_joints(scene, tracks, init, config.fit, alternatives=alternatives)
+            joints = fit_joints(scene, tracks, init, config.fit)
         finally:
             torch.set_num_threads(threads)
-        init = ([init, *alternatives])[joints.start]
         log.info("recon=video: joints %s, data loss %.4f", joints.kinds, joints.data_loss)
         means = scene.centre.numpy() + joints.depth[:, None] * scene.rays.numpy()
         cameras = camera if extrinsics is None else [Camera(K=camera.K, world_to_cam=w, width=camera.width,

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from sync4d.errors import InputError
 from sync4d.recon import skinning as sk
@@ -59,13 +58,10 @@ class InitConfig:
     """Attributes:
     motion_weight: weight of the track displacements against the positions in the part clustering.
     fov_deg: horizontal field of view assumed when the video has no intrinsics [deg].
-    starts: first labellings the joint fit starts from (:func:`label_starts`; 1: the clustering alone); the
-        one whose hinge starts reach the lowest data loss is kept (static camera).
     """
 
     motion_weight: float = 2.0
     fov_deg: float = 60.0
-    starts: int = 1
 
 
 @dataclass(frozen=True)
@@ -181,8 +177,7 @@ def affine_labels(tracks: Tracks, labels: np.ndarray, *, iterations: int = 8) ->
     return labels
 
 
-def init_parts(tracks: Tracks, n_parts: int, config: InitConfig, *, static_px: float, affine: bool = True
-               ) -> PartInit:
+def init_parts(tracks: Tracks, n_parts: int, config: InitConfig, *, static_px: float) -> PartInit:
     """Part labels by k-means over image position and track displacement, refined by affine motion.
 
     The clustering uses the trusted tracks, not only the verified ones: on plain parts almost no track is
@@ -203,65 +198,13 @@ def init_parts(tracks: Tracks, n_parts: int, config: InitConfig, *, static_px: f
         motion = motion * (config.motion_weight * p_spread / m_spread)
     feats = np.concatenate([pos, motion], 1)
     labels = sk.kmeans(np.zeros((len(pos), 3)), n_parts, features=feats) if n_parts > 1 else np.zeros(len(pos), int)
-    if n_parts > 1 and affine:
+    if n_parts > 1:
         labels = affine_labels(tracks, labels)
-    return part_init(tracks, labels, n_parts, static_px)
-
-
-def part_init(tracks: Tracks, labels: np.ndarray, n_parts: int, static_px: float) -> PartInit:
-    """The :class:`PartInit` of ``labels`` (N,): the root is the part whose trusted tracks move least."""
-    ok = tracks.trusted
     step = np.linalg.norm(tracks.uv - tracks.uv[:1], axis=-1)
     moves = np.array([np.median(step[:, labels == b][ok[:, labels == b]]) if (labels == b).any() else np.inf
                       for b in range(n_parts)])
     root = int(np.argmin(moves))
     return PartInit(labels=labels, root=root, root_static=bool(moves[root] <= static_px), motion_px=moves)
-
-
-def off_the_root(tracks: Tracks, masks: np.ndarray, init: PartInit) -> np.ndarray:
-    """(N,) labels of ``init`` with every root point whose frame-0 pixel leaves the mask in a later frame given
-    to the part of the nearest point off the root: under a still camera a still point's pixel stays in the
-    mask (a moving part may cover it, never uncover it), so such a point moved (right on 0.85-1.0 of the
-    points it marks on the suite, but it marks few; docs/results/articulated.md)."""
-    pix = np.floor(tracks.uv0).astype(int)
-    left = ~masks[1:, pix[:, 1], pix[:, 0]].all(0)
-    labels = init.labels.copy()
-    moved, others = left & (labels == init.root), np.flatnonzero(labels != init.root)
-    if moved.any() and len(others):
-        near = cKDTree(tracks.uv0[others]).query(tracks.uv0[moved])[1]
-        labels[moved] = labels[others[near]]
-    return labels
-
-
-def same_partition(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether labellings ``a`` and ``b`` (N,) split the points alike, whatever their parts are called."""
-    pairs = set(zip(a.tolist(), b.tolist()))
-    return len(pairs) == len(set(a.tolist())) == len(set(b.tolist()))
-
-
-def label_starts(tracks: Tracks, masks: np.ndarray, n_parts: int, config: InitConfig, *, static_px: float
-                 ) -> list[PartInit]:
-    """Up to ``config.starts`` distinct first labellings, each a different cue or weighting, :func:`init_parts`'s
-    first: the mask's change taken off the root (:func:`off_the_root`), the motion weighted 2x, the k-means
-    without the affine refinement, the motion weighted 0.5x. The joint fit starts from each and the data
-    choose (static camera; the suite's far-off rows end above a basin its objective prefers, issue 40)."""
-    first = init_parts(tracks, n_parts, config, static_px=static_px)
-    out = [first]
-    if config.starts <= 1 or n_parts < 2:
-        return out
-    heavier, lighter = (replace(config, motion_weight=config.motion_weight * f) for f in (2.0, 0.5))
-    makers = [lambda: part_init(tracks, off_the_root(tracks, masks, first), n_parts, static_px),
-              lambda: init_parts(tracks, n_parts, heavier, static_px=static_px),
-              lambda: init_parts(tracks, n_parts, config, static_px=static_px, affine=False),
-              lambda: init_parts(tracks, n_parts, lighter, static_px=static_px)]
-    for make in makers:
-        if len(out) >= config.starts:
-            break
-        trial = make()
-        if all((trial.labels == b).sum() >= 3 for b in range(n_parts)) and \
-                not any(same_partition(trial.labels, o.labels) for o in out):
-            out.append(trial)
-    return out
 
 
 def reference_depth(camera: Camera) -> float:
