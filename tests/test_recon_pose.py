@@ -781,3 +781,30 @@ def test_quadruped_climb_refuses_quick_without_gap() -> None:
     with pytest.raises(SystemExit) as err:
         main(["--clip", "/nonexistent", "--quick"])
     assert err.value.code == 2
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_quadruped_rest_clip_follows_the_masks_and_never_bends(shared_data: Path, moving: bool) -> None:
+    """The rest hypothesis: from a first-frame start the root is placed in every frame where the mask's centroid
+    moved (the body walks 5 cm a frame; the moving camera turns about it and steps back): before any step the root
+    is within a third of the body's own motion from the truth's (a move in depth is not in the centroid), 1.5 cm on
+    the static camera (the legs swing the centroid); its rigid clip fit moves only the root (one rotation for the
+    clip), scale and girth."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    truth, _, camera, masks, extrinsics = _template_clip(moving=moving)
+    cfg = qf.QuadrupedFitConfig(rest_iterations=0)
+    prob = qf.QuadrupedProblem(masks, camera, cfg, extrinsics=extrinsics)
+    start = qf.frame_params(truth, 0)
+    placed = qf.rest_clip(prob, start, cfg, len(masks))
+    err = (placed["root_pos"] - truth["root_pos"]).detach().norm(dim=-1)
+    moved = (truth["root_pos"] - truth["root_pos"][:1]).detach().norm(dim=-1)
+    assert (err <= (0.35 if moving else 0.0) * moved + 0.015).all(), err
+    assert torch.equal(placed["root_rot"].detach(), start["root_rot"].detach().expand(len(masks), 3))
+    fitted = qf.rest_clip(prob, start, qf.QuadrupedFitConfig(rest_iterations=10), len(masks))
+    assert not torch.equal(fitted["root_pos"], placed["root_pos"])
+    assert torch.equal(fitted["root_rot"].detach(), fitted["root_rot"].detach()[:1].expand(len(masks), 3))
+    for key in ("local", "log_len", "log_girth"):
+        assert not fitted[key].detach().any()
