@@ -82,8 +82,9 @@ class QuadrupedFitConfig:
             it (the head-on clips) the fit runs without them, the leg swaps ranked by the flow error.
         flow_robust_cells: the flow residual's Cauchy scale [grid cells]: larger residuals count little
             (a wrong flow, a leg that moved more than the flow's patch could see).
-        rest_hypotheses: the best start held at rest over the clip (root, scale and girth fitted) and that body with
-            its joints then freed are hypotheses beside the tracked ones (:func:`rest_clip`).
+        rest_hypotheses: the template held at rest over the clip (one rotation, the root per frame, scale and girth
+            fitted) from the ``tracks`` best headings at rest is a hypothesis beside the tracked ones
+            (:func:`rest_clip`); when it wins it stays at rest.
         rest_iterations: Adam steps of the rest body's rigid clip fit.
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
@@ -599,19 +600,22 @@ def frame_params(params: Params, t: int) -> Params:
             for k, v in params.items()}
 
 
-def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig
-                       ) -> list[tuple[float, int, Params]]:
-    """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints)."""
+def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig,
+                       rigid: list[tuple[float, int, Params]] | None = None) -> list[tuple[float, int, Params]]:
+    """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints);
+    ``rigid``, when given, receives the same after the rigid steps alone (the template at rest)."""
     tmpl = prob.tt.template
     root0 = initial_root(mask, prob.camera, config.template_length, config.template_length * float(np.ptp(tmpl.vertices[:, 1])))
     starts = []
     for k in range(config.starts):
         params = start_params(prob, heading_rotation(up_cam, 2 * math.pi * k / config.starts), root0,
                               config.template_length)
-        run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
+        still, _, _ = run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
+        if rigid is not None:
+            rigid.append((still, k, {key: v.detach().clone() for key, v in params.items()}))
         loss, _, iou = run_steps(prob, np.arange(1), params, config, config.start_iterations - config.start_iterations // 2)
-        log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f, IoU %.3f", k + 1, config.starts,
-                 360 * k / config.starts, loss, iou.mean())
+        log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f (at rest %.4f), IoU %.3f", k + 1,
+                 config.starts, 360 * k / config.starts, loss, still, iou.mean())
         starts.append((loss, k, params))
     return starts
 
@@ -683,11 +687,13 @@ def centroids(weights: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return (weights @ uv) / weights.sum(1, keepdim=True).clamp_min(1e-9)
 
 
-def hypotheses(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig, n: int
-               ) -> list[tuple[str, Params, bool]]:
+def hypotheses(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig, n: int,
+               rigid: list[tuple[float, int, Params]] | None = None) -> list[tuple[str, Params, bool]]:
     """(label, parameters, held at rest) of every hypothesis: the ``tracks`` lowest-loss starts tracked and refined on the clip,
-    each with and without its fore and/or hind legs swapped; with ``rest_hypotheses``, also the best start held at
-    rest over the clip (:func:`rest_clip`) and that rest body with its joints freed on the clip (and swapped)."""
+    each with and without its fore and/or hind legs swapped; with ``rest_hypotheses``, also the template held at
+    rest over the clip (:func:`rest_clip`) from the ``tracks`` headings whose rigid steps fitted the first frame
+    best (``rigid``; else the best starts): a body facing the camera or away from it fills the same first mask,
+    but moving its root over the clip tells them apart."""
     swaps = ((), ("f",), ("h",), ("f", "h")) if prob.flow is not None else ((),)
     ranked = sorted(starts, key=lambda x: x[0])
     fits: list[tuple[str, Params, tuple[tuple[str, ...], ...], bool]] = []
@@ -695,19 +701,14 @@ def hypotheses(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], 
         full = track(prob, params, config, n)
         run_steps(prob, np.arange(n), full, config, config.iterations)
         fits.append((f"heading {360 * k / config.starts:.0f} deg", full, swaps, False))
-    if config.rest_hypotheses:
-        _, k, params = ranked[0]
-        rest = rest_clip(prob, params, config, n)
-        fits.append((f"rest, heading {360 * k / config.starts:.0f} deg", rest, ((),), True))
-        freed = {key: v.detach().clone().requires_grad_(True) for key, v in rest.items()}
-        run_steps(prob, np.arange(n), freed, config, config.iterations)
-        fits.append((f"rest freed, heading {360 * k / config.starts:.0f} deg", freed, swaps, False))
+    for _, k, params in sorted(rigid or ranked, key=lambda x: x[0])[: config.tracks] if config.rest_hypotheses else ():
+        fits.append((f"rest, heading {360 * k / config.starts:.0f} deg", rest_clip(prob, params, config, n), ((),), True))
     out = []
-    for label, full, pairs_of, rigid in fits:
+    for label, full, pairs_of, still in fits:
         for pairs in pairs_of:
             trial = {**full, "local": swap_legs(prob.tt, full["local"].detach(), pairs)}
             out.append((f"{label}, legs swapped: {'+'.join(pairs) or 'none'}",
-                        {key: v.detach().clone().requires_grad_(True) for key, v in trial.items()}, rigid))
+                        {key: v.detach().clone().requires_grad_(True) for key, v in trial.items()}, still))
     return out
 
 
@@ -721,15 +722,15 @@ def hypothesis_score(prob: QuadrupedProblem, params: Params, config: QuadrupedFi
 
 
 def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
-                    n: int) -> tuple[Params, bool]:
+                    n: int, rigid: list[tuple[float, int, Params]] | None = None) -> tuple[Params, bool]:
     """The hypothesis (:func:`hypotheses`) of the lowest :func:`hypothesis_score`, and whether it is the rest body."""
     best: tuple[float, Params, bool] | None = None
-    for label, trial, rigid in hypotheses(prob, starts, config, n):
+    for label, trial, still in hypotheses(prob, starts, config, n, rigid):
         score = hypothesis_score(prob, trial, config, n)
         log.info("quadruped hypothesis %s: %s %.4f", label,
                  "flow error" if prob.flow is not None and not config.rank_by_loss else "loss", score)
         if best is None or score < best[0]:
-            best = (score, trial, rigid)
+            best = (score, trial, still)
     assert best is not None
     return best[1], best[2]
 
@@ -795,8 +796,9 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     config = flow_gate(prob, config, source)
     w2c0 = camera.world_to_cam if extrinsics is None else np.asarray(extrinsics[0], dtype=np.float64)
     up_cam = np.array([0.0, -1.0, 0.0]) if world_up is None else w2c0[:3, :3] @ np.asarray(world_up, dtype=np.float64)
-    starts = first_frame_starts(prob, masks[0], up_cam, config)
-    full, rigid = best_hypothesis(prob, starts, config, n)
+    rigid_starts: list[tuple[float, int, Params]] = []
+    starts = first_frame_starts(prob, masks[0], up_cam, config, rigid_starts)
+    full, rigid = best_hypothesis(prob, starts, config, n, rigid_starts)
     # the rest body, when it wins, stays at rest: freeing its joints would fit the silhouettes the ranking judged
     # a still body to explain better
     steps = config.swap_iterations if prob.flow is not None and not rigid else 0
