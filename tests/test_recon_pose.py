@@ -808,3 +808,27 @@ def test_quadruped_rest_clip_follows_the_masks_and_never_bends(shared_data: Path
     assert torch.equal(fitted["root_rot"].detach(), fitted["root_rot"].detach()[:1].expand(len(masks), 3))
     for key in ("local", "log_len", "log_girth"):
         assert not fitted[key].detach().any()
+
+
+def test_quadruped_hypotheses_hold_the_rest_body_beside_the_tracks(shared_data: Path) -> None:
+    """With ``rest_hypotheses`` the hypotheses are the tracked ones plus one rest body per tracked count, from the
+    headings best at rest (flagged, joints and bones at the template's); without it, only the tracked ones."""
+    from dataclasses import replace
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    _, _, camera, masks, _ = _template_clip(frames=3)
+    cfg = qf.QuadrupedFitConfig(grid=16, starts=4, start_iterations=4, frame_iterations=2, iterations=2,
+                                rest_iterations=2)
+    prob = qf.QuadrupedProblem(masks, camera, cfg)
+    rigid: list = []
+    starts = qf.first_frame_starts(prob, masks[0], np.array([0.0, -1.0, 0.0]), cfg, rigid)
+    assert [k for _, k, _ in rigid] == [0, 1, 2, 3] and not any(p["local"].any() for _, _, p in rigid)
+    best_at_rest = sorted(rigid, key=lambda x: x[0])[: cfg.tracks]
+    hyps = qf.hypotheses(prob, starts, cfg, len(masks), rigid)
+    rest = [(label, p) for label, p, still in hyps if still]
+    assert len(hyps) == cfg.tracks + len(rest) and len(rest) == cfg.tracks
+    assert [label for label, _ in rest] == [f"rest, heading {90 * k} deg, legs swapped: none" for _, k, _ in best_at_rest]
+    assert all(not p[key].detach().any() for _, p in rest for key in ("local", "log_len", "log_girth"))
+    off = qf.hypotheses(prob, starts, replace(cfg, rest_hypotheses=False), len(masks))
+    assert len(off) == cfg.tracks and not any(still for _, _, still in off)
