@@ -14,8 +14,9 @@ template; leg joints turn mostly about the body's lateral axis), smooth root-rel
 tracking fit also pays the body's predicted image motion from the frame before against the video's optical
 flow (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera fill the same silhouettes
 but move the body's texture differently) and holds the clip's shape near the start's. Search: root headings on
-the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses ranked by the clip
-loss with the flow term (by the raw flow error when the flow is not used; near vertices hide far ones).
+the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses, beside them the
+template held at rest over the clip (one rotation, the root per frame: a body that never bends), all ranked by the
+clip loss with the flow term (by the raw flow error when the flow is not used; near vertices hide far ones).
 """
 
 from __future__ import annotations
@@ -768,8 +769,9 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     2. the ``tracks`` lowest-loss starts tracked frame by frame (warm start, root at constant velocity,
        smoothed against the two frames before, the flow from the frame before, the shape held near the
        start's), then refined on the whole clip (silhouette and priors);
-    3. each track with the fore and/or hind legs swapped left for right (mirrored): the hypothesis with the
-       lowest clip loss with the flow term wins and is refined.
+    3. each track with the fore and/or hind legs swapped left for right (mirrored), and the template held at rest
+       over the clip from the ``tracks`` headings best at rest on the first frame (:func:`rest_clip`): the
+       hypothesis with the lowest clip loss with the flow term wins and is refined (a rest body stays at rest).
 
     When the flow explains less than ``flow_min_explained`` of the masks' change (:func:`flow_gate`), step 2
     runs without the flow and the hold and step 3 ranks by the raw flow error (the fit before the flow term).
