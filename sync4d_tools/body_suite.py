@@ -89,6 +89,11 @@ HANDHELD = tuple((clip, view, seed + 6 * rep) for rep in range(2) for seed, (cli
     (c, v) for c in ("cmu", "deepmimic") for v in ("front", "oblique", "side")))
 
 
+def row_name(clip: str, view: str, handheld: int | None = None) -> str:
+    """A row's folder name: ``<clip>_<view>``, or ``<clip>_<view>_handheld<seed>`` when filmed hand-held."""
+    return f"{clip}_{view}" if handheld is None else f"{clip}_{view}_handheld{handheld}"
+
+
 def render_clip(folder: Path, clip: str, view: str, frames: int, stride: int, handheld: int | None = None) -> None:
     """Render a clip into ``folder`` unless it is there already (hand-held with seed ``handheld``: people and
     the dog)."""
@@ -107,7 +112,7 @@ def render_clip(folder: Path, clip: str, view: str, frames: int, stride: int, ha
 
 def run_handheld(out: Path, clip: str, view: str, seed: int) -> dict:
     """Render (if absent) and score one hand-held people clip (:func:`score_handheld`)."""
-    folder = out / f"{clip}_{view}_handheld{seed}"
+    folder = out / row_name(clip, view, seed)
     if not (folder / "gt.npz").is_file():
         frames, stride = next((f, s) for c, v, f, s in CLIPS if c == clip and v == view)
         write_clip(folder, clip, view, frames=frames, stride=stride, width=320, height=480, fov_deg=50.0,
@@ -203,7 +208,7 @@ def human_floor(masks: np.ndarray, K: np.ndarray, w2c: np.ndarray, names: list[s
 
 def run_clip(out: Path, clip: str, view: str, frames: int, stride: int, handheld: int | None = None) -> list[dict]:
     """Render (if absent) and score one clip; one row per camera setting (humans: known and assumed)."""
-    folder = out / (f"{clip}_{view}" if handheld is None else f"{clip}_{view}_handheld{handheld}")
+    folder = out / row_name(clip, view, handheld)
     render_clip(folder, clip, view, frames, stride, handheld)
     if clip in QUADRUPEDS:
         setting = "known" if handheld is None else f"known, hand-held {handheld}"
@@ -408,7 +413,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(rows_table(rows))
     handheld = []
     for clip, view, seed in HANDHELD:
-        if keep is None or clip in keep or f"{clip}_{view}_handheld{seed}" in keep or "handheld" in keep:
+        if keep is None or clip in keep or row_name(clip, view, seed) in keep or "handheld" in keep:
             handheld.append(run_handheld(out, clip, view, seed))
             print(json.dumps(handheld[-1]), flush=True)
     if handheld:
@@ -422,8 +427,7 @@ def held_out_suite(out: Path, keep: set[str] | None) -> dict:
     """Fit and score the held-out quadruped rows; writes ``held_out.json`` and prints the table."""
     rows = []
     for clip, view, seed in QUADRUPED_HELDOUT:
-        name = f"{clip}_{view}" if seed is None else f"{clip}_{view}_handheld{seed}"
-        if keep is None or clip in keep or name in keep:
+        if keep is None or clip in keep or row_name(clip, view, seed) in keep:
             frames, stride = next(((f, s) for c, _, f, s in CLIPS if c == clip), (0, 1))
             rows += run_clip(out, clip, view, frames, stride, seed)
             print(json.dumps(rows[-1]), flush=True)
