@@ -4,6 +4,7 @@ Reads a finished run's ``sequence.npz`` (the per-frame global transform G^t the 
 per frame, the rotation of G^t from the first frame's and the tilt of the body's up (``--up``, in the
 sequence's world) from where it pointed in the first frame [deg]. An animal walking on a level floor keeps its
 up within a few degrees; a body that tumbles does not. The world's up is not needed: the tilt is relative.
+A target that never turns reads 0 as well, so read the tilt beside the run's pictures, not alone.
 """
 
 from __future__ import annotations
