@@ -265,7 +265,29 @@ def to_camera(scene: Scene, x: torch.Tensor, first: int = 0) -> torch.Tensor:
 def project(scene: Scene, x: torch.Tensor, first: int = 0) -> torch.Tensor:
     """(F, N, 2) pixels of world points (F, N, 3) in frames first.. (or (N, 2) of (N, 3) in frame ``first``)."""
     uv = to_camera(scene, x, first) @ scene.K.T
-    return uv[..., :2] / uv[..., 2:3].clamp_min(1e-6)
+    return _Divided.apply(uv[..., :2], uv[..., 2:3].clamp_min(1e-6))
+
+
+class _Divided(torch.autograd.Function):
+    """``num / den`` for num (..., 2) and den (..., 1) with autograd's own gradients (the same formulas, to the
+    bit), the denominator's summed over the pair by one addition: autograd reduces that broadcast with a sum
+    over an axis of two, the fit's slowest reduction (half a projection's backward)."""
+
+    @staticmethod
+    def forward(ctx: torch.autograd.function.FunctionCtx, num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(num, den)
+        return num / den
+
+    @staticmethod
+    def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor
+                 ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        num, den = ctx.saved_tensors  # type: ignore[attr-defined]
+        needs = ctx.needs_input_grad  # type: ignore[attr-defined]
+        grad_den = None
+        if needs[1]:
+            each = -grad * ((num / den) / den)
+            grad_den = each[..., 0:1] + each[..., 1:2]
+        return (grad / den if needs[0] else None), grad_den
 
 
 def sample_outside(scene: Scene, uv: torch.Tensor, first: int = 0) -> torch.Tensor:
@@ -385,9 +407,11 @@ def moved(motion: torch.Tensor, labels: torch.Tensor, points: torch.Tensor) -> t
     The same batched product as ``einsum("tnij,nj->tni", j[..., :3], points) + j[..., 3]`` with ``j =
     motion[:, labels]`` (values and gradients to the bit), but each point's rotations are gathered already
     in the product's layout: no strided copy of the (F, N, 3, 4) per-point transforms (2x faster, a fit
-    step's largest single cost)."""
+    step's largest single cost before)."""
     per_part = motion.permute(1, 0, 2, 3)
-    rot, shift = per_part[..., :3].contiguous()[labels], per_part[..., 3].contiguous()[labels]
+    # index_select, not indexing: the same rows, and its backward adds them up in the same order, 3x faster
+    rot = torch.index_select(per_part[..., :3].contiguous(), 0, labels)
+    shift = torch.index_select(per_part[..., 3].contiguous(), 0, labels)
     n_points, n_frames = rot.shape[:2]
     x = _Rotated.apply(rot.reshape(n_points, n_frames * 3, 3), points).reshape(n_points, n_frames, 3)
     return (x + shift).permute(1, 0, 2).contiguous()
