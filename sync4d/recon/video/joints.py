@@ -456,7 +456,7 @@ def flow_term(model: Articulation, posed: torch.Tensor, uv: torch.Tensor, frames
     if sc.flow is None or frames < 2:
         return torch.zeros((), dtype=uv.dtype)
     _, _, h, w = sc.flow.shape
-    moving = model.labels != model.root
+    moving = torch.nonzero(model.labels != model.root)[:, 0]
     with torch.no_grad():  # the root's points only hide others: the flow is sampled at the moving ones alone
         pc = to_camera(sc, posed[:-1].detach())
         seen = visible(uv[:-1].detach(), pc[..., 2], sc.stride)[:, moving]
@@ -466,8 +466,8 @@ def flow_term(model: Articulation, posed: torch.Tensor, uv: torch.Tensor, frames
         ok = (fl[:, 2] > 0.99) & seen
     if not ok.any():
         return torch.zeros((), dtype=uv.dtype)
-    mov = uv[:, moving]
-    err = ((mov[1:] - mov[:-1] - fl[:, :2].transpose(1, 2)) ** 2).sum(-1) / sc.stride**2
+    mov = torch.index_select(uv, 1, moving)
+    err = pair_sum((mov[1:] - mov[:-1] - fl[:, :2].transpose(1, 2)) ** 2) / sc.stride**2
     return (torch.sqrt(err + 1.0) - 1.0)[ok].mean()
 
 
@@ -480,17 +480,34 @@ def data_terms(model: Articulation, frames: int, *, with_flow: bool = True, swep
     posed = model.posed(frames)
     uv_all = project(sc, posed)
     uv = uv_all[1:]
-    moving = model.labels != model.root
-    # the track and inside terms count moving points only, so only theirs are compared or sampled
+    # the track and inside terms count moving points only, so only theirs are compared or sampled (gathered by
+    # index_select: the same values and gradients as a boolean mask's, cheaper)
+    moving = torch.nonzero(model.labels != model.root)[:, 0]
     trusted = (sc.verified if verified_only else sc.trusted)[1:frames, moving]
-    err = ((uv[:, moving] - sc.tracks[1:frames, moving]) ** 2).sum(-1) / sc.stride**2
+    err = pair_sum((torch.index_select(uv, 1, moving) - sc.tracks[1:frames, moving]) ** 2) / sc.stride**2
     track = (torch.sqrt(err + 1.0) - 1.0)[trusted].mean() if trusted.any() else torch.zeros((), dtype=uv.dtype)
     if with_flow:
         track = track + FLOW_WEIGHT * flow_term(model, posed, uv_all, frames)
-    inside = (sample_outside(sc, uv[:, moving], 1) / sc.stride).clamp(max=10.0).mean()
-    if not moving.any():
+    inside = (sample_outside(sc, torch.index_select(uv, 1, moving), 1) / sc.stride).clamp(max=10.0).mean()
+    if not len(moving):
         return track, inside, torch.zeros((), dtype=uv.dtype)
     return track, inside, cover_term(sc, torch.cat([uv, project(sc, model.swept(swept, frames)[1:], 1)], 1))
+
+
+def pair_sum(x: torch.Tensor) -> torch.Tensor:
+    """``x.sum(-1)`` of x (..., 2): the same numbers and gradient by one addition (a sum over an axis of two
+    is one of a fit step's slower reductions)."""
+    return _PairSum.apply(x)
+
+
+class _PairSum(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: torch.autograd.function.FunctionCtx, x: torch.Tensor) -> torch.Tensor:
+        return x[..., 0] + x[..., 1]
+
+    @staticmethod
+    def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor) -> torch.Tensor:
+        return grad[..., None].expand(*grad.shape, 2)
 
 
 def cover_term(sc: Scene, uv: torch.Tensor) -> torch.Tensor:
@@ -509,7 +526,7 @@ def cover_term(sc: Scene, uv: torch.Tensor) -> torch.Tensor:
     near = torch.as_tensor(np.concatenate([
         cKDTree(flat[k], balanced_tree=False, compact_nodes=False).query(sc.cover_px[t].numpy())[1] + k * pts.shape[1]
         for k, t in enumerate(frames)]))
-    dist = ((px - pts.reshape(-1, 2)[near]).norm(dim=1) / sc.stride).clamp(max=4.0)
+    dist = ((px - torch.index_select(pts.reshape(-1, 2), 0, near)).norm(dim=1) / sc.stride).clamp(max=4.0)
     if len(set(counts)) == 1:
         return dist.reshape(len(frames), counts[0]).mean(1).mean()
     return torch.stack([d.mean() for d in dist.split(counts)]).mean()
