@@ -38,6 +38,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
+from typing import Any
 
 import cv2
 import numpy as np
@@ -274,15 +275,15 @@ class _Divided(torch.autograd.Function):
     over an axis of two, the fit's slowest reduction (half a projection's backward)."""
 
     @staticmethod
-    def forward(ctx: torch.autograd.function.FunctionCtx, num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
+    def forward(ctx: Any, num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(num, den)
         return num / den
 
     @staticmethod
-    def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor
+    def backward(ctx: Any, grad: torch.Tensor
                  ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        num, den = ctx.saved_tensors  # type: ignore[attr-defined]
-        needs = ctx.needs_input_grad  # type: ignore[attr-defined]
+        num, den = ctx.saved_tensors
+        needs = ctx.needs_input_grad
         grad_den = None
         if needs[1]:
             each = -grad * ((num / den) / den)
@@ -423,16 +424,16 @@ class _Rotated(torch.autograd.Function):
     contraction of length one (the same numbers, 0 + g * p, several times slower here)."""
 
     @staticmethod
-    def forward(ctx: torch.autograd.function.FunctionCtx, rot: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    def forward(ctx: Any, rot: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(rot, points)
         return torch.bmm(rot, points[:, :, None])
 
     @staticmethod
-    def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor
+    def backward(ctx: Any, grad: torch.Tensor
                  ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        rot, points = ctx.saved_tensors  # type: ignore[attr-defined]
-        grad_rot = grad * points[:, None, :] if ctx.needs_input_grad[0] else None  # type: ignore[attr-defined]
-        grad_points = rot.transpose(1, 2).bmm(grad)[..., 0] if ctx.needs_input_grad[1] else None  # type: ignore[attr-defined]
+        rot, points = ctx.saved_tensors
+        grad_rot = grad * points[:, None, :] if ctx.needs_input_grad[0] else None
+        grad_points = rot.transpose(1, 2).bmm(grad)[..., 0] if ctx.needs_input_grad[1] else None
         return grad_rot, grad_points
 
 
@@ -502,11 +503,11 @@ def pair_sum(x: torch.Tensor) -> torch.Tensor:
 
 class _PairSum(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: torch.autograd.function.FunctionCtx, x: torch.Tensor) -> torch.Tensor:
+    def forward(ctx: Any, x: torch.Tensor) -> torch.Tensor:
         return x[..., 0] + x[..., 1]
 
     @staticmethod
-    def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor) -> torch.Tensor:
+    def backward(ctx: Any, grad: torch.Tensor) -> torch.Tensor:
         return grad[..., None].expand(*grad.shape, 2)
 
 
