@@ -165,6 +165,37 @@ def test_joint_transforms_of_a_hinge_and_a_slide() -> None:
     assert np.allclose(j[1, 2, :3, 3], [0.2, 0, 0]) and np.allclose(j[1, 2, :3, :3], np.eye(3))
 
 
+def test_the_fit_s_own_autograd_steps_match_torch_s_to_the_bit() -> None:
+    """The fit's cheaper products (``moved``, the projection's division, ``pair_sum``) give the values and
+    gradients of the plain torch expressions they replace, bit for bit (the fit's results depend on it)."""
+    import torch
+
+    from sync4d.recon.video.joints import _Divided, moved, pair_sum
+
+    gen = torch.Generator().manual_seed(0)
+    motion = torch.randn(5, 3, 3, 4, dtype=torch.float64, generator=gen, requires_grad=True)
+    points = torch.randn(40, 3, dtype=torch.float64, generator=gen, requires_grad=True)
+    labels = torch.randint(0, 3, (40,), generator=gen)
+    num = torch.randn(5, 40, 2, dtype=torch.float64, generator=gen, requires_grad=True)
+    den = (torch.rand(5, 40, 1, dtype=torch.float64, generator=gen) + 0.5).requires_grad_()
+
+    def plain() -> list[torch.Tensor]:
+        j = motion[:, labels]
+        return [torch.einsum("tnij,nj->tni", j[..., :3], points) + j[..., 3], num / den, (num**2).sum(-1)]
+
+    def fit_s() -> list[torch.Tensor]:
+        return [moved(motion, labels, points), _Divided.apply(num, den), pair_sum(num**2)]
+
+    for ours, theirs in zip(fit_s(), plain()):
+        assert torch.equal(ours, theirs)
+        weights = torch.randn(ours.shape, dtype=torch.float64, generator=gen)
+        inputs = [t for t in (motion, points, num, den) if t.requires_grad]
+        grads = torch.autograd.grad((ours * weights).sum(), inputs, allow_unused=True)
+        expected = torch.autograd.grad((theirs * weights).sum(), inputs, allow_unused=True)
+        for g, e in zip(grads, expected):
+            assert (g is None and e is None) or torch.equal(g, e)
+
+
 def _fit(kind: str, amount: float) -> tuple[object, np.ndarray, np.ndarray]:
     clip, labels, values = plates_video(kind=kind, amount=amount)
     camera = Camera(K=K, world_to_cam=np.eye(4), width=W, height=H)
