@@ -781,3 +781,54 @@ def test_quadruped_climb_refuses_quick_without_gap() -> None:
     with pytest.raises(SystemExit) as err:
         main(["--clip", "/nonexistent", "--quick"])
     assert err.value.code == 2
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_quadruped_rest_clip_follows_the_masks_and_never_bends(shared_data: Path, moving: bool) -> None:
+    """The rest hypothesis: from a first-frame start the root is placed in every frame where the mask's centroid
+    moved (the body walks 5 cm a frame; the moving camera turns about it and steps back): before any step the root
+    is within a third of the body's own motion from the truth's (a move in depth is not in the centroid), 1.5 cm on
+    the static camera (the legs swing the centroid); its rigid clip fit moves only the root (one rotation for the
+    clip), scale and girth."""
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    truth, _, camera, masks, extrinsics = _template_clip(moving=moving)
+    cfg = qf.QuadrupedFitConfig(rest_iterations=0)
+    prob = qf.QuadrupedProblem(masks, camera, cfg, extrinsics=extrinsics)
+    start = qf.frame_params(truth, 0)
+    placed = qf.rest_clip(prob, start, cfg, len(masks))
+    err = (placed["root_pos"] - truth["root_pos"]).detach().norm(dim=-1)
+    moved = (truth["root_pos"] - truth["root_pos"][:1]).detach().norm(dim=-1)
+    assert (err <= (0.35 if moving else 0.0) * moved + 0.015).all(), err
+    assert torch.equal(placed["root_rot"].detach(), start["root_rot"].detach().expand(len(masks), 3))
+    fitted = qf.rest_clip(prob, start, qf.QuadrupedFitConfig(rest_iterations=10), len(masks))
+    assert not torch.equal(fitted["root_pos"], placed["root_pos"])
+    assert torch.equal(fitted["root_rot"].detach(), fitted["root_rot"].detach()[:1].expand(len(masks), 3))
+    for key in ("local", "log_len", "log_girth"):
+        assert not fitted[key].detach().any()
+
+
+def test_quadruped_hypotheses_hold_the_rest_body_beside_the_tracks(shared_data: Path) -> None:
+    """With ``rest_hypotheses`` the hypotheses are the tracked ones plus one rest body per tracked count, from the
+    headings best at rest (flagged, joints and bones at the template's); without it, only the tracked ones."""
+    from dataclasses import replace
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    _, _, camera, masks, _ = _template_clip(frames=3)
+    cfg = qf.QuadrupedFitConfig(grid=16, starts=4, start_iterations=4, frame_iterations=2, iterations=2,
+                                rest_iterations=2)
+    prob = qf.QuadrupedProblem(masks, camera, cfg)
+    rigid: list = []
+    starts = qf.first_frame_starts(prob, masks[0], np.array([0.0, -1.0, 0.0]), cfg, rigid)
+    assert [k for _, k, _ in rigid] == [0, 1, 2, 3] and not any(p["local"].any() for _, _, p in rigid)
+    best_at_rest = sorted(rigid, key=lambda x: x[0])[: cfg.tracks]
+    hyps = qf.hypotheses(prob, starts, cfg, len(masks), rigid)
+    rest = [(label, p) for label, p, still in hyps if still]
+    assert len(hyps) == cfg.tracks + len(rest) and len(rest) == cfg.tracks
+    assert [label for label, _ in rest] == [f"rest, heading {90 * k} deg, legs swapped: none" for _, k, _ in best_at_rest]
+    assert all(not p[key].detach().any() for _, p in rest for key in ("local", "log_len", "log_girth"))
+    off = qf.hypotheses(prob, starts, replace(cfg, rest_hypotheses=False), len(masks))
+    assert len(off) == cfg.tracks and not any(still for _, _, still in off)

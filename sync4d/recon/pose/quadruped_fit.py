@@ -14,8 +14,9 @@ template; leg joints turn mostly about the body's lateral axis), smooth root-rel
 tracking fit also pays the body's predicted image motion from the frame before against the video's optical
 flow (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera fill the same silhouettes
 but move the body's texture differently) and holds the clip's shape near the start's. Search: root headings on
-the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses ranked by the clip
-loss with the flow term (by the raw flow error when the flow is not used; near vertices hide far ones).
+the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses, beside them the
+template held at rest over the clip (one rotation, the root per frame: a body that never bends), all ranked by the
+clip loss with the flow term (by the raw flow error when the flow is not used; near vertices hide far ones).
 """
 
 from __future__ import annotations
@@ -82,6 +83,10 @@ class QuadrupedFitConfig:
             it (the head-on clips) the fit runs without them, the leg swaps ranked by the flow error.
         flow_robust_cells: the flow residual's Cauchy scale [grid cells]: larger residuals count little
             (a wrong flow, a leg that moved more than the flow's patch could see).
+        rest_hypotheses: the template held at rest over the clip (one rotation, the root per frame, scale and girth
+            fitted) from the ``tracks`` best headings at rest is a hypothesis beside the tracked ones
+            (:func:`rest_clip`); when it wins it stays at rest.
+        rest_iterations: Adam steps of the rest body's rigid clip fit.
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -109,6 +114,8 @@ class QuadrupedFitConfig:
     rank_by_loss: bool = True
     flow_in_clip: bool = False
     flow_min_explained: float = 0.8
+    rest_hypotheses: bool = True
+    rest_iterations: int = 60
     background_threshold: float = 30.0
 
 
@@ -594,19 +601,22 @@ def frame_params(params: Params, t: int) -> Params:
             for k, v in params.items()}
 
 
-def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig
-                       ) -> list[tuple[float, int, Params]]:
-    """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints)."""
+def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig,
+                       rigid: list[tuple[float, int, Params]] | None = None) -> list[tuple[float, int, Params]]:
+    """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints);
+    ``rigid``, when given, receives the same after the rigid steps alone (the template at rest)."""
     tmpl = prob.tt.template
     root0 = initial_root(mask, prob.camera, config.template_length, config.template_length * float(np.ptp(tmpl.vertices[:, 1])))
     starts = []
     for k in range(config.starts):
         params = start_params(prob, heading_rotation(up_cam, 2 * math.pi * k / config.starts), root0,
                               config.template_length)
-        run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
+        still, _, _ = run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
+        if rigid is not None:
+            rigid.append((still, k, {key: v.detach().clone() for key, v in params.items()}))
         loss, _, iou = run_steps(prob, np.arange(1), params, config, config.start_iterations - config.start_iterations // 2)
-        log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f, IoU %.3f", k + 1, config.starts,
-                 360 * k / config.starts, loss, iou.mean())
+        log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f (at rest %.4f), IoU %.3f", k + 1,
+                 config.starts, 360 * k / config.starts, loss, still, iou.mean())
         starts.append((loss, k, params))
     return starts
 
@@ -644,30 +654,86 @@ def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: 
                 ).requires_grad_(True) for k in frames[0]}
 
 
-def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
-                    n: int) -> Params:
-    """The best of the ``tracks`` lowest-loss starts, tracked and refined on the clip, each with and without
-    its fore and/or hind legs swapped: by the optical flow's agreement (the clip loss without video frames)."""
-    best: tuple[float, Params] | None = None
+def rest_clip(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: int) -> Params:
+    """The template held at rest over the clip: a first-frame start's root, scale and girth with its joints and bones
+    reset to the template's; in every frame the root moved (at its depth in that frame's camera) by as much as the
+    mask's centroid moved against the rest body's own centroid seen by that camera (so a moving camera's share is
+    not counted twice); then only the root's position (per frame) and rotation (one for the clip: a body turning
+    frame by frame to fill the masks tumbles), scale and girth fitted to the clip's silhouettes (``rest_iterations``
+    steps). A rigid body that never bends is a hypothesis the articulated ones must beat."""
+    root0 = start["root_pos"].detach()[0]
+    params = start_params(prob, start["root_rot"].detach()[0].numpy(), root0.numpy(), 1.0, frames=n)
+    with torch.no_grad():
+        params["log_scale"].copy_(start["log_scale"].detach())
+        params["log_thick"].copy_(start["log_thick"].detach())
+        frames = np.arange(n)
+        occ = body_silhouette(prob, pose_body(prob.tt, params)[1], prob.cams_of(frames), params["log_scale"].exp())
+        shift = centroids(prob.target[:n], prob.uv) - centroids(occ, prob.uv)  # (T, 2) [px]
+        cam_root = to_cameras(params["root_pos"][:, None], prob.cams_of(frames))[:, 0]  # (T, 3) each camera's
+        uv = project_points(cam_root, prob.K) + shift - shift[:1]
+        z = cam_root[:, 2:]
+        moved = torch.cat([(uv - prob.K[:2, 2]) / torch.stack([prob.K[0, 0], prob.K[1, 1]]) * z, z], 1)
+        if prob.cams is not None:  # back to the first camera's frame
+            moved = torch.linalg.solve(prob.cams[:n, :3, :3], (moved - prob.cams[:n, :3, 3])[..., None])[..., 0]
+        params["root_pos"].copy_(moved)
+    # (1, 3) while fitted: one rotation broadcast over the frames
+    params["root_rot"] = start["root_rot"].detach()[:1].clone().requires_grad_(True)
+    run_steps(prob, frames, params, config, config.rest_iterations, free=RIGID)
+    params["root_rot"] = params["root_rot"].detach().expand(n, 3).clone().requires_grad_(True)
+    return params
+
+
+def centroids(weights: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """(T, 2) weighted mean [px] of the grid's cells ``uv`` (P, 2) under (T, P) ``weights`` (a mask's coverage)."""
+    return (weights @ uv) / weights.sum(1, keepdim=True).clamp_min(1e-9)
+
+
+def hypotheses(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig, n: int,
+               rigid: list[tuple[float, int, Params]] | None = None) -> list[tuple[str, Params, bool]]:
+    """(label, parameters, held at rest) of every hypothesis: the ``tracks`` lowest-loss starts tracked and refined on the clip,
+    each with and without its fore and/or hind legs swapped; with ``rest_hypotheses``, also the template held at
+    rest over the clip (:func:`rest_clip`) from the ``tracks`` headings whose rigid steps fitted the first frame
+    best (``rigid``; else the best starts): a body facing the camera or away from it fills the same first mask,
+    but moving its root over the clip tells them apart."""
     swaps = ((), ("f",), ("h",), ("f", "h")) if prob.flow is not None else ((),)
-    for _, k, params in sorted(starts, key=lambda x: x[0])[: config.tracks]:
+    ranked = sorted(starts, key=lambda x: x[0])
+    fits: list[tuple[str, Params, tuple[tuple[str, ...], ...], bool]] = []
+    for _, k, params in ranked[: config.tracks]:
         full = track(prob, params, config, n)
-        loss, _, _ = run_steps(prob, np.arange(n), full, config, config.iterations)
-        for pairs in swaps:
+        run_steps(prob, np.arange(n), full, config, config.iterations)
+        fits.append((f"heading {360 * k / config.starts:.0f} deg", full, swaps, False))
+    for _, k, params in sorted(rigid or ranked, key=lambda x: x[0])[: config.tracks] if config.rest_hypotheses else ():
+        fits.append((f"rest, heading {360 * k / config.starts:.0f} deg", rest_clip(prob, params, config, n), ((),), True))
+    out = []
+    for label, full, pairs_of, still in fits:
+        for pairs in pairs_of:
             trial = {**full, "local": swap_legs(prob.tt, full["local"].detach(), pairs)}
-            if prob.flow is None:
-                score = loss
-            elif config.rank_by_loss:  # the clip loss holds the flow (robust, trusted cells) with the silhouette
-                with torch.no_grad():
-                    score = float(clip_loss(prob, np.arange(n), trial, replace(config, flow_in_clip=True))[0])
-            else:
-                score = flow_error(prob, trial)
-            log.info("quadruped hypothesis heading %.0f deg, legs swapped: %s: %s %.4f", 360 * k / config.starts,
-                     "+".join(pairs) or "none", "loss" if prob.flow is None or config.rank_by_loss else "flow error", score)
-            if best is None or score < best[0]:
-                best = (score, trial)
+            out.append((f"{label}, legs swapped: {'+'.join(pairs) or 'none'}",
+                        {key: v.detach().clone().requires_grad_(True) for key, v in trial.items()}, still))
+    return out
+
+
+def hypothesis_score(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig, n: int) -> float:
+    """A hypothesis' rank (lower is better): the clip loss with the flow term (``rank_by_loss``; the flow robust, on
+    trusted cells), the raw flow error (:func:`flow_error`) otherwise, the clip loss without the video's frames."""
+    if prob.flow is not None and not config.rank_by_loss:
+        return flow_error(prob, params)
+    with torch.no_grad():
+        return float(clip_loss(prob, np.arange(n), params, replace(config, flow_in_clip=True))[0])
+
+
+def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
+                    n: int, rigid: list[tuple[float, int, Params]] | None = None) -> tuple[Params, bool]:
+    """The hypothesis (:func:`hypotheses`) of the lowest :func:`hypothesis_score`, and whether it is the rest body."""
+    best: tuple[float, Params, bool] | None = None
+    for label, trial, still in hypotheses(prob, starts, config, n, rigid):
+        score = hypothesis_score(prob, trial, config, n)
+        log.info("quadruped hypothesis %s: %s %.4f", label,
+                 "flow error" if prob.flow is not None and not config.rank_by_loss else "loss", score)
+        if best is None or score < best[0]:
+            best = (score, trial, still)
     assert best is not None
-    return {k: v.detach().clone().requires_grad_(True) for k, v in best[1].items()}
+    return best[1], best[2]
 
 
 def flow_gate(prob: QuadrupedProblem, config: QuadrupedFitConfig, source: str) -> QuadrupedFitConfig:
@@ -703,8 +769,9 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     2. the ``tracks`` lowest-loss starts tracked frame by frame (warm start, root at constant velocity,
        smoothed against the two frames before, the flow from the frame before, the shape held near the
        start's), then refined on the whole clip (silhouette and priors);
-    3. each track with the fore and/or hind legs swapped left for right (mirrored): the hypothesis with the
-       lowest clip loss with the flow term wins and is refined.
+    3. each track with the fore and/or hind legs swapped left for right (mirrored), and the template held at rest
+       over the clip from the ``tracks`` headings best at rest on the first frame (:func:`rest_clip`): the
+       hypothesis with the lowest clip loss with the flow term wins and is refined (a rest body stays at rest).
 
     When the flow explains less than ``flow_min_explained`` of the masks' change (:func:`flow_gate`), step 2
     runs without the flow and the hold and step 3 ranks by the raw flow error (the fit before the flow term).
@@ -731,9 +798,13 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     config = flow_gate(prob, config, source)
     w2c0 = camera.world_to_cam if extrinsics is None else np.asarray(extrinsics[0], dtype=np.float64)
     up_cam = np.array([0.0, -1.0, 0.0]) if world_up is None else w2c0[:3, :3] @ np.asarray(world_up, dtype=np.float64)
-    starts = first_frame_starts(prob, masks[0], up_cam, config)
-    full = best_hypothesis(prob, starts, config, n)
-    loss, joints, iou = run_steps(prob, np.arange(n), full, config, config.swap_iterations if prob.flow is not None else 0)
+    rigid_starts: list[tuple[float, int, Params]] = []
+    starts = first_frame_starts(prob, masks[0], up_cam, config, rigid_starts)
+    full, rigid = best_hypothesis(prob, starts, config, n, rigid_starts)
+    # the rest body, when it wins, stays at rest: freeing its joints would fit the silhouettes the ranking judged
+    # a still body to explain better
+    steps = config.swap_iterations if prob.flow is not None and not rigid else 0
+    loss, joints, iou = run_steps(prob, np.arange(n), full, config, steps)
     log.info("quadruped fit of %s: %d frames, silhouette IoU %.3f (min %.3f), loss %.4f", source, n, iou.mean(),
              iou.min(), loss)
     return finish_fit(prob, full, masks.shape[1:], joints, iou)
