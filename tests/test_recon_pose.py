@@ -789,7 +789,8 @@ def test_quadruped_rest_clip_follows_the_masks_and_never_bends(shared_data: Path
     moved (the body walks 5 cm a frame; the moving camera turns about it and steps back): before any step the root
     is within a third of the body's own motion from the truth's (a move in depth is not in the centroid), 1.5 cm on
     the static camera (the legs swing the centroid); its rigid clip fit moves only the root (one rotation for the
-    clip), scale and girth."""
+    clip: the tilt) and its heading per frame (the root joint's turn about the body's up axis), scale and girth:
+    the legs stay at rest."""
     import torch
 
     from sync4d.recon.pose import quadruped_fit as qf
@@ -806,13 +807,18 @@ def test_quadruped_rest_clip_follows_the_masks_and_never_bends(shared_data: Path
     fitted = qf.rest_clip(prob, start, qf.QuadrupedFitConfig(rest_iterations=10), len(masks))
     assert not torch.equal(fitted["root_pos"], placed["root_pos"])
     assert torch.equal(fitted["root_rot"].detach(), fitted["root_rot"].detach()[:1].expand(len(masks), 3))
-    for key in ("local", "log_len", "log_girth"):
+    for key in ("log_len", "log_girth"):
         assert not fitted[key].detach().any()
+    local = fitted["local"].detach().clone()
+    assert local[:, 0, 1].any()  # the heading per frame
+    local[:, 0, 1] = 0.0
+    assert not local.any()
 
 
 def test_quadruped_hypotheses_hold_the_rest_body_beside_the_tracks(shared_data: Path) -> None:
     """With ``rest_hypotheses`` the hypotheses are the tracked ones plus one rest body per tracked count, from the
-    headings best at rest (flagged, joints and bones at the template's); without it, only the tracked ones."""
+    headings best at rest (flagged, bones at the template's, joints too but the root's heading per frame); without
+    it, only the tracked ones."""
     from dataclasses import replace
 
     from sync4d.recon.pose import quadruped_fit as qf
@@ -829,6 +835,7 @@ def test_quadruped_hypotheses_hold_the_rest_body_beside_the_tracks(shared_data: 
     rest = [(label, p) for label, p, still in hyps if still]
     assert len(hyps) == cfg.tracks + len(rest) and len(rest) == cfg.tracks
     assert [label for label, _ in rest] == [f"rest, heading {90 * k} deg, legs swapped: none" for _, k, _ in best_at_rest]
-    assert all(not p[key].detach().any() for _, p in rest for key in ("local", "log_len", "log_girth"))
+    assert all(not p[key].detach().any() for _, p in rest for key in ("log_len", "log_girth"))
+    assert all(not p["local"].detach()[:, 1:].any() and not p["local"].detach()[:, 0, [0, 2]].any() for _, p in rest)
     off = qf.hypotheses(prob, starts, replace(cfg, rest_hypotheses=False), len(masks))
     assert len(off) == cfg.tracks and not any(still for _, _, still in off)

@@ -86,7 +86,9 @@ class QuadrupedFitConfig:
         rest_hypotheses: the template held at rest over the clip (one rotation, the root per frame, scale and girth
             fitted) from the ``tracks`` best headings at rest is a hypothesis beside the tracked ones
             (:func:`rest_clip`); when it wins it stays at rest.
-        rest_iterations: Adam steps of the rest body's rigid clip fit.
+        rest_iterations: Adam steps of the rest body's rigid clip fit (its heading per frame about its up axis).
+        rank_min_iou: a hypothesis is ranked only when its clip silhouette IoU is at least this fraction of the
+            best hypothesis' (it lies on the subject).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -116,6 +118,7 @@ class QuadrupedFitConfig:
     flow_min_explained: float = 0.8
     rest_hypotheses: bool = True
     rest_iterations: int = 60
+    rank_min_iou: float = 0.85
     background_threshold: float = 30.0
 
 
@@ -676,10 +679,16 @@ def rest_clip(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig,
         if prob.cams is not None:  # back to the first camera's frame
             moved = torch.linalg.solve(prob.cams[:n, :3, :3], (moved - prob.cams[:n, :3, 3])[..., None])[..., 0]
         params["root_pos"].copy_(moved)
-    # (1, 3) while fitted: one rotation broadcast over the frames
+    # (1, 3) while fitted: one rotation (the tilt) broadcast over the frames; the heading per frame is the root
+    # joint's turn about the body's own up axis (template y), so the up axis stays one for the clip while a
+    # turning walk keeps its body on the masks; the smoothness term holds the turn's acceleration small
     params["root_rot"] = start["root_rot"].detach()[:1].clone().requires_grad_(True)
-    run_steps(prob, frames, params, config, config.rest_iterations, free=RIGID)
+    yaw_only = torch.zeros_like(params["local"])
+    yaw_only[:, 0, 1] = 1.0
+    params["local"].register_hook(lambda g: g * yaw_only)
+    run_steps(prob, frames, params, config, config.rest_iterations, free=RIGID + ("local",))
     params["root_rot"] = params["root_rot"].detach().expand(n, 3).clone().requires_grad_(True)
+    params["local"] = params["local"].detach().clone().requires_grad_(True)  # without the hook
     return params
 
 
@@ -725,15 +734,18 @@ def hypothesis_score(prob: QuadrupedProblem, params: Params, config: QuadrupedFi
 def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
                     n: int, rigid: list[tuple[float, int, Params]] | None = None) -> tuple[Params, bool]:
     """The hypothesis (:func:`hypotheses`) of the lowest :func:`hypothesis_score`, and whether it is the rest body."""
-    best: tuple[float, Params, bool] | None = None
+    scored = []
     for label, trial, still in hypotheses(prob, starts, config, n, rigid):
         score = hypothesis_score(prob, trial, config, n)
-        log.info("quadruped hypothesis %s: %s %.4f", label,
-                 "flow error" if prob.flow is not None and not config.rank_by_loss else "loss", score)
-        if best is None or score < best[0]:
-            best = (score, trial, still)
-    assert best is not None
-    return best[1], best[2]
+        iou = float(run_steps(prob, np.arange(n), trial, config, 0)[2].mean())
+        log.info("quadruped hypothesis %s: %s %.4f, IoU %.3f", label,
+                 "flow error" if prob.flow is not None and not config.rank_by_loss else "loss", score, iou)
+        scored.append((score, iou, trial, still))
+    # a body off the subject covers few of the mask's cells and can explain their flow better than the bodies on
+    # it (the flow error is measured only where body and mask overlap): it must lie on the subject to be ranked
+    floor = config.rank_min_iou * max(iou for _, iou, _, _ in scored)
+    _, _, trial, still = min((x for x in scored if x[1] >= floor), key=lambda x: x[0])
+    return trial, still
 
 
 def flow_gate(prob: QuadrupedProblem, config: QuadrupedFitConfig, source: str) -> QuadrupedFitConfig:
