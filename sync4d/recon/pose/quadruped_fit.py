@@ -87,8 +87,8 @@ class QuadrupedFitConfig:
             fitted) from the ``tracks`` best headings at rest is a hypothesis beside the tracked ones
             (:func:`rest_clip`); when it wins it stays at rest.
         rest_iterations: Adam steps of the rest body's rigid clip fit (its heading per frame about its up axis).
-        rank_min_iou: a hypothesis is ranked only when its clip silhouette IoU is at least this fraction of the
-            best hypothesis' (it lies on the subject).
+        rank_min_iou: a rest body is ranked only when its clip silhouette IoU is at least this fraction of the
+            best tracked hypothesis' (it lies on the subject).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -741,10 +741,12 @@ def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Param
         log.info("quadruped hypothesis %s: %s %.4f, IoU %.3f", label,
                  "flow error" if prob.flow is not None and not config.rank_by_loss else "loss", score, iou)
         scored.append((score, iou, trial, still))
-    # a body off the subject covers few of the mask's cells and can explain their flow better than the bodies on
-    # it (the flow error is measured only where body and mask overlap): it must lie on the subject to be ranked
-    floor = config.rank_min_iou * max(iou for _, iou, _, _ in scored)
-    _, _, trial, still = min((x for x in scored if x[1] >= floor), key=lambda x: x[0])
+    # a rest body off the subject covers few of the mask's cells and can explain their flow better than the bodies
+    # on it (the flow error is measured only where body and mask overlap): it is ranked only when it lies on the
+    # subject about as well as the tracks, fitted to the masks frame by frame (their unrefined leg swaps cross
+    # the silhouette and are not the measure)
+    floor = config.rank_min_iou * max(iou for _, iou, _, still in scored if not still)
+    _, _, trial, still = min((x for x in scored if not x[3] or x[1] >= floor), key=lambda x: x[0])
     return trial, still
 
 
