@@ -87,8 +87,6 @@ class QuadrupedFitConfig:
             fitted) from the ``tracks`` best headings at rest is a hypothesis beside the tracked ones
             (:func:`rest_clip`); when it wins it stays at rest.
         rest_iterations: Adam steps of the rest body's rigid clip fit (its heading per frame about its up axis).
-        rank_min_iou: a rest body is ranked only when its clip silhouette IoU is at least this fraction of the
-            best tracked hypothesis' (it lies on the subject).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -118,7 +116,6 @@ class QuadrupedFitConfig:
     flow_min_explained: float = 0.8
     rest_hypotheses: bool = True
     rest_iterations: int = 60
-    rank_min_iou: float = 0.85
     background_threshold: float = 30.0
 
 
@@ -259,11 +256,12 @@ def rasterise(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int
 
 
 def video_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, fb_tol_px: float = 1.0
-               ) -> tuple[np.ndarray, np.ndarray, float]:
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """(T-1, P, 2) DIS optical flow (OpenCV, medium preset) from frame t to t+1 at pixels ``uv`` (P, 2) [px],
-    (T-1, P) where it is trusted (on the mask at t, landing on the mask at t+1: off it the flow is the
-    background's; back within ``fb_tol_px`` by the backward flow: not occluded, not smeared), and the share of
-    the masks' change the flow explains (:func:`mask_change_explained`)."""
+    (T-1, P) where it is trusted on the subject (on the mask at t, landing on the mask at t+1: off it the flow is
+    the background's; and consistent), (T-1, P) where it is consistent (back within ``fb_tol_px`` by the backward
+    flow: not occluded, not smeared; the background's cells too), and the share of the masks' change the flow
+    explains (:func:`mask_change_explained`)."""
     import cv2
 
     # OpenCV's stubs omit the DIS optical flow factory that the module has.
@@ -274,16 +272,17 @@ def video_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, fb_tol_px:
     def pixel(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.clip(p[:, 1].astype(int), 0, h - 1), np.clip(p[:, 0].astype(int), 0, w - 1)
 
-    flows, ok, missed = [], [], np.zeros(2)
+    flows, ok, consistent, missed = [], [], [], np.zeros(2)
     for t in range(len(grey) - 1):
         fwd = dis.calc(grey[t], grey[t + 1], None)[pixel(uv)]
         end = pixel(uv + fwd)
         back_full = dis.calc(grey[t + 1], grey[t], None)
         back = back_full[end]
-        ok.append(masks[t][pixel(uv)] & masks[t + 1][end] & (np.linalg.norm(fwd + back, axis=1) < fb_tol_px))
+        consistent.append(np.linalg.norm(fwd + back, axis=1) < fb_tol_px)
+        ok.append(masks[t][pixel(uv)] & masks[t + 1][end] & consistent[-1])
         flows.append(fwd)
         missed += mask_change_missed(masks[t], masks[t + 1], back_full)
-    return np.stack(flows), np.stack(ok), float(1.0 - missed[0] / max(missed[1], 1.0))
+    return np.stack(flows), np.stack(ok), np.stack(consistent), float(1.0 - missed[0] / max(missed[1], 1.0))
 
 
 def mask_change_missed(mask: np.ndarray, following: np.ndarray, back: np.ndarray) -> np.ndarray:
@@ -367,10 +366,12 @@ class QuadrupedProblem:
         self.rate = fps / SMOOTH_FPS
         self.flow: torch.Tensor | None = None
         self.flow_ok: torch.Tensor | None = None  # (T-1, P) where the flow is trusted (:func:`video_flow`)
+        self.flow_consistent: torch.Tensor | None = None  # (T-1, P) forward-backward consistent, on or off the mask
         self.flow_explained: float | None = None  # the share of the masks' change the flow explains
         if frames is not None and len(frames) >= 2:
-            flow, ok, self.flow_explained = video_flow(frames, uv, masks)
+            flow, ok, consistent, self.flow_explained = video_flow(frames, uv, masks)
             self.flow, self.flow_ok = torch.tensor(flow, dtype=DTYPE), torch.tensor(ok)
+            self.flow_consistent = torch.tensor(consistent)
 
     def cams_of(self, frames: np.ndarray) -> torch.Tensor | None:
         return None if self.cams is None else self.cams[torch.as_tensor(frames)]
@@ -722,32 +723,76 @@ def hypotheses(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], 
     return out
 
 
-def hypothesis_score(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig, n: int) -> float:
-    """A hypothesis' rank (lower is better): the clip loss with the flow term (``rank_by_loss``; the flow robust, on
-    trusted cells), the raw flow error (:func:`flow_error`) otherwise, the clip loss without the video's frames."""
-    if prob.flow is not None and not config.rank_by_loss:
-        return flow_error(prob, params)
+def union_flow_residual(prob: QuadrupedProblem, params: Params) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(T-1, P) distance [grid cells] between the image motion ``params`` predicts and the video's flow, (T-1, P)
+    the cells it counts: the union of the mask's and the body's cells where the flow is consistent, and (T-1, P)
+    the body's occupancy. Where the body is, the body's motion; where it is not, the background's: the median
+    flow of the consistent cells off both mask and body (0 under a still camera, the camera's motion under a
+    moving one). So a body pays for the mask it leaves uncovered (the subject's motion there predicted as
+    background) and for the cells it puts off the mask (its motion against the background's)."""
+    assert prob.flow is not None and prob.flow_consistent is not None
     with torch.no_grad():
-        return float(clip_loss(prob, np.arange(n), params, replace(config, flow_in_clip=True))[0])
+        _, verts = pose_body(prob.tt, params)
+        flow, occ = predicted_flow(prob, verts, params["log_scale"].exp())
+        body, mask = occ > 0.5, prob.target[:-1] > 0.5
+        off = prob.flow_consistent & ~body & ~mask
+        background = torch.stack([prob.flow[t, off[t]].median(0).values if off[t].any() else flow.new_zeros(2)
+                                  for t in range(len(flow))])
+        pred = torch.where(body[..., None], flow, background[:, None])
+        err = (pred - prob.flow).norm(dim=-1) / (2 * prob.tau)
+    return err, (body | mask) & prob.flow_consistent, body
+
+
+def misplaced_cells(prob: QuadrupedProblem, body: torch.Tensor) -> torch.Tensor:
+    """(T', P) how far [cells] each cell of the mask the ``body`` (T', P) bool leaves uncovered lies from the body,
+    and each cell of the body off the mask from the mask (0 elsewhere): the silhouette's error as a displacement,
+    in the flow residual's units."""
+    import cv2
+
+    mask = (prob.target[: len(body)] > 0.5).numpy()
+    grid = body.numpy().reshape(len(body), prob.gh, prob.gw)
+    to_body = np.stack([cv2.distanceTransform((~b).astype(np.uint8), cv2.DIST_L2, 3) for b in grid]).reshape(len(body), -1)
+    to_mask = prob.outside[: len(body)].reshape(len(body), -1).numpy()
+    out = np.where(mask & ~body.numpy(), to_body, 0.0) + np.where(body.numpy() & ~mask, to_mask, 0.0)
+    return torch.tensor(out, dtype=DTYPE)
+
+
+def hypothesis_score(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig, n: int) -> float:
+    """A hypothesis' rank (lower is better): per cell of the union of mask and body, its flow residual
+    (:func:`union_flow_residual`; Cauchy at ``flow_robust_cells`` with ``rank_by_loss``, then beside the clip loss
+    without the flow term) plus how far the cell lies beyond the outline's first cell from the silhouette it
+    misses (:func:`misplaced_cells`: a cell's misplacement is a displacement too; the template's outline differs
+    from the animal's by about a cell, so the first cell is the shape's, not the placement's). Without the
+    video's frames the clip loss. Over the body's cells alone a body that covers little of the subject and moves
+    little explains the flow best (a real cat: docs/results/people_animals.md)."""
+    if prob.flow is None:
+        with torch.no_grad():
+            return float(clip_loss(prob, np.arange(n), params, config)[0])
+    err, keep, body = union_flow_residual(prob, params)
+    if not keep.any():
+        return 0.0
+    beyond = (misplaced_cells(prob, body) - 1.0).clamp_min(0.0)[keep]
+    if not config.rank_by_loss:
+        return float((err[keep] + beyond).mean())
+    with torch.no_grad():
+        loss = float(clip_loss(prob, np.arange(n), params, replace(config, flow_in_clip=False))[0])
+    robust = torch.log1p((err[keep] / config.flow_robust_cells) ** 2)
+    return loss + float((config.flow_weight * robust + beyond).mean())
 
 
 def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
                     n: int, rigid: list[tuple[float, int, Params]] | None = None) -> tuple[Params, bool]:
     """The hypothesis (:func:`hypotheses`) of the lowest :func:`hypothesis_score`, and whether it is the rest body."""
-    scored = []
+    best: tuple[float, Params, bool] | None = None
     for label, trial, still in hypotheses(prob, starts, config, n, rigid):
         score = hypothesis_score(prob, trial, config, n)
         iou = float(run_steps(prob, np.arange(n), trial, config, 0)[2].mean())
         log.info("quadruped hypothesis %s: %s %.4f, IoU %.3f", label,
                  "flow error" if prob.flow is not None and not config.rank_by_loss else "loss", score, iou)
-        scored.append((score, iou, trial, still))
-    # a rest body off the subject covers few of the mask's cells and can explain their flow better than the bodies
-    # on it (the flow error is measured only where body and mask overlap): it is ranked only when it lies on the
-    # subject about as well as the tracks, fitted to the masks frame by frame (their unrefined leg swaps cross
-    # the silhouette and are not the measure)
-    floor = config.rank_min_iou * max(iou for _, iou, _, still in scored if not still)
-    _, _, trial, still = min((x for x in scored if not x[3] or x[1] >= floor), key=lambda x: x[0])
-    return trial, still
+        if best is None or score < best[0]:
+            best = (score, trial, still)
+    assert best is not None
+    return best[1], best[2]
 
 
 def flow_gate(prob: QuadrupedProblem, config: QuadrupedFitConfig, source: str) -> QuadrupedFitConfig:
