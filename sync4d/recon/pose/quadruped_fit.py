@@ -15,8 +15,10 @@ tracking fit also pays the body's predicted image motion from the frame before a
 flow (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera fill the same silhouettes
 but move the body's texture differently) and holds the clip's shape near the start's. Search: root headings on
 the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses, beside them the
-template held at rest over the clip (one rotation, the root per frame: a body that never bends), all ranked by the
-clip loss with the flow term (by the raw flow error when the flow is not used; near vertices hide far ones).
+template held at rest over the clip (one rotation, the root per frame: a body that never bends), all ranked over
+the union of the mask's and the body's cells: the flow each predicts there (the background's motion off the body)
+against the video's, and each cell's misplacement (:func:`hypothesis_score`; beside the clip loss without the flow
+term when the flow is trusted; near vertices hide far ones).
 """
 
 from __future__ import annotations
@@ -73,14 +75,14 @@ class QuadrupedFitConfig:
         shape_hold_weight: squared log change of the clip's shape (scale, girth, bone lengths and girths) in a
             one-frame tracking fit from the tracked start's: a real animal does not change its build frame by
             frame; 0 = the shape free while tracking.
-        rank_by_loss: the tracks' leg swaps ranked by the clip loss (with the flow term) instead of the raw
-            flow error.
+        rank_by_loss: the hypotheses ranked with the clip loss and the flow residual robust (Cauchy) instead of the
+            raw flow residual (:func:`hypothesis_score`).
         flow_in_clip: the flow term also in the clip steps (every frame pair of the clip); False = only in the
             one-frame tracking fits and the ranking (with it, the orbit's last clip steps drift: fox walk orbit
             25.6 -> 28.9 % in 40 steps).
         flow_min_explained: the flow term, the shape hold and the loss ranking are used only when the video's flow
             explains at least this share of the masks' change between frames (:func:`mask_change_missed`); below
-            it (the head-on clips) the fit runs without them, the leg swaps ranked by the flow error.
+            it (the head-on clips) the fit runs without them, the hypotheses ranked by the raw flow residual.
         flow_robust_cells: the flow residual's Cauchy scale [grid cells]: larger residuals count little
             (a wrong flow, a leg that moved more than the flow's patch could see).
         rest_hypotheses: the template held at rest over the clip (one rotation, the root per frame, scale and girth
@@ -830,10 +832,11 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
        start's), then refined on the whole clip (silhouette and priors);
     3. each track with the fore and/or hind legs swapped left for right (mirrored), and the template held at rest
        over the clip from the ``tracks`` headings best at rest on the first frame (:func:`rest_clip`): the
-       hypothesis with the lowest clip loss with the flow term wins and is refined (a rest body stays at rest).
+       hypothesis with the lowest :func:`hypothesis_score` (the clip loss, the flow over the union of mask and
+       body, the cells misplaced) wins and is refined (a rest body stays at rest).
 
     When the flow explains less than ``flow_min_explained`` of the masks' change (:func:`flow_gate`), step 2
-    runs without the flow and the hold and step 3 ranks by the raw flow error (the fit before the flow term).
+    runs without the flow and the hold and step 3 ranks by the raw flow residual and the cells misplaced alone.
 
     Args:
         masks: (T, H, W) bool subject masks.
