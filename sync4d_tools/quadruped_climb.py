@@ -76,12 +76,18 @@ def truth_started(c: Clip, cfg: qf.QuadrupedFitConfig, steps: int) -> dict:
 
 
 def search(c: Clip, cfg: qf.QuadrupedFitConfig) -> list[tuple[str, qf.Params]]:
-    """The fit's hypotheses (label, parameters), as :func:`qf.best_hypothesis` makes them (:func:`qf.hypotheses`:
-    the tracks with their legs swapped, and the rest bodies)."""
+    """The fit's hypotheses (heading / legs swapped, parameters), as :func:`qf.best_hypothesis` makes them."""
     up_cam = c.w2c[0][:3, :3] @ np.array([0.0, 1.0, 0.0])
-    rigid: list[tuple[float, int, qf.Params]] = []
-    starts = qf.first_frame_starts(c.prob, c.masks[0], up_cam, cfg, rigid)
-    return [(label, params) for label, params, _ in qf.hypotheses(c.prob, starts, cfg, len(c.frames), rigid)]
+    starts = qf.first_frame_starts(c.prob, c.masks[0], up_cam, cfg)
+    out = []
+    for _, k, params in sorted(starts, key=lambda x: x[0])[: cfg.tracks]:
+        full = qf.track(c.prob, params, cfg, len(c.frames))
+        qf.run_steps(c.prob, c.frames, full, cfg, cfg.iterations)
+        for pairs in ((), ("f",), ("h",), ("f", "h")):
+            trial = {**full, "local": qf.swap_legs(c.prob.tt, full["local"].detach(), pairs)}
+            out.append((f"{360 * k / cfg.starts:.0f} deg, swapped {'+'.join(pairs) or 'none'}",
+                        {n: v.detach().clone().requires_grad_(True) for n, v in trial.items()}))
+    return out
 
 
 def feet_motion(prob: qf.QuadrupedProblem, band: float = 0.2) -> torch.Tensor | None:

@@ -664,41 +664,6 @@ def test_quadruped_flow_term_is_zero_at_the_motion_the_video_shows(shared_data: 
     assert term(turned) == 0.0
 
 
-def test_quadruped_union_flow_charges_the_mask_a_body_leaves_uncovered(shared_data: Path) -> None:
-    """The ranking's flow residual, over the union of the mask's and the body's cells: the video's flow the truth's
-    image motion on the body and a uniform background motion elsewhere; the truth costs nothing (the background's
-    motion read from the cells off both); a small body standing still over part of the subject (the rest body off
-    the real cat) costs more, its uncovered mask predicted as the background's motion; inconsistent cells count
-    nothing."""
-    import dataclasses
-
-    import torch
-
-    from sync4d.recon.pose import quadruped_fit as qf
-
-    truth, _, camera, masks, _ = _template_clip()
-    cfg = qf.QuadrupedFitConfig()
-    prob = qf.QuadrupedProblem(masks, camera, cfg)
-    with torch.no_grad():
-        flow, occ = qf.predicted_flow(prob, qf.pose_body(prob.tt, truth)[1], truth["log_scale"].exp())
-    prob.flow = torch.where(occ[..., None] > 0.5, flow, torch.tensor([2.0, -1.0], dtype=qf.DTYPE))
-    prob.flow_ok = (occ > 0.5) & (prob.target[:-1] > 0.5)
-    prob.flow_consistent = torch.ones(prob.flow.shape[:2], dtype=torch.bool)
-    err, keep, _ = qf.union_flow_residual(prob, truth)
-    assert torch.equal(keep, (occ > 0.5) | (prob.target[:-1] > 0.5))
-    assert float(err[keep].max()) < 1e-6
-    assert float(qf.misplaced_cells(prob, occ > 0.5).max()) < 1.5  # the soft outline against the raster's: a cell
-    still = {k: v.detach().clone() for k, v in truth.items()}
-    still["log_scale"] -= 0.4
-    still["root_pos"][:] = truth["root_pos"].detach()[:1]
-    err_still, keep_still, _ = qf.union_flow_residual(prob, still)
-    assert float(err_still[keep_still].mean()) > 0.3
-    assert qf.hypothesis_score(prob, still, dataclasses.replace(cfg, rank_by_loss=False), len(masks)) > 0.3
-    assert qf.hypothesis_score(prob, still, cfg, len(masks)) > qf.hypothesis_score(prob, truth, cfg, len(masks))
-    prob.flow_consistent[:] = False
-    assert not qf.union_flow_residual(prob, still)[1].any()
-
-
 def test_quadruped_tracking_holds_the_shape_near_the_start(shared_data: Path) -> None:
     """A one-frame tracking fit pays ``shape_hold_weight`` times the squared log change of the clip's shape from the
     start's (a changed scale costs exactly that); the clip fit, without an anchor, does not."""
@@ -816,61 +781,3 @@ def test_quadruped_climb_refuses_quick_without_gap() -> None:
     with pytest.raises(SystemExit) as err:
         main(["--clip", "/nonexistent", "--quick"])
     assert err.value.code == 2
-
-
-@pytest.mark.parametrize("moving", [False, True])
-def test_quadruped_rest_clip_follows_the_masks_and_never_bends(shared_data: Path, moving: bool) -> None:
-    """The rest hypothesis: from a first-frame start the root is placed in every frame where the mask's centroid
-    moved (the body walks 5 cm a frame; the moving camera turns about it and steps back): before any step the root
-    is within a third of the body's own motion from the truth's (a move in depth is not in the centroid), 1.5 cm on
-    the static camera (the legs swing the centroid); its rigid clip fit moves only the root (one rotation for the
-    clip: the tilt) and its heading per frame (the root joint's turn about the body's up axis), scale and girth:
-    the legs stay at rest."""
-    import torch
-
-    from sync4d.recon.pose import quadruped_fit as qf
-
-    truth, _, camera, masks, extrinsics = _template_clip(moving=moving)
-    cfg = qf.QuadrupedFitConfig(rest_iterations=0)
-    prob = qf.QuadrupedProblem(masks, camera, cfg, extrinsics=extrinsics)
-    start = qf.frame_params(truth, 0)
-    placed = qf.rest_clip(prob, start, cfg, len(masks))
-    err = (placed["root_pos"] - truth["root_pos"]).detach().norm(dim=-1)
-    moved = (truth["root_pos"] - truth["root_pos"][:1]).detach().norm(dim=-1)
-    assert (err <= (0.35 if moving else 0.0) * moved + 0.015).all(), err
-    assert torch.equal(placed["root_rot"].detach(), start["root_rot"].detach().expand(len(masks), 3))
-    fitted = qf.rest_clip(prob, start, qf.QuadrupedFitConfig(rest_iterations=10), len(masks))
-    assert not torch.equal(fitted["root_pos"], placed["root_pos"])
-    assert torch.equal(fitted["root_rot"].detach(), fitted["root_rot"].detach()[:1].expand(len(masks), 3))
-    for key in ("log_len", "log_girth"):
-        assert not fitted[key].detach().any()
-    local = fitted["local"].detach().clone()
-    assert local[:, 0, 1].any()  # the heading per frame
-    local[:, 0, 1] = 0.0
-    assert not local.any()
-
-
-def test_quadruped_hypotheses_hold_the_rest_body_beside_the_tracks(shared_data: Path) -> None:
-    """With ``rest_hypotheses`` the hypotheses are the tracked ones plus one rest body per tracked count, from the
-    headings best at rest (flagged, bones at the template's, joints too but the root's heading per frame); without
-    it, only the tracked ones."""
-    from dataclasses import replace
-
-    from sync4d.recon.pose import quadruped_fit as qf
-
-    _, _, camera, masks, _ = _template_clip(frames=3)
-    cfg = qf.QuadrupedFitConfig(grid=16, starts=4, start_iterations=4, frame_iterations=2, iterations=2,
-                                rest_iterations=2)
-    prob = qf.QuadrupedProblem(masks, camera, cfg)
-    rigid: list = []
-    starts = qf.first_frame_starts(prob, masks[0], np.array([0.0, -1.0, 0.0]), cfg, rigid)
-    assert [k for _, k, _ in rigid] == [0, 1, 2, 3] and not any(p["local"].any() for _, _, p in rigid)
-    best_at_rest = sorted(rigid, key=lambda x: x[0])[: cfg.tracks]
-    hyps = qf.hypotheses(prob, starts, cfg, len(masks), rigid)
-    rest = [(label, p) for label, p, still in hyps if still]
-    assert len(hyps) == cfg.tracks + len(rest) and len(rest) == cfg.tracks
-    assert [label for label, _ in rest] == [f"rest, heading {90 * k} deg, legs swapped: none" for _, k, _ in best_at_rest]
-    assert all(not p[key].detach().any() for _, p in rest for key in ("log_len", "log_girth"))
-    assert all(not p["local"].detach()[:, 1:].any() and not p["local"].detach()[:, 0, [0, 2]].any() for _, p in rest)
-    off = qf.hypotheses(prob, starts, replace(cfg, rest_hypotheses=False), len(masks))
-    assert len(off) == cfg.tracks and not any(still for _, _, still in off)

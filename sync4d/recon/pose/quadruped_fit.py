@@ -14,11 +14,8 @@ template; leg joints turn mostly about the body's lateral axis), smooth root-rel
 tracking fit also pays the body's predicted image motion from the frame before against the video's optical
 flow (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera fill the same silhouettes
 but move the body's texture differently) and holds the clip's shape near the start's. Search: root headings on
-the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses, beside them the
-template held at rest over the clip (one rotation, the root per frame: a body that never bends), all ranked over
-the union of the mask's and the body's cells: the flow each predicts there (the background's motion off the body)
-against the video's, and each cell's misplacement (:func:`hypothesis_score`; beside the clip loss without the flow
-term when the flow is trusted; near vertices hide far ones).
+the first frame, the best few tracked frame by frame, then left/right leg swaps as hypotheses ranked by the clip
+loss with the flow term (by the raw flow error when the flow is not used; near vertices hide far ones).
 """
 
 from __future__ import annotations
@@ -75,20 +72,16 @@ class QuadrupedFitConfig:
         shape_hold_weight: squared log change of the clip's shape (scale, girth, bone lengths and girths) in a
             one-frame tracking fit from the tracked start's: a real animal does not change its build frame by
             frame; 0 = the shape free while tracking.
-        rank_by_loss: the hypotheses ranked with the clip loss and the flow residual robust (Cauchy) instead of the
-            raw flow residual (:func:`hypothesis_score`).
+        rank_by_loss: the tracks' leg swaps ranked by the clip loss (with the flow term) instead of the raw
+            flow error.
         flow_in_clip: the flow term also in the clip steps (every frame pair of the clip); False = only in the
             one-frame tracking fits and the ranking (with it, the orbit's last clip steps drift: fox walk orbit
             25.6 -> 28.9 % in 40 steps).
         flow_min_explained: the flow term, the shape hold and the loss ranking are used only when the video's flow
             explains at least this share of the masks' change between frames (:func:`mask_change_missed`); below
-            it (the head-on clips) the fit runs without them, the hypotheses ranked by the raw flow residual.
+            it (the head-on clips) the fit runs without them, the leg swaps ranked by the flow error.
         flow_robust_cells: the flow residual's Cauchy scale [grid cells]: larger residuals count little
             (a wrong flow, a leg that moved more than the flow's patch could see).
-        rest_hypotheses: the template held at rest over the clip (one rotation, the root per frame, scale and girth
-            fitted) from the ``tracks`` best headings at rest is a hypothesis beside the tracked ones
-            (:func:`rest_clip`); when it wins it stays at rest.
-        rest_iterations: Adam steps of the rest body's rigid clip fit (its heading per frame about its up axis).
         background_threshold: colour distance counted as foreground by the background model (0-255), when the
             video has no masks.
     """
@@ -116,8 +109,6 @@ class QuadrupedFitConfig:
     rank_by_loss: bool = True
     flow_in_clip: bool = False
     flow_min_explained: float = 0.8
-    rest_hypotheses: bool = True
-    rest_iterations: int = 60
     background_threshold: float = 30.0
 
 
@@ -258,12 +249,11 @@ def rasterise(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int
 
 
 def video_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, fb_tol_px: float = 1.0
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+               ) -> tuple[np.ndarray, np.ndarray, float]:
     """(T-1, P, 2) DIS optical flow (OpenCV, medium preset) from frame t to t+1 at pixels ``uv`` (P, 2) [px],
-    (T-1, P) where it is trusted on the subject (on the mask at t, landing on the mask at t+1: off it the flow is
-    the background's; and consistent), (T-1, P) where it is consistent (back within ``fb_tol_px`` by the backward
-    flow: not occluded, not smeared; the background's cells too), and the share of the masks' change the flow
-    explains (:func:`mask_change_explained`)."""
+    (T-1, P) where it is trusted (on the mask at t, landing on the mask at t+1: off it the flow is the
+    background's; back within ``fb_tol_px`` by the backward flow: not occluded, not smeared), and the share of
+    the masks' change the flow explains (:func:`mask_change_explained`)."""
     import cv2
 
     # OpenCV's stubs omit the DIS optical flow factory that the module has.
@@ -274,17 +264,16 @@ def video_flow(frames: np.ndarray, uv: np.ndarray, masks: np.ndarray, fb_tol_px:
     def pixel(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.clip(p[:, 1].astype(int), 0, h - 1), np.clip(p[:, 0].astype(int), 0, w - 1)
 
-    flows, ok, consistent, missed = [], [], [], np.zeros(2)
+    flows, ok, missed = [], [], np.zeros(2)
     for t in range(len(grey) - 1):
         fwd = dis.calc(grey[t], grey[t + 1], None)[pixel(uv)]
         end = pixel(uv + fwd)
         back_full = dis.calc(grey[t + 1], grey[t], None)
         back = back_full[end]
-        consistent.append(np.linalg.norm(fwd + back, axis=1) < fb_tol_px)
-        ok.append(masks[t][pixel(uv)] & masks[t + 1][end] & consistent[-1])
+        ok.append(masks[t][pixel(uv)] & masks[t + 1][end] & (np.linalg.norm(fwd + back, axis=1) < fb_tol_px))
         flows.append(fwd)
         missed += mask_change_missed(masks[t], masks[t + 1], back_full)
-    return np.stack(flows), np.stack(ok), np.stack(consistent), float(1.0 - missed[0] / max(missed[1], 1.0))
+    return np.stack(flows), np.stack(ok), float(1.0 - missed[0] / max(missed[1], 1.0))
 
 
 def mask_change_missed(mask: np.ndarray, following: np.ndarray, back: np.ndarray) -> np.ndarray:
@@ -368,12 +357,10 @@ class QuadrupedProblem:
         self.rate = fps / SMOOTH_FPS
         self.flow: torch.Tensor | None = None
         self.flow_ok: torch.Tensor | None = None  # (T-1, P) where the flow is trusted (:func:`video_flow`)
-        self.flow_consistent: torch.Tensor | None = None  # (T-1, P) forward-backward consistent, on or off the mask
         self.flow_explained: float | None = None  # the share of the masks' change the flow explains
         if frames is not None and len(frames) >= 2:
-            flow, ok, consistent, self.flow_explained = video_flow(frames, uv, masks)
+            flow, ok, self.flow_explained = video_flow(frames, uv, masks)
             self.flow, self.flow_ok = torch.tensor(flow, dtype=DTYPE), torch.tensor(ok)
-            self.flow_consistent = torch.tensor(consistent)
 
     def cams_of(self, frames: np.ndarray) -> torch.Tensor | None:
         return None if self.cams is None else self.cams[torch.as_tensor(frames)]
@@ -607,22 +594,19 @@ def frame_params(params: Params, t: int) -> Params:
             for k, v in params.items()}
 
 
-def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig,
-                       rigid: list[tuple[float, int, Params]] | None = None) -> list[tuple[float, int, Params]]:
-    """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints);
-    ``rigid``, when given, receives the same after the rigid steps alone (the template at rest)."""
+def first_frame_starts(prob: QuadrupedProblem, mask: np.ndarray, up_cam: np.ndarray, config: QuadrupedFitConfig
+                       ) -> list[tuple[float, int, Params]]:
+    """(loss, heading index, parameters) of every heading fitted to the first frame (rigid, then with joints)."""
     tmpl = prob.tt.template
     root0 = initial_root(mask, prob.camera, config.template_length, config.template_length * float(np.ptp(tmpl.vertices[:, 1])))
     starts = []
     for k in range(config.starts):
         params = start_params(prob, heading_rotation(up_cam, 2 * math.pi * k / config.starts), root0,
                               config.template_length)
-        still, _, _ = run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
-        if rigid is not None:
-            rigid.append((still, k, {key: v.detach().clone() for key, v in params.items()}))
+        run_steps(prob, np.arange(1), params, config, config.start_iterations // 2, free=RIGID)
         loss, _, iou = run_steps(prob, np.arange(1), params, config, config.start_iterations - config.start_iterations // 2)
-        log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f (at rest %.4f), IoU %.3f", k + 1,
-                 config.starts, 360 * k / config.starts, loss, still, iou.mean())
+        log.info("quadruped start %d/%d (heading %.0f deg): loss %.4f, IoU %.3f", k + 1, config.starts,
+                 360 * k / config.starts, loss, iou.mean())
         starts.append((loss, k, params))
     return starts
 
@@ -660,141 +644,30 @@ def track(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: 
                 ).requires_grad_(True) for k in frames[0]}
 
 
-def rest_clip(prob: QuadrupedProblem, start: Params, config: QuadrupedFitConfig, n: int) -> Params:
-    """The template held at rest over the clip: a first-frame start's root, scale and girth with its joints and bones
-    reset to the template's; in every frame the root moved (at its depth in that frame's camera) by as much as the
-    mask's centroid moved against the rest body's own centroid seen by that camera (so a moving camera's share is
-    not counted twice); then only the root's position (per frame) and rotation (one for the clip: a body turning
-    frame by frame to fill the masks tumbles), scale and girth fitted to the clip's silhouettes (``rest_iterations``
-    steps). A rigid body that never bends is a hypothesis the articulated ones must beat."""
-    root0 = start["root_pos"].detach()[0]
-    params = start_params(prob, start["root_rot"].detach()[0].numpy(), root0.numpy(), 1.0, frames=n)
-    with torch.no_grad():
-        params["log_scale"].copy_(start["log_scale"].detach())
-        params["log_thick"].copy_(start["log_thick"].detach())
-        frames = np.arange(n)
-        occ = body_silhouette(prob, pose_body(prob.tt, params)[1], prob.cams_of(frames), params["log_scale"].exp())
-        shift = centroids(prob.target[:n], prob.uv) - centroids(occ, prob.uv)  # (T, 2) [px]
-        cam_root = to_cameras(params["root_pos"][:, None], prob.cams_of(frames))[:, 0]  # (T, 3) each camera's
-        uv = project_points(cam_root, prob.K) + shift - shift[:1]
-        z = cam_root[:, 2:]
-        moved = torch.cat([(uv - prob.K[:2, 2]) / torch.stack([prob.K[0, 0], prob.K[1, 1]]) * z, z], 1)
-        if prob.cams is not None:  # back to the first camera's frame
-            moved = torch.linalg.solve(prob.cams[:n, :3, :3], (moved - prob.cams[:n, :3, 3])[..., None])[..., 0]
-        params["root_pos"].copy_(moved)
-    # (1, 3) while fitted: one rotation (the tilt) broadcast over the frames; the heading per frame is the root
-    # joint's turn about the body's own up axis (template y), so the up axis stays one for the clip while a
-    # turning walk keeps its body on the masks; the smoothness term holds the turn's acceleration small
-    params["root_rot"] = start["root_rot"].detach()[:1].clone().requires_grad_(True)
-    yaw_only = torch.zeros_like(params["local"])
-    yaw_only[:, 0, 1] = 1.0
-    params["local"].register_hook(lambda g: g * yaw_only)
-    run_steps(prob, frames, params, config, config.rest_iterations, free=RIGID + ("local",))
-    params["root_rot"] = params["root_rot"].detach().expand(n, 3).clone().requires_grad_(True)
-    params["local"] = params["local"].detach().clone().requires_grad_(True)  # without the hook
-    return params
-
-
-def centroids(weights: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """(T, 2) weighted mean [px] of the grid's cells ``uv`` (P, 2) under (T, P) ``weights`` (a mask's coverage)."""
-    return (weights @ uv) / weights.sum(1, keepdim=True).clamp_min(1e-9)
-
-
-def hypotheses(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig, n: int,
-               rigid: list[tuple[float, int, Params]] | None = None) -> list[tuple[str, Params, bool]]:
-    """(label, parameters, held at rest) of every hypothesis: the ``tracks`` lowest-loss starts tracked and refined on the clip,
-    each with and without its fore and/or hind legs swapped; with ``rest_hypotheses``, also the template held at
-    rest over the clip (:func:`rest_clip`) from the ``tracks`` headings whose rigid steps fitted the first frame
-    best (``rigid``; else the best starts): a body facing the camera or away from it fills the same first mask,
-    but moving its root over the clip tells them apart."""
-    swaps = ((), ("f",), ("h",), ("f", "h")) if prob.flow is not None else ((),)
-    ranked = sorted(starts, key=lambda x: x[0])
-    fits: list[tuple[str, Params, tuple[tuple[str, ...], ...], bool]] = []
-    for _, k, params in ranked[: config.tracks]:
-        full = track(prob, params, config, n)
-        run_steps(prob, np.arange(n), full, config, config.iterations)
-        fits.append((f"heading {360 * k / config.starts:.0f} deg", full, swaps, False))
-    for _, k, params in sorted(rigid or ranked, key=lambda x: x[0])[: config.tracks] if config.rest_hypotheses else ():
-        fits.append((f"rest, heading {360 * k / config.starts:.0f} deg", rest_clip(prob, params, config, n), ((),), True))
-    out = []
-    for label, full, pairs_of, still in fits:
-        for pairs in pairs_of:
-            trial = {**full, "local": swap_legs(prob.tt, full["local"].detach(), pairs)}
-            out.append((f"{label}, legs swapped: {'+'.join(pairs) or 'none'}",
-                        {key: v.detach().clone().requires_grad_(True) for key, v in trial.items()}, still))
-    return out
-
-
-def union_flow_residual(prob: QuadrupedProblem, params: Params) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(T-1, P) distance [grid cells] between the image motion ``params`` predicts and the video's flow, (T-1, P)
-    the cells it counts: the union of the mask's and the body's cells where the flow is consistent, and (T-1, P)
-    the body's occupancy. Where the body is, the body's motion; where it is not, the background's: the median
-    flow of the consistent cells off both mask and body (0 under a still camera, the camera's motion under a
-    moving one). So a body pays for the mask it leaves uncovered (the subject's motion there predicted as
-    background) and for the cells it puts off the mask (its motion against the background's)."""
-    assert prob.flow is not None and prob.flow_consistent is not None
-    with torch.no_grad():
-        _, verts = pose_body(prob.tt, params)
-        flow, occ = predicted_flow(prob, verts, params["log_scale"].exp())
-        body, mask = occ > 0.5, prob.target[:-1] > 0.5
-        off = prob.flow_consistent & ~body & ~mask
-        background = torch.stack([prob.flow[t, off[t]].median(0).values if off[t].any() else flow.new_zeros(2)
-                                  for t in range(len(flow))])
-        pred = torch.where(body[..., None], flow, background[:, None])
-        err = (pred - prob.flow).norm(dim=-1) / (2 * prob.tau)
-    return err, (body | mask) & prob.flow_consistent, body
-
-
-def misplaced_cells(prob: QuadrupedProblem, body: torch.Tensor) -> torch.Tensor:
-    """(T', P) how far [cells] each cell of the mask the ``body`` (T', P) bool leaves uncovered lies from the body,
-    and each cell of the body off the mask from the mask (0 elsewhere): the silhouette's error as a displacement,
-    in the flow residual's units."""
-    import cv2
-
-    mask = (prob.target[: len(body)] > 0.5).numpy()
-    grid = body.numpy().reshape(len(body), prob.gh, prob.gw)
-    to_body = np.stack([cv2.distanceTransform((~b).astype(np.uint8), cv2.DIST_L2, 3) for b in grid]).reshape(len(body), -1)
-    to_mask = prob.outside[: len(body)].reshape(len(body), -1).numpy()
-    out = np.where(mask & ~body.numpy(), to_body, 0.0) + np.where(body.numpy() & ~mask, to_mask, 0.0)
-    return torch.tensor(out, dtype=DTYPE)
-
-
-def hypothesis_score(prob: QuadrupedProblem, params: Params, config: QuadrupedFitConfig, n: int) -> float:
-    """A hypothesis' rank (lower is better): per cell of the union of mask and body, its flow residual
-    (:func:`union_flow_residual`; Cauchy at ``flow_robust_cells`` with ``rank_by_loss``, then beside the clip loss
-    without the flow term) plus how far the cell lies beyond the outline's first cell from the silhouette it
-    misses (:func:`misplaced_cells`: a cell's misplacement is a displacement too; the template's outline differs
-    from the animal's by about a cell, so the first cell is the shape's, not the placement's). Without the
-    video's frames the clip loss. Over the body's cells alone a body that covers little of the subject and moves
-    little explains the flow best (a real cat: docs/results/people_animals.md)."""
-    if prob.flow is None:
-        with torch.no_grad():
-            return float(clip_loss(prob, np.arange(n), params, config)[0])
-    err, keep, body = union_flow_residual(prob, params)
-    if not keep.any():
-        return 0.0
-    beyond = (misplaced_cells(prob, body) - 1.0).clamp_min(0.0)[keep]
-    if not config.rank_by_loss:
-        return float((err[keep] + beyond).mean())
-    with torch.no_grad():
-        loss = float(clip_loss(prob, np.arange(n), params, replace(config, flow_in_clip=False))[0])
-    robust = torch.log1p((err[keep] / config.flow_robust_cells) ** 2)
-    return loss + float((config.flow_weight * robust + beyond).mean())
-
-
 def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Params]], config: QuadrupedFitConfig,
-                    n: int, rigid: list[tuple[float, int, Params]] | None = None) -> tuple[Params, bool]:
-    """The hypothesis (:func:`hypotheses`) of the lowest :func:`hypothesis_score`, and whether it is the rest body."""
-    best: tuple[float, Params, bool] | None = None
-    for label, trial, still in hypotheses(prob, starts, config, n, rigid):
-        score = hypothesis_score(prob, trial, config, n)
-        iou = float(run_steps(prob, np.arange(n), trial, config, 0)[2].mean())
-        log.info("quadruped hypothesis %s: %s %.4f, IoU %.3f", label,
-                 "flow error" if prob.flow is not None and not config.rank_by_loss else "loss", score, iou)
-        if best is None or score < best[0]:
-            best = (score, trial, still)
+                    n: int) -> Params:
+    """The best of the ``tracks`` lowest-loss starts, tracked and refined on the clip, each with and without
+    its fore and/or hind legs swapped: by the optical flow's agreement (the clip loss without video frames)."""
+    best: tuple[float, Params] | None = None
+    swaps = ((), ("f",), ("h",), ("f", "h")) if prob.flow is not None else ((),)
+    for _, k, params in sorted(starts, key=lambda x: x[0])[: config.tracks]:
+        full = track(prob, params, config, n)
+        loss, _, _ = run_steps(prob, np.arange(n), full, config, config.iterations)
+        for pairs in swaps:
+            trial = {**full, "local": swap_legs(prob.tt, full["local"].detach(), pairs)}
+            if prob.flow is None:
+                score = loss
+            elif config.rank_by_loss:  # the clip loss holds the flow (robust, trusted cells) with the silhouette
+                with torch.no_grad():
+                    score = float(clip_loss(prob, np.arange(n), trial, replace(config, flow_in_clip=True))[0])
+            else:
+                score = flow_error(prob, trial)
+            log.info("quadruped hypothesis heading %.0f deg, legs swapped: %s: %s %.4f", 360 * k / config.starts,
+                     "+".join(pairs) or "none", "loss" if prob.flow is None or config.rank_by_loss else "flow error", score)
+            if best is None or score < best[0]:
+                best = (score, trial)
     assert best is not None
-    return best[1], best[2]
+    return {k: v.detach().clone().requires_grad_(True) for k, v in best[1].items()}
 
 
 def flow_gate(prob: QuadrupedProblem, config: QuadrupedFitConfig, source: str) -> QuadrupedFitConfig:
@@ -830,13 +703,11 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     2. the ``tracks`` lowest-loss starts tracked frame by frame (warm start, root at constant velocity,
        smoothed against the two frames before, the flow from the frame before, the shape held near the
        start's), then refined on the whole clip (silhouette and priors);
-    3. each track with the fore and/or hind legs swapped left for right (mirrored), and the template held at rest
-       over the clip from the ``tracks`` headings best at rest on the first frame (:func:`rest_clip`): the
-       hypothesis with the lowest :func:`hypothesis_score` (the clip loss, the flow over the union of mask and
-       body, the cells misplaced) wins and is refined (a rest body stays at rest).
+    3. each track with the fore and/or hind legs swapped left for right (mirrored): the hypothesis with the
+       lowest clip loss with the flow term wins and is refined.
 
     When the flow explains less than ``flow_min_explained`` of the masks' change (:func:`flow_gate`), step 2
-    runs without the flow and the hold and step 3 ranks by the raw flow residual and the cells misplaced alone.
+    runs without the flow and the hold and step 3 ranks by the raw flow error (the fit before the flow term).
 
     Args:
         masks: (T, H, W) bool subject masks.
@@ -860,13 +731,9 @@ def fit_quadruped(masks: np.ndarray, camera: Camera, config: QuadrupedFitConfig,
     config = flow_gate(prob, config, source)
     w2c0 = camera.world_to_cam if extrinsics is None else np.asarray(extrinsics[0], dtype=np.float64)
     up_cam = np.array([0.0, -1.0, 0.0]) if world_up is None else w2c0[:3, :3] @ np.asarray(world_up, dtype=np.float64)
-    rigid_starts: list[tuple[float, int, Params]] = []
-    starts = first_frame_starts(prob, masks[0], up_cam, config, rigid_starts)
-    full, rigid = best_hypothesis(prob, starts, config, n, rigid_starts)
-    # the rest body, when it wins, stays at rest: freeing its joints would fit the silhouettes the ranking judged
-    # a still body to explain better
-    steps = config.swap_iterations if prob.flow is not None and not rigid else 0
-    loss, joints, iou = run_steps(prob, np.arange(n), full, config, steps)
+    starts = first_frame_starts(prob, masks[0], up_cam, config)
+    full = best_hypothesis(prob, starts, config, n)
+    loss, joints, iou = run_steps(prob, np.arange(n), full, config, config.swap_iterations if prob.flow is not None else 0)
     log.info("quadruped fit of %s: %d frames, silhouette IoU %.3f (min %.3f), loss %.4f", source, n, iou.mean(),
              iou.min(), loss)
     return finish_fit(prob, full, masks.shape[1:], joints, iou)
