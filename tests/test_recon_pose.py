@@ -664,6 +664,40 @@ def test_quadruped_flow_term_is_zero_at_the_motion_the_video_shows(shared_data: 
     assert term(turned) == 0.0
 
 
+def test_quadruped_union_flow_charges_the_mask_a_body_leaves_uncovered(shared_data: Path) -> None:
+    """The ranking's flow residual, over the union of the mask's and the body's cells: the video's flow the truth's
+    image motion on the body and a uniform background motion elsewhere; the truth costs nothing (the background's
+    motion read from the cells off both); a small body standing still over part of the subject costs more,
+    its uncovered mask predicted as the background's motion; inconsistent cells count nothing."""
+    import dataclasses
+
+    import torch
+
+    from sync4d.recon.pose import quadruped_fit as qf
+
+    truth, _, camera, masks, _ = _template_clip()
+    cfg = qf.QuadrupedFitConfig()
+    prob = qf.QuadrupedProblem(masks, camera, cfg)
+    with torch.no_grad():
+        flow, occ = qf.predicted_flow(prob, qf.pose_body(prob.tt, truth)[1], truth["log_scale"].exp())
+    prob.flow = torch.where(occ[..., None] > 0.5, flow, torch.tensor([2.0, -1.0], dtype=qf.DTYPE))
+    prob.flow_ok = (occ > 0.5) & (prob.target[:-1] > 0.5)
+    prob.flow_consistent = torch.ones(prob.flow.shape[:2], dtype=torch.bool)
+    err, keep, _ = qf.union_flow_residual(prob, truth)
+    assert torch.equal(keep, (occ > 0.5) | (prob.target[:-1] > 0.5))
+    assert float(err[keep].max()) < 1e-6
+    assert float(qf.misplaced_cells(prob, occ > 0.5).max()) < 1.5  # the soft outline against the raster's: a cell
+    still = {k: v.detach().clone() for k, v in truth.items()}
+    still["log_scale"] -= 0.4
+    still["root_pos"][:] = truth["root_pos"].detach()[:1]
+    err_still, keep_still, _ = qf.union_flow_residual(prob, still)
+    assert float(err_still[keep_still].mean()) > 0.3
+    assert qf.hypothesis_score(prob, still, dataclasses.replace(cfg, rank_by_loss=False), len(masks)) > 0.3
+    assert qf.hypothesis_score(prob, still, cfg, len(masks)) > qf.hypothesis_score(prob, truth, cfg, len(masks))
+    prob.flow_consistent[:] = False
+    assert not qf.union_flow_residual(prob, still)[1].any()
+
+
 def test_quadruped_tracking_holds_the_shape_near_the_start(shared_data: Path) -> None:
     """A one-frame tracking fit pays ``shape_hold_weight`` times the squared log change of the clip's shape from the
     start's (a changed scale costs exactly that); the clip fit, without an anchor, does not."""
