@@ -672,12 +672,9 @@ def misplaced_cells(prob: QuadrupedProblem, body: torch.Tensor) -> torch.Tensor:
     """(T', P) how far [cells] each cell of the mask the ``body`` (T', P) bool leaves uncovered lies from the body,
     and each cell of the body off the mask from the mask (0 elsewhere): the silhouette's error as a displacement,
     in the flow residual's units."""
-    import cv2
-
     mask = (prob.target[: len(body)] > 0.5).numpy()
-    grid = body.numpy().reshape(len(body), prob.gh, prob.gw)
-    to_body = np.stack([cv2.distanceTransform((~b).astype(np.uint8), cv2.DIST_L2, 3) for b in grid]
-                       ).reshape(len(body), -1)
+    grid = body.numpy().reshape(len(body), prob.gh, prob.gw).astype(np.float64)
+    to_body = outside_distance(grid).reshape(len(body), -1)
     to_mask = prob.outside[: len(body)].reshape(len(body), -1).numpy()
     out = np.where(mask & ~body.numpy(), to_body, 0.0) + np.where(body.numpy() & ~mask, to_mask, 0.0)
     return torch.tensor(out, dtype=DTYPE)
