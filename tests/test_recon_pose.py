@@ -815,3 +815,17 @@ def test_quadruped_climb_refuses_quick_without_gap() -> None:
     with pytest.raises(SystemExit) as err:
         main(["--clip", "/nonexistent", "--quick"])
     assert err.value.code == 2
+
+
+def test_draw_fit_colours_each_limb_by_its_side() -> None:
+    from sync4d.recon.pose.overlay import SIDE_COLOURS, draw_fit, side_of
+
+    assert [side_of(n) for n in ("fl_paw", "hl_upper", "l_knee", "fr_upper", "hr_hock", "r_wrist", "neck")] == [
+        "left", "left", "left", "right", "right", "right", "mid"]
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    frame = np.zeros((120, 160, 3), np.uint8)
+    # a root with one leg to the image's left (named left) and one to its right (named right)
+    joints = np.array([[0.0, 0.0, 2.0], [-0.3, 0.2, 2.0], [0.3, 0.2, 2.0]])
+    out = draw_fit(frame, K=K, joints=joints, parents=np.array([-1, 0, 0]), names=("root", "fl_paw", "fr_paw"))
+    assert tuple(out[70, 65]) == SIDE_COLOURS["left"]  # the middle of the left leg's line (row 70, column 65)
+    assert tuple(out[70, 95]) == SIDE_COLOURS["right"]

@@ -373,7 +373,7 @@ def write_fit_pictures(
     max_points: int = 1500,
 ) -> list[Path]:
     """Draw the fit (mask, parts coloured by bone, skeleton, landmarks) over every frame; write png + mp4."""
-    from sync4d.recon.pose.overlay import draw_fit, write_pictures
+    from sync4d.recon.pose.overlay import draw_fit, enlarged, write_pictures
 
     rng = np.random.default_rng(0)
     pick = rng.choice(len(reference.rest_vertices), min(max_points, len(reference.rest_vertices)), replace=False)
@@ -384,16 +384,19 @@ def write_fit_pictures(
         posed = reference.posed_vertices(t, apply_global=True)[pick]
         cam = posed @ w2c[:3, :3].T + w2c[:3, 3]
         first_to_t = w2c @ np.linalg.inv(world_to_cam)  # the fit's joints are in the first frame's camera frame
+        frame, K, mask, marks = enlarged(clip.frames[t], fit.camera.K, fit.masks[t],
+                                         None if fit.landmarks_2d is None else fit.landmarks_2d[t])
         pictures.append(
             draw_fit(
-                clip.frames[t],
-                K=fit.camera.K,
+                frame,
+                K=K,
                 joints=fit.joints[t] @ first_to_t[:3, :3].T + first_to_t[:3, 3],
                 parents=fit.parents,
-                mask=fit.masks[t],
+                mask=mask,
                 part_points=cam,
                 part_labels=labels,
-                landmarks=None if fit.landmarks_2d is None else fit.landmarks_2d[t],
+                landmarks=marks,
+                names=fit.names,
             )
         )
     return write_pictures(folder, pictures, clip.fps)

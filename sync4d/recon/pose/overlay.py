@@ -12,6 +12,11 @@ PART_COLOURS = np.array(
      [255, 250, 200], [128, 0, 0], [170, 255, 195]], dtype=np.float64)
 
 
+# a limb's colour by its side (RGB): a leg crossing to the other side, or legs swapped between frames, is seen
+SIDE_COLOURS = {"left": (40, 170, 255), "right": (255, 120, 30), "mid": (255, 255, 255)}
+LEFT_PREFIXES = ("l_", "fl_", "hl_")
+RIGHT_PREFIXES = ("r_", "fr_", "hr_")
+
 NEAR = 1e-3  # points nearer the camera plane than this [m] are not drawn (behind it: no image)
 MARGIN = 2.0  # pixel coordinates further than this many image sizes outside the frame are not drawn
 
@@ -26,6 +31,48 @@ def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
     bad = ~(np.isfinite(points).all(-1) & (points[..., 2] >= NEAR))
     uv[bad] = np.nan
     return uv
+
+
+PICTURE_WIDTH = 800  # frames narrower than this are enlarged before drawing: a phone clip's work size is ~400 px
+
+
+def enlarged(frame: np.ndarray, K: np.ndarray, mask: np.ndarray | None, landmarks: np.ndarray | None,
+             width: int = PICTURE_WIDTH) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """``frame`` (H, W, 3) enlarged by a whole factor to at least ``width`` pixels, with the intrinsics (3, 3),
+    the mask (H, W) and the landmarks (L, 2) [px] it is drawn with enlarged alike (unchanged when wide enough)."""
+    import cv2
+
+    factor = -(-width // frame.shape[1])
+    if factor <= 1:
+        return frame, K, mask, landmarks
+    h, w = frame.shape[:2]
+    big = cv2.resize(frame, (w * factor, h * factor), interpolation=cv2.INTER_LINEAR)
+    K = np.diag([factor, factor, 1.0]) @ np.asarray(K, dtype=np.float64)
+    K[:2, 2] += (factor - 1) / 2  # pixel centres: pixel i's centre i + 0.5 maps to factor * (i + 0.5)
+    big_mask = None if mask is None else np.repeat(np.repeat(mask, factor, 0), factor, 1)
+    big_marks = None if landmarks is None else (np.asarray(landmarks, dtype=np.float64) + 0.5) * factor - 0.5
+    return big, K, big_mask, big_marks
+
+
+def side_of(name: str) -> str:
+    """"left", "right" or "mid" for a joint name of the body fits (people: ``l_``/``r_``; quadrupeds: ``fl_``,
+    ``hl_``/``fr_``, ``hr_``; anything else the midline)."""
+    if name.startswith(LEFT_PREFIXES):
+        return "left"
+    if name.startswith(RIGHT_PREFIXES):
+        return "right"
+    return "mid"
+
+
+def draw_side_legend(img: np.ndarray, scale: int) -> None:
+    """Write "left" and "right" in their limb colours in the picture's top-left corner (in place)."""
+    import cv2
+
+    y = 14 * scale
+    for word in ("left", "right"):
+        cv2.putText(img, word, (6 * scale, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45 * scale, (0, 0, 0), 3 * scale)
+        cv2.putText(img, word, (6 * scale, y), cv2.FONT_HERSHEY_SIMPLEX, 0.45 * scale, SIDE_COLOURS[word], scale)
+        y += 16 * scale
 
 
 def drawable(uv: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -81,6 +128,7 @@ def draw_fit(
     part_points: np.ndarray | None = None,
     part_labels: np.ndarray | None = None,
     landmarks: np.ndarray | None = None,
+    names: tuple[str, ...] | None = None,
 ) -> np.ndarray:
     """One frame with the fit drawn over it.
 
@@ -96,6 +144,8 @@ def draw_fit(
         part_points: (V, 3) posed body vertices in the camera frame [m], drawn as dots coloured by part.
         part_labels: (V,) part index of each vertex.
         landmarks: (L, 2) detected 2D landmarks [px], drawn as small white crosses.
+        names: (J,) joint names: each bone is coloured by its child joint's side (:func:`side_of`) and a legend
+            drawn; None = every bone white.
 
     Returns:
         (H, W, 3) uint8 picture.
@@ -112,12 +162,13 @@ def draw_fit(
         uv = project(part_points, K)
         for (u, v), lab in zip(uv[drawable(uv, w, h)], np.asarray(part_labels)[drawable(uv, w, h)]):
             colour = tuple(int(c) for c in PART_COLOURS[int(lab) % len(PART_COLOURS)])
-            cv2.circle(img, (int(round(u)), int(round(v))), scale, colour, -1)
+            cv2.circle(img, (int(round(u)), int(round(v))), max(1, scale // 2), colour, -1)
     joints = np.asarray(joints, dtype=np.float64)
     for j, p in enumerate(parents):
         seg = clip_segment(joints[p], joints[j], K, w, h) if p >= 0 else None
         if seg is not None:
-            cv2.line(img, seg[0], seg[1], (255, 255, 255), 2 * scale)
+            colour = SIDE_COLOURS[side_of(names[j]) if names is not None else "mid"]
+            cv2.line(img, seg[0], seg[1], colour, 2 * scale)
     uvj = project(joints, K)
     for u, v in uvj[drawable(uvj, w, h)]:
         cv2.circle(img, (int(round(u)), int(round(v))), 2 * scale + 1, (255, 0, 0), -1)
@@ -125,6 +176,8 @@ def draw_fit(
         lm = np.asarray(landmarks, dtype=np.float64)
         for u, v in lm[drawable(lm, w, h)]:
             cv2.drawMarker(img, (int(round(u)), int(round(v))), (0, 255, 0), cv2.MARKER_CROSS, 4 * scale + 2, scale)
+    if names is not None:
+        draw_side_legend(img, scale)
     return img
 
 
