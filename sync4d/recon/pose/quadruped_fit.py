@@ -14,8 +14,8 @@ template; leg joints turn mostly about the body's lateral axis), smooth root-rel
 tracking fit also pays the body's predicted image motion from the frame before against the video's optical
 flow (Cauchy, where the flow is trusted: a walk in place and a turn toward the camera fill the same silhouettes
 but move the body's texture differently) and holds the clip's shape near the start's. Search: root headings on
-the first frame, the best few tracked frame by frame (and, when the masks travel a body length or more, a start
-heading along that travel: animals walk head first), then left/right leg swaps as hypotheses ranked by
+the first frame, the best few tracked frame by frame (and, when the masks travel a body length or more and no
+track faces that way, a start heading along the travel: animals walk head first), then left/right leg swaps as hypotheses ranked by
 :func:`hypothesis_score` (plus, for such a walk, each hypothesis' backward travel; near vertices hide far ones).
 """
 
@@ -807,9 +807,9 @@ def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Param
     best: tuple[float, Params] | None = None
     swaps = ((), ("f",), ("h",), ("f", "h")) if prob.flow is not None else ((),)
     n = len(masks)
-    walk: np.ndarray | None = mask_travel(prob, masks, up_cam, config)
-    log.info("quadruped travel read from the masks: %.2f body lengths", float(np.linalg.norm(walk)))
-    walk = walk if float(np.linalg.norm(walk)) >= 1.0 else None
+    travelled = mask_travel(prob, masks, up_cam, config)
+    log.info("quadruped travel read from the masks: %.2f body lengths", float(np.linalg.norm(travelled)))
+    walk = travelled if float(np.linalg.norm(travelled)) >= 1.0 else None
     for heading, full in tracked_hypotheses(prob, starts, config, up_cam, masks, walk):
         backward = max(0.0, -travel(prob, full, up_cam)[1]) if config.travel_rank and walk is not None else 0.0
         for pairs in swaps:
