@@ -829,3 +829,69 @@ def test_draw_fit_colours_each_limb_by_its_side() -> None:
     out = draw_fit(frame, K=K, joints=joints, parents=np.array([-1, 0, 0]), names=("root", "fl_paw", "fr_paw"))
     assert tuple(out[70, 65]) == SIDE_COLOURS["left"]  # the middle of the left leg's line (row 70, column 65)
     assert tuple(out[70, 95]) == SIDE_COLOURS["right"]
+
+
+def test_quadruped_travel_reads_the_walk_against_the_heading() -> None:
+    """A body walking 1.5 body lengths along its own heading travels forward by that much, and the heading along
+    its displacement is the one it was made with; turned about the up axis to face the other way, the same path is
+    backward travel; a body standing in place travels nothing."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d.sources.references import camera_from_look
+
+    K = np.array([[300.0, 0, 120], [0, 300.0, 80], [0, 0, 1]])
+    camera = camera_from_look(K, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0], 240, 160)
+    prob = qf.QuadrupedProblem(np.ones((4, 160, 240), bool), camera, qf.QuadrupedFitConfig())
+    up = np.array([0.0, -0.8, -0.6])  # the camera looks down on the ground
+    for angle in (0.3, 2.0, -2.5):
+        rot = qf.heading_rotation(up, angle)
+        ahead = qf.heading_rotation(up, angle + math.pi)
+        walk = qf.start_params(prob, rot, np.array([0.0, 0.0, 3.0]), 0.6, frames=4)
+        back = qf.start_params(prob, ahead, np.array([0.0, 0.0, 3.0]), 0.6, frames=4)
+        fwd = -Rotation.from_rotvec(rot).as_matrix()[:, 0]
+        with torch.no_grad():
+            for p in (walk, back):
+                p["root_pos"] += torch.tensor(np.arange(4)[:, None] * 0.3 * fwd + np.arange(4)[:, None] * 0.1 * up,
+                                              dtype=qf.DTYPE)
+        disp, forward = qf.travel(prob, walk, up)
+        assert abs(forward - 1.5) < 1e-4 and abs(float(np.linalg.norm(disp)) - 1.5) < 1e-4
+        turn = (qf.travel_heading(disp, up) - angle + math.pi) % (2 * math.pi) - math.pi
+        assert abs(turn) < 1e-4
+        assert abs(qf.travel(prob, back, up)[1] + 1.5) < 1e-4
+    still = qf.start_params(prob, qf.heading_rotation(up, 1.0), np.array([0.0, 0.0, 3.0]), 0.6, frames=4)
+    assert qf.travel(prob, still, up)[1] == 0.0
+
+
+def test_quadruped_mask_travel_reads_a_walk_from_the_masks() -> None:
+    """Masks of constant size sliding across a static camera's view travel sideways, by the slide over the body's
+    length at the depth their height implies; masks growing about a fixed centre travel toward the camera; masks
+    that stay put travel nothing. Under a moving camera the camera's own motion is taken out."""
+    from sync4d.recon.pose import quadruped_fit as qf
+    from sync4d.sources.references import camera_from_look
+
+    K = np.array([[300.0, 0, 120], [0, 300.0, 80], [0, 0, 1]])
+    camera = camera_from_look(K, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0], 240, 160)
+    cfg = qf.QuadrupedFitConfig()
+    up = np.array([0.0, -1.0, 0.0])
+
+    def box(x0: int, y0: int, w: int, h: int) -> np.ndarray:
+        m = np.zeros((160, 240), bool)
+        m[y0: y0 + h, x0: x0 + w] = True
+        return m
+
+    slide = np.stack([box(40 + 20 * t, 60, 60, 30) for t in range(4)])
+    prob = qf.QuadrupedProblem(slide, camera, cfg)
+    disp = qf.mask_travel(prob, slide, up, cfg)
+    z = qf.start_root(prob, slide[0], cfg)[2]
+    assert abs(disp[0] - 60 * z / 300.0 / cfg.template_length) < 1e-6 and abs(disp[1]) < 1e-9 and abs(disp[2]) < 1e-6
+    grow = np.stack([box(120 - 10 * (t + 3), 80 - 5 * (t + 3), 20 * (t + 3), 10 * (t + 3)) for t in range(4)])
+    disp = qf.mask_travel(qf.QuadrupedProblem(grow, camera, cfg), grow, up, cfg)
+    assert disp[2] < -0.5 and abs(disp[0]) < 0.05 * abs(disp[2])
+    still = np.stack([box(40, 60, 60, 30)] * 4)
+    assert np.abs(qf.mask_travel(qf.QuadrupedProblem(still, camera, cfg), still, up, cfg)).max() < 1e-9
+    turned = np.stack([np.eye(4)] * 4)
+    turned[:, 0, 3] = np.arange(4) * 20 * z / 300.0  # the camera slides the other way: the subject stands still
+    prob = qf.QuadrupedProblem(slide, camera, cfg, extrinsics=turned)
+    assert np.abs(qf.mask_travel(prob, slide, up, cfg)).max() < 1e-6
