@@ -3,8 +3,6 @@ reading of a hinge (``joints.mirrored``)."""
 
 from __future__ import annotations
 
-from functools import partial
-
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
@@ -133,72 +131,3 @@ def test_hinge_angles_matched_to_image_motion_recover_a_70_degree_turn() -> None
     target = project(np.einsum("tij,nj->tni", jt.rodrigues_np(axis, angles), x0 - pivot) + pivot)
     found = jt.gauss_newton_angles(x0, axis, pivot, target, scene)
     assert np.degrees(np.abs(found - angles)).max() < 0.01, np.degrees(found)
-
-
-def _turning_plates(frames: int = 6, n: int = 200) -> tuple[jt.Scene, np.ndarray]:
-    """Two plates 20 m away, the right one turning 20 deg about a line near the view direction; the scene's
-    tracks are its projection, its cover pixels its frames' projected points. Returns the scene and labels."""
-    rng = np.random.default_rng(1)
-    uv0 = np.stack([rng.uniform(40, 120, n), rng.uniform(30, 90, n)], 1)
-    rays = np.concatenate([(uv0 - K[:2, 2]) / K[0, 0], np.ones((n, 1))], 1)
-    labels = (uv0[:, 0] > 80).astype(int)
-    d = torch.float64
-    scene = jt.Scene(rays=torch.as_tensor(rays, dtype=d), centre=torch.zeros(3, dtype=d), K=torch.as_tensor(K, dtype=d),
-                     w2c=torch.eye(4, dtype=d), tracks=torch.zeros(frames, n, 2, dtype=d),
-                     trusted=torch.ones(frames, n, dtype=torch.bool), verified=torch.ones(frames, n, dtype=torch.bool),
-                     outside=torch.zeros(frames, 120, 160, dtype=d), cover_px=[torch.zeros(0, 2, dtype=d)] * frames,
-                     root_motion=torch.as_tensor(np.tile(np.eye(4), (frames, 1, 1)), dtype=d), stride=STRIDE,
-                     width=8.0, z_ref=20.0)
-    values = np.zeros((frames, 2))
-    values[:, 1] = np.radians(np.linspace(0, 20, frames))
-    truth = jt.Articulation(scene, labels, 0, ["root", "hinge"], np.array([[0.0, 0, 0], [0.2, 0.3, 0.93]]),
-                            np.array([[0.0, 0, 0], [0.0, 0.0, 20.0]]), values, np.full(n, np.log(20.0)))
-    with torch.no_grad():
-        uv = jt.project(scene, truth.posed())
-    scene.tracks.copy_(uv)
-    cover = [uv[t, ::3].clone() for t in range(frames)]
-    return jt.Scene(**{**{f: getattr(scene, f) for f in scene.__dataclass_fields__}, "cover_px": cover}), labels
-
-
-def _start(scene: jt.Scene, labels: np.ndarray, axis: list[float]) -> jt.Articulation:
-    frames = scene.tracks.shape[0]
-    return jt.Articulation(scene, labels, 0, ["root", "hinge"], np.array([[0.0, 0, 0], axis]),
-                           np.array([[0.0, 0, 0], [0.0, 0.0, 20.0]]), np.zeros((frames, 2)),
-                           np.full(len(labels), np.log(20.0)))
-
-
-def test_a_fit_stopped_and_resumed_is_the_fit_run_through_to_the_bit() -> None:
-    """Successive halving stops every candidate's Adam run and resumes the survivors from their model and
-    Adam states (``run_leg``): over the windowed schedule, in three legs, the same parameters bit for bit."""
-    scene, labels = _turning_plates()
-    config = jt.FitConfig(steps=60, workers=1)
-    pairs = jt.neighbour_pairs(scene.tracks[0].numpy(), labels, STRIDE)
-    whole = _start(scene, labels, [0.0, 0.0, 1.0])
-    loss = jt.optimise(whole, config, 40, pairs)
-
-    def setup(model: jt.Articulation) -> jt.AdamRun:
-        return jt.adam_run(model, config, 40, pairs)
-
-    leg = None
-    for until in (7, 23, 40):
-        leg = jt.run_leg(lambda: _start(scene, labels, [0.0, 0.0, 1.0]), setup, config, leg, until)
-    assert leg is not None and leg[0] == loss and leg[3] == 40
-    for name, value in whole.state_dict().items():
-        assert torch.equal(value, leg[1][name]), name
-
-
-def test_successive_halving_keeps_the_start_that_fits_best() -> None:
-    """Of four hinge starts the one whose run ends lowest is kept; the dropped ones report the loss they were
-    dropped at, the kept one its final loss (the same as its run through, alone)."""
-    scene, labels = _turning_plates()
-    config = jt.FitConfig(steps=60, workers=1)
-    pairs = jt.neighbour_pairs(scene.tracks[0].numpy(), labels, STRIDE)
-    axes = [[1.0, 0, 0], [0.2, 0.3, 0.93], [0, 1.0, 0], [1.0, 1.0, 0]]
-
-    def setup(model: jt.Articulation) -> jt.AdamRun:
-        return jt.adam_run(model, config, 40, pairs)
-
-    best, leg, losses = jt.best_of([partial(_start, scene, labels, a) for a in axes], setup, 40, config, halve=True)
-    alone = jt.optimise(_start(scene, labels, axes[best]), config, 40, pairs)
-    assert leg[0] == alone == min(losses) and leg[3] == 40
-    assert sum(np.isfinite(losses)) == 4

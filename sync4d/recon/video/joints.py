@@ -77,8 +77,8 @@ class FitConfig:
     static_root_px: median track motion [px] under which the root counts as static.
     workers: the hinge starts, and a slide's two starts, fitted side by side, each in a forked process (0: one
         per usable core; 1: in turn here); the result does not depend on it.
-    halving: the best hinge start by successive halving (:func:`best_of`: the worse half dropped at a quarter
-        and at half the steps) instead of every start fitted to the end.
+    halving: the best of several starts by successive halving (:func:`best_of`: the worse half dropped at a
+        quarter and at half the steps) instead of every start fitted to the end.
     """
 
     steps: int = 240
@@ -703,13 +703,12 @@ def run_leg(make: Callable[[], Articulation], setup: Callable[[Articulation], Ad
 
 
 def best_of(makes: list[Callable[[], Articulation]], setup: Callable[[Articulation], AdamRun], total: int,
-            config: FitConfig, *, halve: bool = False) -> tuple[int, Leg, list[float]]:
-    """The candidate (``makes[i]()``, fitted by ``setup``'s run of ``total`` steps) with the least data loss;
-    with ``halve`` by successive halving: every candidate fitted to ``total / 2^h`` steps (h halvings to one),
-    the worse half dropped, the rest to twice as far, the last one to ``total`` (the winner's run is the one
-    it would have had alone, to the bit). Candidates are fitted side by side in forked processes
-    (``config.workers``). Returns its index, its fit, and every candidate's last data loss."""
-    halvings = int(np.ceil(np.log2(max(1, len(makes))))) if halve else 0
+            config: FitConfig) -> tuple[int, Leg, list[float]]:
+    """The candidate (``makes[i]()``, fitted by ``setup``'s run of ``total`` steps) with the least data loss,
+    by successive halving: every candidate fitted to ``total / 2^h`` steps (h halvings to one), the worse half
+    dropped, the rest to twice as far, the last one to ``total``; candidates fitted side by side in forked
+    processes (``config.workers``). Returns its index, its fit, and every candidate's last data loss."""
+    halvings = int(np.ceil(np.log2(max(1, len(makes))))) if config.halving else 0
     alive = list(range(len(makes)))
     legs: list[Leg | None] = [None] * len(makes)
     losses = [np.inf] * len(makes)
@@ -727,15 +726,14 @@ def best_of(makes: list[Callable[[], Articulation]], setup: Callable[[Articulati
 
 def fit_hinge_starts(make: Callable[[int], Articulation], count: int, pairs: torch.Tensor, config: FitConfig
                      ) -> tuple[Articulation, list[float]]:
-    """The best of ``count`` hinge starts (``make(s)`` builds start s; :func:`best_of`, by successive halving
-    with ``config.halving``), and every start's last data loss (a dropped start's where it was dropped)."""
+    """The best of ``count`` hinge starts (``make(s)`` builds start s; :func:`best_of`), and every start's last
+    data loss."""
     # the starts follow every consistent track: a sticking track under-reports its part's motion but
     # still points the way, and a start needs any cue to reach the right basin (the lever's starts all
     # ended at about 4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
     setup = partial(_start_run, config, pairs)
     total = setup(make(0)).total
-    best, leg, history = best_of([partial(make, s) for s in range(count)], setup, total, config,
-                                 halve=config.halving)
+    best, leg, history = best_of([partial(make, s) for s in range(count)], setup, total, config)
     for s, loss in enumerate(history):
         log.info("recon=video: hinge start %d: data loss %.4f", s, loss)
     model = make(best)
@@ -757,8 +755,7 @@ def _given(model: Articulation) -> Articulation:
 
 def fit_best_copy(picked: list[Articulation], pairs: torch.Tensor, config: FitConfig) -> Articulation:
     """The best of the slide or hinge starts ``picked`` (:func:`best_of`, ``config.steps // 8`` steps on all
-    frames), fitted. Both run to the end: halved at 15 steps, the desk's drawer (right, seed 1) kept the other
-    slide start and its lid turned from a hinge 13.9 deg off to a slide (docs/results/articulated.md)."""
+    frames), fitted."""
     setup = partial(_copy_run, config, pairs)
     best, leg, _ = best_of([partial(_given, trial) for trial in picked], setup, setup(picked[0]).total, config)
     picked[best].load_state_dict(leg[1])
