@@ -77,8 +77,6 @@ class FitConfig:
     static_root_px: median track motion [px] under which the root counts as static.
     workers: the hinge starts, and a slide's two starts, fitted side by side, each in a forked process (0: one
         per usable core; 1: in turn here); the result does not depend on it.
-    halving: the best of several starts by successive halving (:func:`best_of`: the worse half dropped at a
-        quarter and at half the steps) instead of every start fitted to the end.
     """
 
     steps: int = 240
@@ -90,7 +88,6 @@ class FitConfig:
     relabel_rounds: int = 1
     static_root_px: float = 1.0
     workers: int = 0
-    halving: bool = True
 
 
 @dataclass(frozen=True)
@@ -555,63 +552,31 @@ def neighbour_pairs(uv0: np.ndarray, labels: np.ndarray, stride: float) -> torch
     return torch.as_tensor(pairs if len(pairs) else np.zeros((1, 2), np.int64))
 
 
-@dataclass
-class AdamRun:
-    """An :func:`optimise` run that can stop and go on (:func:`advance`): Adam over a growing window of frames
-    (``ends``: each window's last frame + 1, ``per`` steps each), ``done`` steps taken."""
-
-    model: Articulation
-    opt: torch.optim.Adam
-    pairs: torch.Tensor
-    ends: list[int]
-    per: int
-    verified_only: bool = True
-    done: int = 0
-    data: float = 0.0
-
-    @property
-    def total(self) -> int:
-        return self.per * len(self.ends)
-
-
-def adam_run(model: Articulation, config: FitConfig, steps: int, pairs: torch.Tensor, *, windows: int = 4,
-             verified_only: bool = True) -> AdamRun:
-    """The run :func:`optimise` takes (no step taken yet)."""
+def optimise(model: Articulation, config: FitConfig, steps: int, pairs: torch.Tensor, *, windows: int = 4,
+             verified_only: bool = True) -> float:
+    """Adam over a growing window of frames, then all frames; returns the final data loss (tracks as in
+    :func:`data_terms`)."""
     n_frames = model.values.shape[0] + 1
     opt = torch.optim.Adam([{"params": [model.resid, model.axes, model.pivot_delta], "lr": config.lr},
                             {"params": [model.plane], "lr": config.lr / model.scene.z_ref},
                             {"params": [model.values], "lr": config.lr * 2}])
     ends = [max(2, int(np.ceil(n_frames * (k + 1) / windows))) for k in range(windows)] + [n_frames]
-    return AdamRun(model, opt, pairs, ends, max(1, steps // len(ends)), verified_only)
-
-
-def advance(run: AdamRun, config: FitConfig, until: int) -> float:
-    """``run``'s steps up to step ``until`` (at most its total); returns the last step's data loss."""
-    model = run.model
-    for i in range(run.done, min(until, run.total)):
-        w = i // run.per
-        end = run.ends[w]
-        if i % run.per == 0 and w > 0:
-            with torch.no_grad():  # new frames start where the window's last frame is
-                last_end = run.ends[w - 1]
-                if end > last_end > 1:
-                    model.values[last_end - 1:end - 1] = model.values[last_end - 2]
-        run.opt.zero_grad(set_to_none=True)
-        track, inside, cover = data_terms(model, end, verified_only=run.verified_only)
-        data = track + config.inside_weight * inside + config.cover_weight * cover
-        loss = data + config.smooth_weight * prior_terms(model, run.pairs)
-        loss.backward()
-        run.opt.step()
-        run.data, run.done = float(data.detach()), i + 1
-    return run.data
-
-
-def optimise(model: Articulation, config: FitConfig, steps: int, pairs: torch.Tensor, *, windows: int = 4,
-             verified_only: bool = True) -> float:
-    """Adam over a growing window of frames, then all frames; returns the final data loss (tracks as in
-    :func:`data_terms`)."""
-    run = adam_run(model, config, steps, pairs, windows=windows, verified_only=verified_only)
-    return advance(run, config, run.total)
+    per = max(1, steps // len(ends))
+    last_end = 1
+    data = torch.zeros(())
+    for end in ends:
+        with torch.no_grad():  # new frames start where the window's last frame is
+            if end > last_end and last_end > 1:
+                model.values[last_end - 1:end - 1] = model.values[last_end - 2]
+        last_end = end
+        for _ in range(per):
+            opt.zero_grad(set_to_none=True)
+            track, inside, cover = data_terms(model, end, verified_only=verified_only)
+            data = track + config.inside_weight * inside + config.cover_weight * cover
+            loss = data + config.smooth_weight * prior_terms(model, pairs)
+            loss.backward()
+            opt.step()
+    return float(data.detach())
 
 
 def kind_loss(model: Articulation, config: FitConfig) -> float:
@@ -685,81 +650,33 @@ def start_model(scene: Scene, labels: np.ndarray, root: int, kinds: list[str], b
                         log_d)
 
 
-Leg = tuple[float, dict[str, torch.Tensor], dict[str, Any], int]  # data loss, model, Adam state, steps taken
-
-
-def run_leg(make: Callable[[], Articulation], setup: Callable[[Articulation], AdamRun], config: FitConfig,
-            state: Leg | None, until: int) -> Leg:
-    """A candidate's fit (``make()``'s model, ``setup``'s run) from ``state`` (None: the start) to step
-    ``until``."""
-    model = make()
-    run = setup(model)
-    if state is not None:
-        model.load_state_dict(state[1])
-        run.opt.load_state_dict(state[2])
-        run.done, run.data = state[3], state[0]
-    loss = advance(run, config, until)
-    return loss, model.state_dict(), run.opt.state_dict(), run.done
-
-
-def best_of(makes: list[Callable[[], Articulation]], setup: Callable[[Articulation], AdamRun], total: int,
-            config: FitConfig) -> tuple[int, Leg, list[float]]:
-    """The candidate (``makes[i]()``, fitted by ``setup``'s run of ``total`` steps) with the least data loss,
-    by successive halving: every candidate fitted to ``total / 2^h`` steps (h halvings to one), the worse half
-    dropped, the rest to twice as far, the last one to ``total``; candidates fitted side by side in forked
-    processes (``config.workers``). Returns its index, its fit, and every candidate's last data loss."""
-    halvings = int(np.ceil(np.log2(max(1, len(makes))))) if config.halving else 0
-    alive = list(range(len(makes)))
-    legs: list[Leg | None] = [None] * len(makes)
-    losses = [np.inf] * len(makes)
-    for k in range(halvings + 1):
-        until = total >> (halvings - k)
-        fitted = run_forked([partial(run_leg, makes[i], setup, config, legs[i], until) for i in alive],
-                            usable_workers(config.workers))
-        for i, leg in zip(alive, fitted):
-            legs[i], losses[i] = leg, leg[0]
-        alive = sorted(alive, key=lambda i: (losses[i], i))[:max(1, (len(alive) + 1) // 2)]
-    won = legs[alive[0]]
-    assert won is not None, "the best candidate was fitted"
-    return alive[0], won, losses
+def fit_start(make: Callable[[int], Articulation], pairs: torch.Tensor, config: FitConfig, s: int
+              ) -> tuple[float, dict[str, torch.Tensor]]:
+    """Start ``s`` fitted: its data loss and the model's parameters."""
+    model = make(s)
+    # the starts follow every consistent track: a sticking track under-reports its part's motion but
+    # still points the way, and a start needs any cue to reach the right basin (the lever's starts all
+    # ended at about 4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
+    loss = optimise(model, config, config.steps // 3, pairs, verified_only=False)
+    return loss, model.state_dict()
 
 
 def fit_hinge_starts(make: Callable[[int], Articulation], count: int, pairs: torch.Tensor, config: FitConfig
                      ) -> tuple[Articulation, list[float]]:
-    """The best of ``count`` hinge starts (``make(s)`` builds start s; :func:`best_of`), and every start's last
-    data loss."""
-    # the starts follow every consistent track: a sticking track under-reports its part's motion but
-    # still points the way, and a start needs any cue to reach the right basin (the lever's starts all
-    # ended at about 4x the truth's loss on verified tracks alone); every later fit uses verified tracks only
-    setup = partial(_start_run, config, pairs)
-    total = setup(make(0)).total
-    best, leg, history = best_of([partial(make, s) for s in range(count)], setup, total, config)
-    for s, loss in enumerate(history):
-        log.info("recon=video: hinge start %d: data loss %.4f", s, loss)
-    model = make(best)
-    model.load_state_dict(leg[1])
-    return model, history
-
-
-def _start_run(config: FitConfig, pairs: torch.Tensor, model: Articulation) -> AdamRun:
-    return adam_run(model, config, config.steps // 3, pairs, verified_only=False)
-
-
-def _copy_run(config: FitConfig, pairs: torch.Tensor, model: Articulation) -> AdamRun:
-    return adam_run(model, config, config.steps // 8, pairs, windows=1)
-
-
-def _given(model: Articulation) -> Articulation:
-    return model
-
-
-def fit_best_copy(picked: list[Articulation], pairs: torch.Tensor, config: FitConfig) -> Articulation:
-    """The best of the slide or hinge starts ``picked`` (:func:`best_of`, ``config.steps // 8`` steps on all
-    frames), fitted."""
-    setup = partial(_copy_run, config, pairs)
-    best, leg, _ = best_of([partial(_given, trial) for trial in picked], setup, setup(picked[0]).total, config)
-    picked[best].load_state_dict(leg[1])
-    return picked[best]
+    """The best of ``count`` hinge starts (``make(s)`` builds start s), fitted side by side in forked
+    processes (``config.workers``), and every start's data loss."""
+    fitted = run_forked([partial(fit_start, make, pairs, config, s) for s in range(count)],
+                        usable_workers(config.workers))
+    best, best_loss, history = None, np.inf, []
+    for s, (loss, state) in enumerate(fitted):
+        history.append(loss)
+        log.info("recon=video: hinge start %d (axes %s): data loss %.4f", s, np.round(state["axes"].numpy(), 2).tolist(),
+                 loss)
+        if loss < best_loss:
+            best, best_loss = make(s), loss
+            best.load_state_dict(state)
+    assert best is not None, "at least one hinge start runs"
+    return best, history
 
 
 def fit_joints(scene: Scene, tracks: Tracks, init: PartInit, config: FitConfig) -> JointFit:
@@ -1002,7 +919,11 @@ def hinge_from(slide: Articulation, hinge: Articulation, b: int, tracks: Tracks,
     log.info("recon=video: part %d's hinge starts from the slide's reading: kind losses %s (start %s best)", b,
              [round(k, 4) for k, _, _ in sorted(starts, key=lambda x: x[1])], starts[0][1])
     pairs = neighbour_pairs(tracks.uv0, slide.labels.numpy(), tracks.stride)
-    return fit_best_copy([trial for _, _, trial in starts[:2]], pairs, config)
+    picked = [trial for _, _, trial in starts[:2]]
+    fitted = run_forked([partial(fit_copy, trial, pairs, config) for trial in picked], usable_workers(config.workers))
+    loss, i = min((loss, i) for i, (loss, _) in enumerate(fitted))
+    picked[i].load_state_dict(fitted[i][1])
+    return picked[i]
 
 
 def hinge_lines(slide: Articulation, hinge: Articulation, b: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -1110,7 +1031,17 @@ def slide_from(model: Articulation, b: int, tracks: Tracks, config: FitConfig) -
         starts.append((kind_loss(trial, config), len(starts), trial))
     starts.sort(key=lambda x: x[:2])
     pairs = neighbour_pairs(tracks.uv0, model.labels.numpy(), tracks.stride)
-    return fit_best_copy([trial for _, _, trial in starts[:2]], pairs, config)
+    picked = [trial for _, _, trial in starts[:2]]
+    fitted = run_forked([partial(fit_copy, trial, pairs, config) for trial in picked], usable_workers(config.workers))
+    loss, i = min((loss, i) for i, (loss, _) in enumerate(fitted))
+    picked[i].load_state_dict(fitted[i][1])
+    return picked[i]
+
+
+def fit_copy(model: Articulation, pairs: torch.Tensor, config: FitConfig) -> tuple[float, dict[str, torch.Tensor]]:
+    """A slide start refined (one window, ``config.steps // 8`` steps): its data loss and parameters."""
+    loss = optimise(model, config, config.steps // 8, pairs, windows=1)
+    return loss, model.state_dict()
 
 
 def slide_directions(x0: np.ndarray, xt: np.ndarray, uv: np.ndarray, scene: Scene) -> list[np.ndarray]:
