@@ -831,7 +831,7 @@ def test_draw_fit_colours_each_limb_by_its_side() -> None:
     assert tuple(out[70, 95]) == SIDE_COLOURS["right"]
 
 
-def test_quadruped_travel_reads_the_walk_against_the_heading() -> None:
+def test_quadruped_travel_reads_the_walk_against_the_heading(shared_data: Path) -> None:
     """A body walking 1.5 body lengths along its own heading travels forward by that much, and the heading along
     its displacement is the one it was made with; turned about the up axis to face the other way, the same path is
     backward travel; a body standing in place travels nothing."""
@@ -864,7 +864,7 @@ def test_quadruped_travel_reads_the_walk_against_the_heading() -> None:
     assert qf.travel(prob, still, up)[1] == 0.0
 
 
-def test_quadruped_mask_travel_reads_a_walk_from_the_masks() -> None:
+def test_quadruped_mask_travel_reads_a_walk_from_the_masks(shared_data: Path) -> None:
     """Masks of constant size sliding across a static camera's view travel sideways, by the slide over the body's
     length at the depth their height implies; masks growing about a fixed centre travel toward the camera; masks
     that stay put travel nothing. Under a moving camera the camera's own motion is taken out."""
