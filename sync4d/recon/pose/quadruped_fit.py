@@ -40,6 +40,9 @@ SMOOTH_FPS = 30.0  # the frame rate at which smooth_weight is stated
 DTYPE = torch.float32
 SAMPLES = 1200  # surface samples of the template drawn as discs for the silhouette
 SAMPLE_RADIUS = 0.6  # disc radius in units of the samples' mean spacing (fills the gaps between them)
+# the masks' travel over a clip [body lengths] from which it is read as a walk (the walk cue acts): a walk in place
+# or a survey reads a few tenths from the masks' noise and a camera turned into object motion
+WALK_BODY_LENGTHS = 1.0
 Params = dict[str, torch.Tensor]
 
 
@@ -809,7 +812,7 @@ def best_hypothesis(prob: QuadrupedProblem, starts: list[tuple[float, int, Param
     n = len(masks)
     travelled = mask_travel(prob, masks, up_cam, config)
     log.info("quadruped travel read from the masks: %.2f body lengths", float(np.linalg.norm(travelled)))
-    walk = travelled if float(np.linalg.norm(travelled)) >= 1.0 else None
+    walk = travelled if float(np.linalg.norm(travelled)) >= WALK_BODY_LENGTHS else None
     for heading, full in tracked_hypotheses(prob, starts, config, up_cam, masks, walk):
         backward = max(0.0, -travel(prob, full, up_cam)[1]) if config.travel_rank and walk is not None else 0.0
         for pairs in swaps:
